@@ -5,10 +5,16 @@ Conventions
 * Rotation matrices act on column vectors: ``y = R @ x``.
 * ``hat(omega)`` is the skew matrix with ``hat(omega) @ x == cross(omega, x)``.
 * ``exp(omega) = expm(hat(omega))`` (Rodrigues); ``omega`` is the rotation vector
-  (axis times angle, right-hand rule).
+  (axis times angle, right-hand rule). ``log`` is its inverse with angle in ``[0, pi]``.
+* ``sqrt(R) = exp(log(R) / 2)`` is the half transport ``sqrt(R_ij)`` of report Sec. 3.3
+  (CONVENTIONS §1: it maps the edge-midpoint fiber to the fiber at ``v_i``).
+* ``euler_xyz(a, b, c) = Rx(a) @ Ry(b) @ Rz(c)`` (report Sec. 3.4); this equals SciPy's
+  *intrinsic* ``Rotation.from_euler("XYZ", [a, b, c])`` (upper-case axes).
 
-All functions accept any float dtype and device; constants follow the input.
-(Skeleton: exp/hat/vee/random; log/sqrt/angle/euler are completed in the so3 work item.)
+All functions accept any float dtype and device; constants follow the input. Thresholds of
+the Taylor and near-pi branches come from :func:`torchconn.tolerances.get_eps`; the unused
+branch of every ``torch.where`` gets a harmless input ("safe-where") so that values *and*
+gradients are finite at angle 0 and at angle pi. No ``acos(trace)`` is used anywhere.
 """
 from __future__ import annotations
 
@@ -16,12 +22,35 @@ import torch
 
 from .tolerances import get_eps
 
-__all__ = ["hat", "vee", "exp", "random_rotation"]
+__all__ = [
+    "hat",
+    "vee",
+    "exp",
+    "log",
+    "sqrt",
+    "angle",
+    "geodesic_distance",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "euler_xyz",
+    "random_rotation",
+    "check_rotation",
+    "project_to_rotation",
+]
+
+
+def _check_mat3(R: torch.Tensor, fn: str) -> None:
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"{fn} expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
 
 
 def hat(omega: torch.Tensor) -> torch.Tensor:
-    """Skew matrix of a vector: ``omega (..., 3) -> (..., 3, 3)`` with ``hat(w) x = w x x``."""
-    if omega.shape[-1:] != (3,):
+    """Skew matrix of a vector: ``omega (..., 3) -> (..., 3, 3)`` with ``hat(w) x = w x x``.
+
+    ``hat((x, y, z)) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]``.
+    """
+    if omega.dim() < 1 or omega.shape[-1:] != (3,):
         raise ValueError(f"hat expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
     x, y, z = omega.unbind(-1)
     o = torch.zeros_like(x)
@@ -34,9 +63,9 @@ def vee(K: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`hat` on the skew part: ``(..., 3, 3) -> (..., 3)``.
 
     Uses the antisymmetric part ``(K - K^T)/2``, so it is the projection for non-skew input.
+    For a rotation by angle ``t`` about the unit axis ``n``, ``vee(R) = sin(t) n``.
     """
-    if K.shape[-2:] != (3, 3):
-        raise ValueError(f"vee expects a tensor of shape (..., 3, 3), got {tuple(K.shape)}")
+    _check_mat3(K, "vee")
     return 0.5 * torch.stack(
         (K[..., 2, 1] - K[..., 1, 2], K[..., 0, 2] - K[..., 2, 0], K[..., 1, 0] - K[..., 0, 1]), -1
     )
@@ -59,14 +88,154 @@ def _exp_coeffs(theta2: torch.Tensor):
 def exp(omega: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula ``exp(hat(omega))``: ``omega (..., 3) -> (..., 3, 3)`` rotation.
 
-    Taylor branches below the dtype's ``small_angle`` threshold keep value and gradient
-    finite (and exact to round-off) at ``omega = 0``.
+    ``exp(w) = I + sin(t)/t K + (1 - cos t)/t^2 K^2`` with ``K = hat(w)``, ``t = |w|``
+    (report Remark 3.4: the exponential of a skew matrix is a rotation). Taylor branches
+    below the dtype's ``small_angle`` threshold keep value and gradient finite (and exact to
+    round-off) at ``omega = 0``. Differentiable.
     """
     K = hat(omega)
     theta2 = (omega * omega).sum(-1)
     A, B = _exp_coeffs(theta2)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
     return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def log(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of a rotation: ``R (..., 3, 3) -> omega (..., 3)``, ``|omega|`` in ``[0, pi]``.
+
+    Inverse of :func:`exp`: ``exp(log(R)) == R`` and ``log(exp(w)) == w`` for ``|w| < pi``.
+    With ``v = vee(R) = sin(t) n`` and ``c = (tr R - 1)/2 = cos(t)``, three branches:
+
+    * generic: ``t = atan2(|v|, c)``, ``omega = t / |v| * v``;
+    * small angle (``|v|`` below ``small_angle`` and ``c > 0``):
+      ``omega = asin(s)/s * v`` by its Taylor series in ``s^2 = |v|^2``;
+    * obtuse angles (``c < 0``, i.e. ``t > pi/2``, which contains the near-pi region): the
+      axis is the largest column of the symmetric part ``(R + R^T)/2 - c I = (1 - c) n n^T``,
+      normalized, with its sign chosen so that ``n . v >= 0`` (consistent with the skew part);
+      ``t = atan2(n . v, c)``. This is accurate to round-off up to and including pi, whereas
+      ``t / |v| * v`` loses ``eps / (pi - t)``; so the near-pi switch is taken at ``t = pi/2``
+      rather than at the registry's ``near_pi`` distance.
+
+    At exactly ``t = pi`` the skew part vanishes and the sign of the axis is arbitrary (both
+    ``+pi n`` and ``-pi n`` are logarithms). Differentiable, with finite gradients at 0 and pi.
+    The input is not validated (see :func:`check_rotation`).
+    """
+    _check_mat3(R, "log")
+    dtype, device = R.dtype, R.device
+    eps_small = get_eps("small_angle", dtype)
+    v = vee(R)
+    c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    s2 = (v * v).sum(-1)
+    small = (s2 < eps_small * eps_small) & (c > 0)
+    near_pi = c < 0
+    generic = ~(small | near_pi)
+
+    # generic branch (safe-where: |v| = 1, c = 0 where unused, so sqrt/atan2 stay smooth)
+    s_g = torch.sqrt(torch.where(generic, s2, torch.ones_like(s2)))
+    c_g = torch.where(generic, c, torch.zeros_like(c))
+    fac_g = torch.atan2(s_g, c_g) / s_g
+    # small-angle branch: t/sin(t) = asin(s)/s = 1 + s^2/6 + 3 s^4/40 + 5 s^6/112 + ...
+    s2_s = torch.where(small, s2, torch.zeros_like(s2))
+    fac_s = 1.0 + s2_s * (1.0 / 6.0 + s2_s * (3.0 / 40.0 + s2_s * (5.0 / 112.0)))
+    omega_main = torch.where(small, fac_s, fac_g)[..., None] * v
+
+    # obtuse / near-pi branch, evaluated on a harmless rotation by pi about x where unused
+    R_pi = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype, device=device))
+    Rp = torch.where(near_pi[..., None, None], R, R_pi)
+    vp = vee(Rp)
+    cp = 0.5 * (Rp.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    eye = torch.eye(3, dtype=dtype, device=device)
+    Bp = 0.5 * (Rp + Rp.transpose(-1, -2)) - cp[..., None, None] * eye
+    k = Bp.diagonal(dim1=-2, dim2=-1).argmax(-1)  # largest |n_k|: column norm >= (1-c)/sqrt(3)
+    col = torch.gather(Bp, -1, k[..., None, None].expand(*k.shape, 3, 1)).squeeze(-1)
+    n = col / torch.linalg.vector_norm(col, dim=-1, keepdim=True)
+    sign = torch.where((n * vp).sum(-1) < 0, -torch.ones_like(cp), torch.ones_like(cp))
+    n = n * sign[..., None]
+    omega_pi = torch.atan2((n * vp).sum(-1), cp)[..., None] * n
+
+    return torch.where(near_pi[..., None], omega_pi, omega_main)
+
+
+def sqrt(R: torch.Tensor) -> torch.Tensor:
+    """Principal square root ``exp(log(R)/2)``: ``(..., 3, 3) -> (..., 3, 3)``.
+
+    The half transport ``sqrt(R_ij)`` of report Sec. 3.3 (midpoint of edge ``ij`` -> ``v_i``).
+    ``sqrt(R) @ sqrt(R) == R``; at angle exactly pi the branch follows :func:`log`.
+    Differentiable.
+    """
+    return exp(0.5 * log(R))
+
+
+def _safe_norm(x: torch.Tensor, dims) -> torch.Tensor:
+    # clamp before sqrt: the gradient is 0 (not NaN) where the norm vanishes
+    return torch.sqrt(torch.clamp_min((x * x).sum(dims), torch.finfo(x.dtype).tiny))
+
+
+def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Angle of the relative rotation ``R1^T R2``: ``(..., 3, 3), (..., 3, 3) -> (...)`` in ``[0, pi]``.
+
+    Uses ``||R1 - R2||_F = 2 sqrt(2) sin(t/2)`` and ``||R1 + R2||_F = 2 sqrt(2) cos(t/2)``:
+    ``t = 2 atan2(||R1 - R2||_F, ||R1 + R2||_F)``, accurate at both ends and with finite
+    gradients (zero subgradient at ``t = 0``). Broadcasts over batch dims.
+    """
+    _check_mat3(R1, "geodesic_distance")
+    _check_mat3(R2, "geodesic_distance")
+    return 2.0 * torch.atan2(_safe_norm(R1 - R2, (-2, -1)), _safe_norm(R1 + R2, (-2, -1)))
+
+
+def angle(R: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle ``|log(R)|`` of a rotation: ``(..., 3, 3) -> (...)`` in ``[0, pi]``.
+
+    Computed as ``geodesic_distance(I, R)`` (atan2 form, no ``acos``).
+    """
+    _check_mat3(R, "angle")
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    return geodesic_distance(eye, R)
+
+
+def _as_angle(t, like: torch.Tensor | None = None) -> torch.Tensor:
+    if isinstance(t, torch.Tensor):
+        return t
+    if like is not None:
+        return torch.as_tensor(t, dtype=like.dtype, device=like.device)
+    return torch.as_tensor(t, dtype=torch.get_default_dtype())
+
+
+def _axis_rot(t, i: int, j: int) -> torch.Tensor:
+    """Rotation by ``t`` in the plane of axes ``(i, j)``: ``e_i -> cos e_i + sin e_j``."""
+    t = _as_angle(t)
+    c, s = torch.cos(t), torch.sin(t)
+    o, one = torch.zeros_like(t), torch.ones_like(t)
+    rows = [[one, o, o], [o, one, o], [o, o, one]]
+    rows[i][i], rows[j][j], rows[j][i], rows[i][j] = c, c, s, -s
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def rot_x(t) -> torch.Tensor:
+    """Rotation by angle ``t`` about the x axis: ``t (...) -> (..., 3, 3)`` (right-hand rule)."""
+    return _axis_rot(t, 1, 2)
+
+
+def rot_y(t) -> torch.Tensor:
+    """Rotation by angle ``t`` about the y axis: ``t (...) -> (..., 3, 3)`` (right-hand rule)."""
+    return _axis_rot(t, 2, 0)
+
+
+def rot_z(t) -> torch.Tensor:
+    """Rotation by angle ``t`` about the z axis: ``t (...) -> (..., 3, 3)`` (right-hand rule)."""
+    return _axis_rot(t, 0, 1)
+
+
+def euler_xyz(alpha, beta, gamma) -> torch.Tensor:
+    """``R(alpha, beta, gamma) = Rx(alpha) @ Ry(beta) @ Rz(gamma)`` (report Sec. 3.4).
+
+    Angles are tensors of broadcastable shapes ``(...)`` or Python floats (floats take the
+    dtype/device of the first tensor argument, else the default dtype). Returns
+    ``(..., 3, 3)``. Equals SciPy's intrinsic ``Rotation.from_euler("XYZ", [alpha, beta, gamma])``.
+    """
+    like = next((t for t in (alpha, beta, gamma) if isinstance(t, torch.Tensor)), None)
+    a, b, g = torch.broadcast_tensors(*(_as_angle(t, like) for t in (alpha, beta, gamma)))
+    return rot_x(a) @ rot_y(b) @ rot_z(g)
 
 
 def random_rotation(
@@ -77,8 +246,8 @@ def random_rotation(
 ) -> torch.Tensor:
     """Uniformly (Haar) distributed rotations of shape ``(*shape, 3, 3)``.
 
-    Drawn from normalized Gaussian quaternions; pass a seeded ``generator`` for
-    reproducibility (all randomness goes through it).
+    Drawn from normalized Gaussian quaternions (Haar on the unit 3-sphere, mapped 2:1 onto
+    SO(3)); pass a seeded ``generator`` for reproducibility (all randomness goes through it).
     """
     dtype = dtype or torch.get_default_dtype()
     q = torch.randn(*shape, 4, generator=generator, dtype=dtype, device=device)
@@ -93,3 +262,32 @@ def random_rotation(
         -2,
     )
     return R
+
+
+def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) -> None:
+    """Raise ``ValueError`` unless every ``R (..., 3, 3)`` is a rotation.
+
+    Delegates to :func:`torchconn.son.check_rotation` (NaN/inf, ``||R^T R - I||_F > atol``,
+    ``det R < 0``; the message names the first offending batch index). ``atol`` defaults to
+    ``get_eps("rotation", R.dtype)``. Synchronizes with the device (explicit validation).
+    """
+    _check_mat3(R, "check_rotation")
+    from .son import check_rotation as _check
+
+    _check(R, name=name, atol=atol)
+
+
+def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation in Frobenius norm: ``M (..., 3, 3) -> (..., 3, 3)``.
+
+    ``U diag(1, 1, det(U V^T)) V^T`` from the SVD ``M = U S V^T`` (orthogonal Procrustes with
+    the determinant fixed to +1). Differentiable where the singular values of ``M`` are
+    distinct (SVD backward is undefined for repeated singular values, e.g. ``M = I``).
+    """
+    _check_mat3(M, "project_to_rotation")
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.linalg.det(U @ Vh)
+    ones = torch.ones_like(d)
+    D = torch.stack((ones, ones, torch.where(d < 0, -ones, ones)), -1)
+    return (U * D[..., None, :]) @ Vh
+
