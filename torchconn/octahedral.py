@@ -1,0 +1,198 @@
+"""The octahedral rotation group O (24 rotations of the cube), frame matching, matched holonomy.
+
+Conventions
+-----------
+* A *frame* is a rotation ``F (3, 3)`` whose columns are its three axes in world coordinates:
+  ``frames[i][:, k]`` is axis ``k`` of the frame at vertex ``i``. An octahedral (cross) frame is
+  the class ``{F g : g in O}``: right-multiplying by ``g`` permutes the axes with signs.
+* Matching (the discrete "period jump"): for frames ``F_i, F_j`` the best match is
+  ``g*_ij = argmin_{g in O} ||F_i g - F_j||_F = argmax_{g in O} tr(g^T F_i^T F_j)``, so that
+  ``F_i g*_ij ~ F_j``. For canonical edges ``(i, j)``, ``i < j``, the reverse match is defined as
+  ``g*_ji = g*_ij^T`` (computed once, transposed), so loops are consistent.
+* Matched holonomy of a face ``[a < b < c]`` is ``g_ab g_bc g_ca``; it is the identity for a
+  regular face and a non-trivial element of O around a singular curve (e.g. Nieser et al. 2011,
+  Ray et al. 2016). Since it is an exact group element it is compared with the identity
+  exactly (entries differ by 1 or 2), no tolerance is involved.
+"""
+from __future__ import annotations
+
+import itertools
+
+import torch
+
+__all__ = [
+    "group",
+    "match",
+    "closest_element",
+    "matched_rotations",
+    "face_matched_holonomy",
+    "singular_faces",
+    "tets_with_one_singular_face",
+]
+
+
+def _group_list() -> list[list[list[int]]]:
+    """The 24 signed permutation matrices with determinant +1, identity first (pure Python)."""
+    mats = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            M = [[0] * 3 for _ in range(3)]
+            for col, row in enumerate(perm):
+                M[row][col] = signs[col]
+            det = (
+                M[0][0] * (M[1][1] * M[2][2] - M[1][2] * M[2][1])
+                - M[0][1] * (M[1][0] * M[2][2] - M[1][2] * M[2][0])
+                + M[0][2] * (M[1][0] * M[2][1] - M[1][1] * M[2][0])
+            )
+            if det == 1:
+                mats.append(M)
+    return mats  # permutations() starts with (0,1,2) and signs with (1,1,1): identity first
+
+
+_GROUP = _group_list()
+
+
+def group(dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> torch.Tensor:
+    """The rotation group O of the cube as a ``(24, 3, 3)`` tensor, identity first.
+
+    Invariants (mirrored in ``tests/test_octahedral.py``): 24 distinct signed permutation
+    matrices, ``det = +1``, closed under products and transposes.
+    """
+    return torch.tensor(_GROUP, dtype=dtype or torch.get_default_dtype(), device=device)
+
+
+def _check_mats(name: str, M: torch.Tensor) -> None:
+    if not torch.is_tensor(M) or M.shape[-2:] != (3, 3):
+        shape = tuple(M.shape) if torch.is_tensor(M) else type(M).__name__
+        raise ValueError(f"{name} must be a tensor of shape (..., 3, 3), got {shape}")
+    if not M.is_floating_point():
+        raise TypeError(f"{name} must be a floating tensor, got {M.dtype}")
+
+
+def match(F_i: torch.Tensor, F_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Best matching element ``g* = argmax_{g in O} tr(g^T F_i^T F_j)``, batched.
+
+    Args:
+        F_i, F_j: ``(..., 3, 3)`` frames (broadcastable).
+
+    Returns:
+        ``index (...)`` long into :func:`group` and ``g (..., 3, 3)`` the matching element, so that
+        ``F_i @ g ~ F_j``. Ties go to the lowest index (deterministic).
+
+    Invariance: ``match(F_i h, F_j)`` returns ``h^T g*`` for ``h in O`` (the same matched frame
+    ``F_i g*``).
+    """
+    _check_mats("F_i", F_i)
+    _check_mats("F_j", F_j)
+    G = group(F_i.dtype, F_i.device)
+    M = F_i.transpose(-1, -2) @ F_j  # (..., 3, 3)
+    # tr(g^T M) = sum_ab g_ab M_ab; a loop-free contraction against the 24 group elements
+    scores = torch.einsum("gab,...ab->...g", G, M)
+    idx = scores.argmax(-1)
+    return idx, G[idx]
+
+
+def closest_element(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest element of O to ``R (..., 3, 3)`` in the Frobenius norm.
+
+    Returns ``(index (...), g (..., 3, 3))``; equals ``match(I, R)``.
+    """
+    _check_mats("R", R)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device).expand_as(R)
+    return match(eye, R)
+
+
+def _check_frames(frames: torch.Tensor) -> None:
+    if not torch.is_tensor(frames) or frames.dim() != 3 or frames.shape[-2:] != (3, 3):
+        shape = tuple(frames.shape) if torch.is_tensor(frames) else type(frames).__name__
+        raise ValueError(f"frames must be a (V, 3, 3) tensor, got {shape}")
+
+
+def _check_index(name: str, idx: torch.Tensor, width: int, V: int) -> None:
+    if not torch.is_tensor(idx) or idx.dim() != 2 or idx.shape[1] != width:
+        shape = tuple(idx.shape) if torch.is_tensor(idx) else type(idx).__name__
+        raise ValueError(f"{name} must be an integer tensor of shape (N, {width}), got {shape}")
+    if idx.is_floating_point():
+        raise TypeError(f"{name} must be an integer tensor, got {idx.dtype}")
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= V):
+        raise IndexError(f"{name} refers to vertices outside [0, {V}) (frames has {V} rows)")
+
+
+def matched_rotations(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Per-edge matching ``g*_ij (E, 3, 3)`` with ``frames[i] @ g*_ij ~ frames[j]``.
+
+    Args:
+        frames: ``(V, 3, 3)``; ``frames[i][:, k]`` is axis ``k`` at vertex ``i`` (world coords).
+        edges: ``(E, 2)`` long, row ``(i, j)``.
+    """
+    _check_frames(frames)
+    _check_index("edges", edges, 2, frames.shape[0])
+    return match(frames[edges[:, 0]], frames[edges[:, 1]])[1]
+
+
+def _faces_of(faces_or_mesh) -> torch.Tensor:
+    faces = getattr(faces_or_mesh, "faces", faces_or_mesh)
+    if not torch.is_tensor(faces):
+        raise TypeError(f"expected a (F, 3) face tensor or a mesh with .faces, got {type(faces_or_mesh).__name__}")
+    return faces
+
+
+def face_matched_holonomy(frames: torch.Tensor, faces_or_mesh) -> torch.Tensor:
+    """Matched holonomy ``g_ab g_bc g_ca (F, 3, 3)`` of faces ``[a, b, c]``.
+
+    Each pair is matched in ascending vertex order and transposed when traversed the other way
+    (``g_ji = g_ij^T``), so the result agrees with :func:`matched_rotations` on the mesh's
+    canonical edges. Faces given in any vertex order; for the canonical sorted faces
+    ``[a < b < c]`` the product is ``g_ab g_bc g_ac^T``.
+
+    Args:
+        frames: ``(V, 3, 3)``.
+        faces_or_mesh: ``(F, 3)`` long, or a mesh whose ``.faces`` is used.
+    """
+    faces = _faces_of(faces_or_mesh)
+    _check_frames(frames)
+    _check_index("faces", faces, 3, frames.shape[0])
+
+    def oriented(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        lo, hi = torch.minimum(u, v), torch.maximum(u, v)
+        g = match(frames[lo], frames[hi])[1]
+        return torch.where((u < v)[:, None, None], g, g.transpose(-1, -2))
+
+    a, b, c = faces.unbind(-1)
+    return oriented(a, b) @ oriented(b, c) @ oriented(c, a)
+
+
+def singular_faces(frames: torch.Tensor, mesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """Faces whose matched holonomy is not the identity.
+
+    Args:
+        frames: ``(V, 3, 3)``.
+        mesh: a ``TetMesh`` (uses ``mesh.faces``) or a ``(F, 3)`` face tensor.
+
+    Returns:
+        ``mask (F,) bool`` and ``faces[mask] (S, 3)``.
+    """
+    faces = _faces_of(mesh)
+    H = face_matched_holonomy(frames, faces)
+    eye = torch.eye(3, dtype=H.dtype, device=H.device)
+    # H is an exact signed permutation: any entry off the identity differs by >= 1
+    mask = ((H - eye).abs() > 0.5).flatten(-2).any(-1)
+    return mask, faces[mask]
+
+
+def tets_with_one_singular_face(mask: torch.Tensor, mesh) -> torch.Tensor:
+    """``(T,) bool``: tets with exactly one singular face (a singular curve that ends inside a
+    tet, which a valid frame field for hex meshing never has).
+
+    Args:
+        mask: ``(F,) bool`` from :func:`singular_faces`.
+        mesh: a ``TetMesh`` (uses ``mesh.tet_faces (T, 4)``) or a ``(T, 4)`` tensor of face ids.
+    """
+    tet_faces = getattr(mesh, "tet_faces", mesh)
+    if not torch.is_tensor(tet_faces) or tet_faces.dim() != 2 or tet_faces.shape[1] != 4:
+        raise ValueError("mesh must be a TetMesh or a (T, 4) tensor of face indices")
+    if mask.dtype != torch.bool or mask.dim() != 1:
+        raise ValueError(f"mask must be a 1-D bool tensor, got {mask.dtype} {tuple(mask.shape)}")
+    if tet_faces.numel() and int(tet_faces.max()) >= mask.shape[0]:
+        raise IndexError(f"tet_faces refers to face {int(tet_faces.max())} but mask has {mask.shape[0]} faces")
+    return mask[tet_faces].sum(-1) == 1
