@@ -1,0 +1,567 @@
+"""Discrete metric connections: one rotation per canonical edge (report Sec. 3.1).
+
+Conventions (CONVENTIONS §1)
+----------------------------
+* ``edges (E, 2)`` are canonical: ``edges[e] = (i, j)`` with ``i < j``, unique rows.
+* ``edge_rot[e] = R_ij ∈ SO(n)`` maps the coordinates of a vector at ``v_j`` (frame ``F_j``) to
+  the coordinates of its parallel transport at ``v_i`` (frame ``F_i``); ``R_ji = R_ijᵀ``.
+* A path product ``T(p0, ..., pk) = R_{p0p1} ... R_{p(k-1)pk}`` maps the fiber at ``pk`` to the
+  fiber at ``p0`` (:meth:`Connection.path`).
+* Connection 1-form ``w_ij = R_ij - I`` (eq. 3.1.2), with ``R_ij w_ji = -w_ij``.
+* Gauge (eq. 2.1.2; CONVENTIONS §1): new frames ``F'_i = F_i G_iᵀ`` change coordinates by
+  ``x' = G_i x`` and the transports by ``R'_ij = G_i R_ij G_jᵀ``; applying ``G1`` then ``G2``
+  equals applying ``G2 G1`` (:meth:`Connection.gauge`).
+* Half transport ``√R_ij`` (report Sec. 3.3): principal square root, the transport from the
+  edge midpoint to ``v_i``.
+
+:class:`Connection` is a plain container of tensors (functional level); :class:`ConnectionField`
+is the ``nn.Module`` parametrization ``edge_rot = exp(hat(params))`` used for optimization.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from . import so3, son
+from .transport import dense_simplex_transports, orient, pair_list, path_product
+from .tolerances import get_eps
+
+__all__ = ["Connection", "ConnectionField"]
+
+_MAX_LISTED = 10
+
+
+def _list_some(items: list, total: int) -> str:
+    more = f" (and {total - len(items)} more)" if total > len(items) else ""
+    return f"{items}{more}"
+
+
+def _as_edges(edges: Any, device=None) -> torch.Tensor:
+    edges = torch.as_tensor(edges, device=device)
+    if edges.dim() != 2 or edges.shape[1] != 2:
+        raise ValueError(f"edges must have shape (E, 2), got {tuple(edges.shape)}")
+    if edges.is_floating_point() or edges.is_complex() or edges.dtype == torch.bool:
+        raise TypeError(f"edges must be an integer tensor, got dtype {edges.dtype}")
+    return edges.to(torch.long)
+
+
+def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate canonical edges; return ``(sorted_keys, perm)`` of keys ``i*V + j``.
+
+    Raises ``ValueError`` naming the offending edge indices (out of range, not ``i < j``,
+    duplicated).
+    """
+    E = edges.shape[0]
+    V = int(n_vertices)
+    if V < 0:
+        raise ValueError(f"n_vertices must be >= 0, got {n_vertices}")
+    i, j = edges[:, 0], edges[:, 1]
+    out = (i < 0) | (j < 0) | (i >= V) | (j >= V)
+    if bool(out.any()):
+        bad = torch.nonzero(out).flatten()
+        raise ValueError(
+            f"edges: vertex indices out of range [0, {V}) at edge indices "
+            f"{_list_some(bad[:_MAX_LISTED].tolist(), bad.numel())} "
+            f"(rows {edges[bad[:_MAX_LISTED]].tolist()})"
+        )
+    nc = i >= j
+    if bool(nc.any()):
+        bad = torch.nonzero(nc).flatten()
+        raise ValueError(
+            f"edges must be canonical (edges[e,0] < edges[e,1]); violated at edge indices "
+            f"{_list_some(bad[:_MAX_LISTED].tolist(), bad.numel())} "
+            f"(rows {edges[bad[:_MAX_LISTED]].tolist()})"
+        )
+    keys = i * V + j
+    sorted_keys, perm = torch.sort(keys, stable=True)
+    if E > 1:
+        dup = sorted_keys[1:] == sorted_keys[:-1]
+        if bool(dup.any()):
+            pos = torch.nonzero(dup).flatten()
+            pairs = torch.stack((perm[pos], perm[pos + 1]), 1)
+            raise ValueError(
+                f"edges: duplicated rows at edge index pairs "
+                f"{_list_some(pairs[:_MAX_LISTED].tolist(), pos.numel())}"
+            )
+    return sorted_keys, perm
+
+
+def _identity(E: int, n: int, dtype, device) -> torch.Tensor:
+    return torch.eye(n, dtype=dtype, device=device).expand(E, n, n).clone()
+
+
+def _exp_params(params: torch.Tensor, n: int) -> torch.Tensor:
+    """``exp(hat(params))`` with the so3 closed form for ``n = 3``."""
+    if n == 3:
+        return so3.exp(params)
+    return son.exp_params(params, n)
+
+
+def _log_params(R: torch.Tensor) -> torch.Tensor:
+    """Skew parameters of the principal log (inverse of :func:`_exp_params`)."""
+    n = R.shape[-1]
+    if n == 3:
+        return so3.log(R)
+    return son.vee(son.log(R))
+
+
+class Connection:
+    """A discrete connection ``∇ = {R_ij}``: one rotation per canonical edge (report eq. 3.1.1).
+
+    Args:
+        edge_rot: ``(E, n, n)`` rotations, ``edge_rot[e] = R_ij`` for ``edges[e] = (i, j)``,
+            ``i < j``: maps the fiber at ``v_j`` to the fiber at ``v_i``.
+        edges: ``(E, 2)`` integer tensor of canonical edges (``i < j``, unique rows, any order).
+        n_vertices: number of vertices ``V`` (indices in ``[0, V)``).
+        validate: also check that every ``edge_rot[e]`` is a rotation (synchronizes).
+
+    Raises:
+        ValueError: bad shapes; edges out of range, not canonical or duplicated (the message
+            names the edge indices); with ``validate``, non-rotation edges (edge indices and
+            vertex pairs in the message).
+
+    The edge lookup used by :meth:`transport` (sorted keys ``i*V + j`` and ``searchsorted``) is
+    built once here and shared by every connection derived from this one (:meth:`gauge`,
+    :meth:`half`, :meth:`detach`, ...). Rotations are differentiable tensors; edges are not.
+    """
+
+    def __init__(self, edge_rot: torch.Tensor, edges: Any, n_vertices: int, *, validate: bool = False):
+        if not isinstance(edge_rot, torch.Tensor) or not edge_rot.is_floating_point():
+            raise TypeError("edge_rot must be a floating-point tensor of shape (E, n, n)")
+        if edge_rot.dim() != 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
+            raise ValueError(f"edge_rot must have shape (E, n, n), got {tuple(edge_rot.shape)}")
+        edges = _as_edges(edges, device=edge_rot.device)
+        if edges.shape[0] != edge_rot.shape[0]:
+            raise ValueError(
+                f"edge_rot has {edge_rot.shape[0]} matrices but edges has {edges.shape[0]} rows"
+            )
+        self.edge_rot = edge_rot
+        self.edges = edges
+        self.n_vertices = int(n_vertices)
+        self._lookup = _check_edges(edges, self.n_vertices)
+        if validate:
+            self.check_rotations()
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def _trusted(cls, edge_rot, edges, n_vertices, lookup=None) -> "Connection":
+        """Build without validating the (already validated) edges; shares ``lookup``."""
+        self = cls.__new__(cls)
+        self.edge_rot = edge_rot
+        self.edges = edges
+        self.n_vertices = int(n_vertices)
+        self._lookup = lookup
+        return self
+
+    def _replace(self, edge_rot: torch.Tensor) -> "Connection":
+        lookup = self._lookup
+        if lookup is not None and lookup[0].device != edge_rot.device:
+            lookup = None
+        edges = self.edges.to(edge_rot.device)
+        return Connection._trusted(edge_rot, edges, self.n_vertices, lookup)
+
+    def _get_lookup(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if self._lookup is None:
+            keys = self.edges[:, 0] * self.n_vertices + self.edges[:, 1]
+            self._lookup = torch.sort(keys, stable=True)
+        return self._lookup
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n(self) -> int:
+        """Rank of the bundle (fiber dimension)."""
+        return self.edge_rot.shape[-1]
+
+    @property
+    def n_edges(self) -> int:
+        return self.edge_rot.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.edge_rot.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.edge_rot.device
+
+    def __repr__(self) -> str:
+        return (
+            f"Connection(n={self.n}, n_vertices={self.n_vertices}, n_edges={self.n_edges}, "
+            f"dtype={self.dtype}, device={self.device})"
+        )
+
+    # ------------------------------------------------------------------ validation
+    def check_rotations(self, atol: float | None = None) -> None:
+        """Raise ``ValueError`` unless every ``edge_rot[e]`` is a rotation.
+
+        Tolerance ``atol`` on ``||Rᵀ R - I||_F`` defaults to ``get_eps("rotation", dtype)``; the
+        message lists the offending edge indices and their vertex pairs, followed by
+        :func:`son.check_rotation`'s description of the defect. Synchronizes.
+        """
+        if atol is None:
+            atol = get_eps("rotation", self.dtype)
+        with torch.no_grad():
+            R = self.edge_rot.detach()
+            n = self.n
+            eye = torch.eye(n, dtype=R.dtype, device=R.device)
+            finite = torch.isfinite(R).all(-1).all(-1)
+            Rs = torch.where(finite[..., None, None], R, eye)
+            err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
+            bad = ~finite | (err > atol) | (torch.linalg.det(Rs) < 0)
+            if not bool(bad.any()):
+                return
+            idx = torch.nonzero(bad).flatten()
+            shown = idx[:_MAX_LISTED]
+            detail = ""
+            try:
+                son.check_rotation(R[shown], name=f"edge_rot[{shown.tolist()}]", atol=atol)
+            except ValueError as exc:
+                detail = f"; {exc}"
+            raise ValueError(
+                f"edge_rot: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
+                f"indices {_list_some(shown.tolist(), idx.numel())} (vertex pairs "
+                f"{self.edges[shown].tolist()}){detail}"
+            )
+
+    # ------------------------------------------------------------------ lookups and transports
+    def edge_index(self, i: Any, j: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Edge index and orientation sign of vertex pairs.
+
+        Args:
+            i, j: integer tensors (broadcastable, any shape ``S``) of vertex indices.
+
+        Returns:
+            ``(edge_idx, edge_sign)``, both of shape ``S``: ``edges[edge_idx] == (i, j)`` with
+            sign ``+1`` where ``i < j``, ``== (j, i)`` with sign ``-1`` otherwise.
+
+        Raises:
+            ValueError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
+                and out-of-range vertices).
+        """
+        dev = self.edges.device
+        i = torch.as_tensor(i, device=dev)
+        j = torch.as_tensor(j, device=dev)
+        if i.is_floating_point() or j.is_floating_point():
+            raise TypeError("vertex indices must be integer tensors")
+        i, j = torch.broadcast_tensors(i.long(), j.long())
+        V = self.n_vertices
+        lo, hi = torch.minimum(i, j), torch.maximum(i, j)
+        key = lo * V + hi
+        sorted_keys, perm = self._get_lookup()
+        E = sorted_keys.numel()
+        valid = (lo >= 0) & (hi < V) & (lo != hi)
+        if E == 0:
+            found = torch.zeros_like(valid)
+            pos = torch.zeros_like(key)
+        else:
+            pos = torch.searchsorted(sorted_keys, key).clamp(max=E - 1)
+            found = valid & (sorted_keys[pos] == key)
+        if not bool(found.all()):
+            bad = torch.nonzero(~found.reshape(-1)).flatten()
+            pairs = torch.stack((i.reshape(-1)[bad], j.reshape(-1)[bad]), 1)
+            raise ValueError(
+                f"{bad.numel()} vertex pairs are not edges of the connection: "
+                f"{_list_some(pairs[:_MAX_LISTED].tolist(), bad.numel())}"
+            )
+        idx = perm[pos] if E else pos
+        sign = torch.where(i < j, torch.ones_like(i), -torch.ones_like(i))
+        return idx, sign
+
+    def transport(self, i: Any, j: Any) -> torch.Tensor:
+        """``R_ij`` for batches of vertex pairs: ``i, j (S)`` -> ``(S, n, n)``.
+
+        Fiber at ``v_j`` -> fiber at ``v_i``: ``edge_rot[e]`` for a canonical pair, its transpose
+        for ``i > j``. Raises ``ValueError`` naming the pairs that are not edges.
+        """
+        idx, sign = self.edge_index(i, j)
+        return orient(self.edge_rot, idx, sign)
+
+    def path(self, vertices: Any) -> torch.Tensor:
+        """Path product ``T(p0..pk) = R_{p0p1} ... R_{p(k-1)pk}`` (CONVENTIONS §1).
+
+        Args:
+            vertices: ``(..., k+1)`` integer vertex sequences; consecutive vertices must be edges.
+
+        Returns:
+            ``(..., n, n)``, mapping the fiber at ``pk`` to the fiber at ``p0`` (identity for
+            ``k = 0``). A closed path ``[p0, ..., p0]`` gives the holonomy at ``p0`` (eq. 3.2.1
+            plus ``I``).
+        """
+        v = torch.as_tensor(vertices, device=self.edges.device)
+        if v.dim() < 1 or v.shape[-1] < 1:
+            raise ValueError(f"path expects vertices of shape (..., k+1), k >= 0, got {tuple(v.shape)}")
+        if v.shape[-1] == 1:
+            eye = torch.eye(self.n, dtype=self.dtype, device=self.device)
+            return eye.expand(*v.shape[:-1], self.n, self.n).clone()
+        return path_product(self.transport(v[..., :-1], v[..., 1:]), dim=-3)
+
+    def oriented(self, edge_idx: torch.Tensor, edge_sign: torch.Tensor) -> torch.Tensor:
+        """Oriented transports ``(...)`` -> ``(..., n, n)`` (:func:`transport.orient`)."""
+        return orient(self.edge_rot, edge_idx, edge_sign)
+
+    def simplex_transports(
+        self, simplex_edges: torch.Tensor, simplex_edge_signs: torch.Tensor, s: int
+    ) -> torch.Tensor:
+        """Dense per-simplex transport table.
+
+        Args:
+            simplex_edges: ``(N, P)`` edge indices in :func:`transport.pair_list` order
+                (``P = s(s-1)/2``), e.g. ``mesh.tet_edges`` with ``s = 4``.
+            simplex_edge_signs: ``(N, P)`` orientation signs (``+1``: local pair ``(x_a, x_b)``,
+                ``a < b``, is the stored orientation).
+            s: vertices per simplex.
+
+        Returns:
+            ``(N, s, s, n, n)`` with ``[t, a, b] = R_{x_a x_b}`` (fiber at ``x_b`` -> ``x_a``),
+            identity on the diagonal.
+        """
+        P = len(pair_list(s))
+        if simplex_edges.shape[-1] != P or simplex_edge_signs.shape != simplex_edges.shape:
+            raise ValueError(
+                f"simplex_edges/simplex_edge_signs must both have shape (N, {P}) for s={s}, got "
+                f"{tuple(simplex_edges.shape)} and {tuple(simplex_edge_signs.shape)}"
+            )
+        return dense_simplex_transports(self.oriented(simplex_edges, simplex_edge_signs), s)
+
+    # ------------------------------------------------------------------ derived connections
+    def one_form(self) -> torch.Tensor:
+        """Discrete connection 1-form ``w_ij = R_ij - I`` per canonical edge (eq. 3.1.2) -> ``(E, n, n)``."""
+        return self.edge_rot - torch.eye(self.n, dtype=self.dtype, device=self.device)
+
+    def gauge(self, G: torch.Tensor, *, validate: bool = False) -> "Connection":
+        """Gauge transform ``R'_ij = G_i R_ij G_jᵀ`` (eq. 2.1.2; CONVENTIONS §1).
+
+        Args:
+            G: ``(V, n, n)`` rotations, ``G_i`` the change of coordinates ``x' = G_i x`` at ``v_i``.
+            validate: check that ``G`` holds rotations.
+
+        ``c.gauge(G1).gauge(G2) == c.gauge(G2 @ G1)``; ``c.gauge(I) == c``. Differentiable in
+        both ``edge_rot`` and ``G``.
+        """
+        if G.shape != (self.n_vertices, self.n, self.n):
+            raise ValueError(
+                f"gauge expects G of shape ({self.n_vertices}, {self.n}, {self.n}), got {tuple(G.shape)}"
+            )
+        if validate:
+            son.check_rotation(G, name="gauge G")
+        e = self.edges.to(G.device)
+        R = G[e[:, 0]] @ self.edge_rot.to(G.device) @ G[e[:, 1]].transpose(-1, -2)
+        return self._replace(R)
+
+    def half(self) -> "Connection":
+        """Half transports ``√R_ij = exp(½ log R_ij)`` per edge (report Sec. 3.3; CONVENTIONS §1).
+
+        Edge midpoint -> ``v_i``. Uses :func:`so3.sqrt` for ``n = 3`` and
+        ``son.exp(son.log(R) / 2)`` otherwise (principal branch: angles ``< pi``).
+        """
+        if self.n == 3:
+            return self._replace(so3.sqrt(self.edge_rot))
+        return self._replace(son.exp(0.5 * son.log(self.edge_rot)))
+
+    def to(self, *args, **kwargs) -> "Connection":
+        """Move/cast ``edge_rot`` like :meth:`torch.Tensor.to`; edges follow the device."""
+        return self._replace(self.edge_rot.to(*args, **kwargs))
+
+    def detach(self) -> "Connection":
+        return self._replace(self.edge_rot.detach())
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def identity(
+        cls, edges: Any, n_vertices: int, n: int = 3, dtype: torch.dtype | None = None, device=None
+    ) -> "Connection":
+        """The trivial connection ``R_ij = I`` (flat, zero torsion of the identity frames)."""
+        edges = _as_edges(edges, device=device)
+        dtype = dtype or torch.get_default_dtype()
+        return cls(_identity(edges.shape[0], n, dtype, edges.device), edges, n_vertices)
+
+    @classmethod
+    def random(
+        cls,
+        edges: Any,
+        n_vertices: int,
+        n: int = 3,
+        generator: torch.Generator | None = None,
+        scale: float | None = None,
+        dtype: torch.dtype | None = None,
+        device=None,
+    ) -> "Connection":
+        """A random connection.
+
+        ``scale=None``: independent Haar-uniform rotations per edge. Otherwise
+        ``R_ij = exp(hat(scale * ξ))`` with ``ξ`` standard Gaussian skew parameters
+        (``so(n)`` of dimension ``n(n-1)/2``), i.e. rotations near the identity for small scale.
+        All randomness goes through ``generator``.
+        """
+        edges = _as_edges(edges, device=device)
+        dtype = dtype or torch.get_default_dtype()
+        E = edges.shape[0]
+        dev = edges.device
+        if scale is None:
+            if n == 3:
+                R = so3.random_rotation(E, generator=generator, dtype=dtype, device=dev)
+            else:
+                R = son.random_rotation(E, n=n, generator=generator, dtype=dtype, device=dev)
+        else:
+            xi = torch.randn(E, son.dim(n), generator=generator, dtype=dtype, device=dev)
+            R = _exp_params(scale * xi, n)
+        return cls(R, edges, n_vertices)
+
+    @classmethod
+    def from_smooth(
+        cls,
+        vertices: torch.Tensor,
+        edges: Any,
+        smooth,
+        method: str = "midpoint",
+        steps: int = 256,
+        n_vertices: int | None = None,
+    ) -> "Connection":
+        """Discretize a smooth connection (:class:`torchconn.smooth.SmoothConnection`).
+
+        ``R_ij`` = transport of the straight segment ``v_i -> v_j`` (fiber at ``v_j`` -> ``v_i``):
+        ``"midpoint"`` = ``exp(ω_m[v_j - v_i])`` (report Sec. 3.4, the main series) or
+        ``"path_ordered"`` (CONVENTIONS §1, ``steps`` Magnus sub-steps).
+
+        Args:
+            vertices: ``(V, 3)`` positions (their dtype/device are used).
+            edges: ``(E, 2)`` canonical edges.
+            smooth: object with ``transport(a, b, method=..., steps=...)``.
+            n_vertices: defaults to ``vertices.shape[0]``.
+        """
+        edges = _as_edges(edges, device=vertices.device)
+        V = vertices.shape[0] if n_vertices is None else n_vertices
+        lookup = _check_edges(edges, V)  # validate before indexing
+        R = smooth.transport(vertices[edges[:, 0]], vertices[edges[:, 1]], method=method, steps=steps)
+        return cls._trusted(R, edges, V, lookup)
+
+    @classmethod
+    def from_frames(cls, frames: torch.Tensor, edges: Any) -> "Connection":
+        """The flat connection of a frame field: ``R_ij = F_iᵀ F_j``.
+
+        ``frames[i] = F_i (n, n)`` holds the frame vectors of vertex ``i`` as *columns*, in a
+        common ambient basis. A vector with coordinates ``X`` in ``F_j`` is the ambient vector
+        ``F_j X``; read in ``F_i`` it has coordinates ``F_iᵀ F_j X``, so ``R_ij`` maps the fiber
+        at ``v_j`` to the fiber at ``v_i`` as required. Every closed path has trivial holonomy
+        (``T(p0..p0) = I``); equivalently this is ``identity.gauge(G)`` with ``G_i = F_iᵀ``.
+        """
+        if frames.dim() != 3 or frames.shape[-1] != frames.shape[-2]:
+            raise ValueError(f"frames must have shape (V, n, n), got {tuple(frames.shape)}")
+        edges = _as_edges(edges, device=frames.device)
+        V = frames.shape[0]
+        lookup = _check_edges(edges, V)
+        R = frames[edges[:, 0]].transpose(-1, -2) @ frames[edges[:, 1]]
+        return cls._trusted(R, edges, V, lookup)
+
+    @classmethod
+    def from_mesh(cls, mesh, edge_rot: torch.Tensor | None = None, n: int = 3, *, validate: bool = False) -> "Connection":
+        """Connection on ``mesh.edges`` / ``mesh.n_vertices`` (identity when ``edge_rot`` is None).
+
+        Only reads ``mesh.edges``, ``mesh.n_vertices`` and (for dtype/device) ``mesh.vertices``.
+        """
+        if edge_rot is None:
+            v = mesh.vertices
+            return cls.identity(mesh.edges, mesh.n_vertices, n=n, dtype=v.dtype, device=v.device)
+        return cls(edge_rot, mesh.edges, mesh.n_vertices, validate=validate)
+
+    @classmethod
+    def random_on_mesh(
+        cls, mesh, n: int = 3, generator: torch.Generator | None = None, scale: float | None = None
+    ) -> "Connection":
+        """:meth:`random` on ``mesh.edges`` with the dtype/device of ``mesh.vertices``."""
+        v = mesh.vertices
+        return cls.random(
+            mesh.edges, mesh.n_vertices, n=n, generator=generator, scale=scale, dtype=v.dtype, device=v.device
+        )
+
+    @classmethod
+    def smooth_on_mesh(cls, mesh, smooth, method: str = "midpoint", steps: int = 256) -> "Connection":
+        """:meth:`from_smooth` on ``mesh.vertices`` / ``mesh.edges``."""
+        return cls.from_smooth(mesh.vertices, mesh.edges, smooth, method=method, steps=steps, n_vertices=mesh.n_vertices)
+
+
+class ConnectionField(torch.nn.Module):
+    """Learnable connection: ``edge_rot = exp(hat(params))``, one skew vector per edge.
+
+    Args:
+        edges: ``(E, 2)`` canonical edges (stored as a buffer).
+        n_vertices: ``V``.
+        n: rank (default 3).
+        init: ``None`` (identity, ``params = 0``), a :class:`Connection` on the same edges, a
+            ``(E, n(n-1)/2)`` parameter tensor, or a ``(E, n, n)`` rotation tensor. Rotations
+            are converted by the principal logarithm (``|params| <= pi``; at angle exactly pi
+            either sign of the axis may be returned — both exponentiate to the same rotation).
+        dtype, device: of the parameters (default: those of ``init`` when it is a tensor or a
+            connection, else the default dtype).
+
+    ``forward()`` returns a :class:`Connection` whose ``edge_rot`` is differentiable in
+    ``params`` (Rodrigues for ``n = 3``, :func:`son.exp_params` otherwise; finite gradients at
+    ``params = 0``). Parameter order: :func:`so3.hat` for ``n = 3``, :func:`son.hat` otherwise.
+    """
+
+    def __init__(
+        self,
+        edges: Any,
+        n_vertices: int,
+        n: int = 3,
+        init: Any = None,
+        dtype: torch.dtype | None = None,
+        device=None,
+    ):
+        super().__init__()
+        if isinstance(init, Connection):
+            dtype = dtype or init.dtype
+            device = device if device is not None else init.device
+        elif isinstance(init, torch.Tensor):
+            dtype = dtype or (init.dtype if init.is_floating_point() else None)
+            device = device if device is not None else init.device
+        dtype = dtype or torch.get_default_dtype()
+        edges = _as_edges(edges, device=device)
+        sorted_keys, perm = _check_edges(edges, n_vertices)
+        E, m = edges.shape[0], son.dim(n)
+        self.n = int(n)
+        self.n_vertices = int(n_vertices)
+        self.register_buffer("edges", edges)
+        self.register_buffer("_sorted_keys", sorted_keys, persistent=False)
+        self.register_buffer("_perm", perm, persistent=False)
+
+        if init is None:
+            params = torch.zeros(E, m, dtype=dtype, device=edges.device)
+        elif isinstance(init, Connection):
+            if init.n != n:
+                raise ValueError(f"init connection has rank {init.n}, field has n={n}")
+            if init.edges.shape != edges.shape or not torch.equal(init.edges.to(edges.device), edges):
+                raise ValueError("init connection is defined on different edges than the field")
+            params = _log_params(init.edge_rot.detach().to(dtype=dtype, device=edges.device))
+        elif isinstance(init, torch.Tensor):
+            t = init.detach().to(dtype=dtype, device=edges.device)
+            if t.shape == (E, m):
+                params = t.clone()
+            elif t.shape == (E, n, n):
+                params = _log_params(t)
+            else:
+                raise ValueError(
+                    f"init tensor must have shape (E, {m}) (parameters) or (E, {n}, {n}) "
+                    f"(rotations) with E={E}, got {tuple(t.shape)}"
+                )
+        else:
+            raise TypeError(f"init must be None, a Connection or a tensor, got {type(init).__name__}")
+        self.params = torch.nn.Parameter(params)
+
+    @classmethod
+    def from_connection(cls, conn: Connection) -> "ConnectionField":
+        """Field with ``exp(params) == conn.edge_rot`` (principal log, see class docstring)."""
+        return cls(conn.edges, conn.n_vertices, n=conn.n, init=conn)
+
+    def edge_rotations(self) -> torch.Tensor:
+        """``exp(hat(params))`` -> ``(E, n, n)`` rotations ``R_ij`` of the canonical edges."""
+        return _exp_params(self.params, self.n)
+
+    def forward(self) -> Connection:
+        """The current :class:`Connection` (differentiable in ``params``)."""
+        R = self.edge_rotations()
+        return Connection._trusted(R, self.edges, self.n_vertices, (self._sorted_keys, self._perm))
+
+    def extra_repr(self) -> str:
+        return f"n={self.n}, n_vertices={self.n_vertices}, n_edges={self.edges.shape[0]}"
