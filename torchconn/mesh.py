@@ -254,10 +254,10 @@ class TetMesh:
             t = t.copy()
             t[idx, 2], t[idx, 3] = t[idx, 3].copy(), t[idx, 2].copy()
 
-        self._build(v, t)
+        self._build(v, t, kept)
 
     # ------------------------------------------------------------------ construction
-    def _build(self, v: torch.Tensor, t: np.ndarray) -> None:
+    def _build(self, v: torch.Tensor, t: np.ndarray, kept: np.ndarray) -> None:
         device = v.device
         V, T = v.shape[0], t.shape[0]
         lt = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.long, device=device)  # noqa: E731
@@ -328,8 +328,7 @@ class TetMesh:
         self.boundary_faces = lt(bf)
         self.boundary_face_index = lt(bidx)
         self.boundary_vertices = lt(bverts)
-        if not hasattr(self, "kept_vertices"):
-            self.kept_vertices = lt(np.arange(V))
+        self.kept_vertices = lt(kept)
         self._geometry()
 
     def _geometry(self) -> None:
