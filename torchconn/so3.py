@@ -171,26 +171,27 @@ def _safe_norm(x: torch.Tensor, dims) -> torch.Tensor:
     return torch.sqrt(torch.clamp_min((x * x).sum(dims), torch.finfo(x.dtype).tiny))
 
 
-def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
-    """Angle of the relative rotation ``R1^T R2``: ``(..., 3, 3), (..., 3, 3) -> (...)`` in ``[0, pi]``.
-
-    Uses ``||R1 - R2||_F = 2 sqrt(2) sin(t/2)`` and ``||R1 + R2||_F = 2 sqrt(2) cos(t/2)``:
-    ``t = 2 atan2(||R1 - R2||_F, ||R1 + R2||_F)``, accurate at both ends and with finite
-    gradients (zero subgradient at ``t = 0``). Broadcasts over batch dims.
-    """
-    _check_mat3(R1, "geodesic_distance")
-    _check_mat3(R2, "geodesic_distance")
-    return 2.0 * torch.atan2(_safe_norm(R1 - R2, (-2, -1)), _safe_norm(R1 + R2, (-2, -1)))
-
-
 def angle(R: torch.Tensor) -> torch.Tensor:
     """Geodesic angle ``|log(R)|`` of a rotation: ``(..., 3, 3) -> (...)`` in ``[0, pi]``.
 
-    Computed as ``geodesic_distance(I, R)`` (atan2 form, no ``acos``).
+    ``t = atan2(|vee(R)|, (tr R - 1)/2)`` (``vee(R) = sin(t) n``): accurate to round-off at
+    both ends, no ``acos``. Finite gradients everywhere; at exactly 0 and pi, where ``t`` has
+    a cone singularity, the gradient is the zero subgradient.
     """
     _check_mat3(R, "angle")
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    return geodesic_distance(eye, R)
+    c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    return torch.atan2(_safe_norm(vee(R), (-1,)), c)
+
+
+def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Angle of the relative rotation: ``(..., 3, 3), (..., 3, 3) -> (...)`` in ``[0, pi]``.
+
+    ``angle(R1^T R2)`` (atan2 form, accurate at 0 and pi; ``2 asin(|R1 - R2|_F / (2 sqrt 2))``
+    would lose half the digits near pi). Broadcasts over batch dims.
+    """
+    _check_mat3(R1, "geodesic_distance")
+    _check_mat3(R2, "geodesic_distance")
+    return angle(R1.transpose(-1, -2) @ R2)
 
 
 def _as_angle(t, like: torch.Tensor | None = None) -> torch.Tensor:
