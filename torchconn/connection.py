@@ -415,7 +415,7 @@ class Connection:
         edges: Any,
         smooth,
         method: str = "midpoint",
-        steps: int = 256,
+        steps: int = 512,
         n_vertices: int | None = None,
     ) -> "Connection":
         """Discretize a smooth connection (:class:`torchconn.smooth.SmoothConnection`).
@@ -476,7 +476,7 @@ class Connection:
         )
 
     @classmethod
-    def smooth_on_mesh(cls, mesh, smooth, method: str = "midpoint", steps: int = 256) -> "Connection":
+    def smooth_on_mesh(cls, mesh, smooth, method: str = "midpoint", steps: int = 512) -> "Connection":
         """:meth:`from_smooth` on ``mesh.vertices`` / ``mesh.edges``."""
         return cls.from_smooth(mesh.vertices, mesh.edges, smooth, method=method, steps=steps, n_vertices=mesh.n_vertices)
 
