@@ -214,3 +214,14 @@ def test_builtin_geometry():
     assert k.vertices.dtype == torch.float32 and k.n_tets == 36
     with pytest.raises(MeshError, match="minor_radius"):
         torus(major_radius=0.3, minor_radius=0.5)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".off", ".ply"])
+def test_surface_formats_round_trip(tmp_path, suffix):
+    V, F = _sphere_surface()
+    path = tmp_path / f"s{suffix}"
+    meshio.write(path, meshio.Mesh(V, [("triangle", F)]))
+    V2, F2 = load_surface(path)  # STL stores corners per triangle; the reader merges them
+    assert V2.shape == V.shape and F2.shape == F.shape
+    m = load_mesh(path, edge_length=0.5)
+    _check_valid(m, 2)

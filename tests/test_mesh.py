@@ -327,3 +327,19 @@ def test_cell_complex_validation():
         fan.check_closed_manifold()
     idx, sign = fan.edge_index([1], [0])
     assert idx.tolist() == [0] and sign.tolist() == [-1]
+
+
+def test_tensor_inputs_and_dtype():
+    v32 = torch.as_tensor(TWO_V, dtype=torch.float32)
+    t32 = torch.as_tensor(TWO_T, dtype=torch.int32)
+    m = TetMesh(v32, t32)
+    assert m.vertices.dtype == torch.float32 and m.tets.dtype == torch.long
+    m64 = TetMesh(v32, t32, dtype=torch.float64, device="cpu")
+    assert m64.vertices.dtype == torch.float64 and m64.device == torch.device("cpu")
+    assert torch.equal(m64.tet_faces, m.tet_faces)
+    with pytest.raises(TypeError, match="integer dtype"):
+        TetMesh(v32, t32.float())
+    with pytest.raises(TypeError, match="floating"):
+        TetMesh(v32, t32, dtype=torch.int64)
+    with pytest.raises(ValueError, match="unreferenced"):
+        TetMesh(v32, t32, unreferenced="ignore")

@@ -281,9 +281,9 @@ class TetMesh:
         tet_face_signs = parity * np.array(_TET_FACE_COEF)[None, :]
         bad = np.nonzero(f_cnt > 2)[0]
         if bad.size:
-            tets_of = [np.nonzero((tet_faces == f).any(axis=1))[0].tolist() for f in bad[:3]]
+            tets_of = np.nonzero((tet_faces == bad[0]).any(axis=1))[0].tolist()
             raise MeshError(f"non-manifold: faces shared by more than two tets: {_few_rows(faces[bad])}; "
-                            f"e.g. face {faces[bad[0]].tolist()} is in tets {tets_of[0]}")
+                            f"e.g. face {faces[bad[0]].tolist()} is in tets {tets_of}")
         # face -> tets by sign; two tets on the same side of a face overlap
         F = faces.shape[0]
         flat_sign = tet_face_signs.reshape(-1)
