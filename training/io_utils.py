@@ -67,6 +67,7 @@ def atomic_write(path, writer: Callable[[Any], None], mode: str = "wb") -> Path:
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; use the usual permissions
         with os.fdopen(fd, mode) as f:
             writer(f)
             f.flush()
@@ -79,6 +80,12 @@ def atomic_write(path, writer: Callable[[Any], None], mode: str = "wb") -> Path:
             pass
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
