@@ -237,7 +237,7 @@ def test_non_manifold_and_overlap():
     with pytest.raises(MeshError, match=r"more than two tets.*\(1, 2, 3\)"):
         TetMesh(V, np.array([[0, 1, 2, 3], [1, 4, 2, 3], [1, 5, 2, 3]]))
     V2 = np.vstack([TET_V, [[-0.1, -0.1, -0.1]]])  # tet 1 lies on the same side of (1,2,3) as tet 0
-    with pytest.raises(MeshError, match="overlapping"):
+    with pytest.raises(MeshError, match=r"overlapping.*\(1, 2, 3\).*tets \[0, 1\]"):
         TetMesh(V2, np.array([[0, 1, 2, 3], [4, 1, 2, 3]]))
 
 

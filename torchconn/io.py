@@ -267,6 +267,7 @@ def box(n=4, size=1.0, origin=(0.0, 0.0, 0.0), *, dtype: torch.dtype = torch.flo
     V = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
 
     def vid(i, j, k):
+        """Grid vertex id of lattice point ``(i, j, k)`` (arrays)."""
         return (i * (ny + 1) + j) * (nz + 1) + k
 
     I, J, K = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")

@@ -290,12 +290,12 @@ class TetMesh:
         flat_tet = np.repeat(np.arange(T), 4)
         face_tets = np.full((F, 2), -1, dtype=np.int64)
         col = np.where(flat_sign > 0, 0, 1)
-        occ = np.zeros((F, 2), dtype=np.int64)
-        np.add.at(occ, (f_inv, col), 1)
+        occ = np.bincount(f_inv * 2 + col, minlength=2 * F).reshape(F, 2)
         bad = np.nonzero((occ > 1).any(axis=1))[0]
         if bad.size:
-            raise MeshError(f"overlapping tets: faces with two tets on the same side {_few_rows(faces[bad])} "
-                            f"(face indices {_few(bad)})")
+            tets_of = np.nonzero((tet_faces == bad[0]).any(axis=1))[0].tolist()
+            raise MeshError(f"overlapping tets: faces with both tets on the same side {_few_rows(faces[bad])}; "
+                            f"e.g. face {faces[bad[0]].tolist()} with tets {tets_of}")
         face_tets[f_inv, col] = flat_tet
 
         # face edges: bc, ac, ab of the sorted face, coefficients +1, -1, +1
@@ -347,30 +347,37 @@ class TetMesh:
     # ------------------------------------------------------------------ counts
     @property
     def n_vertices(self) -> int:
+        """Number of vertices ``V``."""
         return int(self.vertices.shape[0])
 
     @property
     def n_edges(self) -> int:
+        """Number of edges ``E``."""
         return int(self.edges.shape[0])
 
     @property
     def n_faces(self) -> int:
+        """Number of triangles ``F``."""
         return int(self.faces.shape[0])
 
     @property
     def n_tets(self) -> int:
+        """Number of tets ``T``."""
         return int(self.tets.shape[0])
 
     @property
     def n_boundary_faces(self) -> int:
+        """Number of boundary triangles ``B``."""
         return int(self.boundary_faces.shape[0])
 
     @property
     def dtype(self) -> torch.dtype:
+        """Float dtype of the geometry (``vertices.dtype``)."""
         return self.vertices.dtype
 
     @property
     def device(self) -> torch.device:
+        """Device of all buffers."""
         return self.vertices.device
 
     def __repr__(self) -> str:
@@ -507,6 +514,7 @@ class FaceGroup:
     face_ids: torch.Tensor
 
     def to(self, device=None) -> "FaceGroup":
+        """Copy with all index tensors on ``device``."""
         return FaceGroup(*(x.to(device=device) for x in (self.loops, self.loop_edges, self.loop_signs, self.face_ids)))
 
 
@@ -642,18 +650,22 @@ class CellComplex:
 
     @property
     def n_vertices(self) -> int:
+        """Number of vertices ``V``."""
         return int(self.vertices.shape[0])
 
     @property
     def n_edges(self) -> int:
+        """Number of edges ``E``."""
         return int(self.edges.shape[0])
 
     @property
     def n_faces(self) -> int:
+        """Number of polygonal faces ``F`` (all sizes)."""
         return int(self.face_sizes.shape[0])
 
     @property
     def n_cells(self) -> int:
+        """Number of 3-cells ``C`` (0 without cells)."""
         return int(self.cell_offsets.shape[0]) - 1
 
     def __repr__(self) -> str:
