@@ -88,6 +88,22 @@ class _Faces:
 
 def _boundary_cycle(faces: _Faces, ids: list[int]) -> list[int]:
     owner = faces.directed(ids)
+    # connectivity through interior edges first (the clearest message for scattered faces)
+    adj: dict[int, list[int]] = {f: [] for f in ids}
+    for (u, v), f in owner.items():
+        g = owner.get((v, u))
+        if g is not None:
+            adj[f].append(g)
+    seen = {ids[0]}
+    dq = deque([ids[0]])
+    while dq:
+        f = dq.popleft()
+        for g in adj[f]:
+            if g not in seen:
+                seen.add(g)
+                dq.append(g)
+    if len(seen) != len(ids):
+        raise ValueError(f"the patch is not connected through edges ({len(seen)} of {len(ids)} faces reachable)")
     nxt: dict[int, int] = {}
     n_bd = 0
     for (u, v) in owner:
@@ -113,22 +129,7 @@ def _boundary_cycle(faces: _Faces, ids: list[int]) -> list[int]:
             f"the patch has several boundary components ({n_bd} boundary edges, the loop through vertex "
             f"{start} has {len(cyc)}): not a disk"
         )
-    # connectivity through interior edges and Euler characteristic (disk: V - E + F = 1)
-    adj: dict[int, list[int]] = {f: [] for f in ids}
-    for (u, v), f in owner.items():
-        g = owner.get((v, u))
-        if g is not None:
-            adj[f].append(g)
-    seen = {ids[0]}
-    dq = deque([ids[0]])
-    while dq:
-        f = dq.popleft()
-        for g in adj[f]:
-            if g not in seen:
-                seen.add(g)
-                dq.append(g)
-    if len(seen) != len(ids):
-        raise ValueError(f"the patch is not connected through edges ({len(seen)} of {len(ids)} faces reachable)")
+    # Euler characteristic (disk: V - E + F = 1) rules out handles with a single boundary
     verts = {x for f in ids for x in faces.loops[f]}
     n_edges = (len(owner) + n_bd) // 2
     chi = len(verts) - n_edges + len(ids)
