@@ -250,6 +250,15 @@ def test_euler_xyz_broadcasts():
     R = so3.euler_xyz(a, 0.4, g)
     assert R.shape == (2, 5, 3, 3) and R.dtype == torch.float64
     np.testing.assert_allclose(R[1, 3].numpy(), _rx(a[3].item()) @ _ry(0.4) @ _rz(0.2), atol=1e-14)
+    # dtypes promote; integer angles become the default float dtype
+    R = so3.euler_xyz(torch.tensor(0.1, dtype=torch.float32), torch.tensor([0.2], dtype=torch.float64), 0)
+    assert R.dtype == torch.float64 and R.shape == (1, 3, 3)
+    assert so3.rot_z(torch.tensor(1)).dtype == torch.get_default_dtype()
+
+
+def test_gradcheck_euler_xyz():
+    angles = [torch.tensor([0.3, -2.0], dtype=torch.float64, requires_grad=True) for _ in range(3)]
+    assert gradcheck(so3.euler_xyz, tuple(angles))
 
 
 # ---------------------------------------------------------------- validation / projection

@@ -213,3 +213,20 @@ def test_check_rotation_messages(n, gen):
         son.check_rotation(torch.eye(n, dtype=torch.long))
     atol = get_eps("rotation", torch.float64)
     son.check_rotation(R * (1 + 0.1 * atol))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_general_log_near_pi_gives_nan_only_there(dtype):
+    n = 4
+    K = torch.zeros(3, n, n, dtype=torch.float64)
+    K[0, 1, 0] = 1.0
+    K[1, 1, 0] = math.pi  # exactly pi: the logarithm is not unique
+    K[2, 1, 0] = math.pi - 0.5
+    K[2, 3, 2] = 0.7
+    K = (K - K.transpose(-1, -2)).to(dtype)
+    R = son.exp(K).requires_grad_()
+    L = son.log(R)
+    assert torch.isnan(L[1]).all()
+    torch.testing.assert_close(L[[0, 2]], K[[0, 2]], rtol=0, atol=100 * REF_TOL[dtype])
+    L[[0, 2]].sum().backward()
+    assert torch.isfinite(R.grad).all()

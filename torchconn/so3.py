@@ -194,11 +194,9 @@ def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     return angle(R1.transpose(-1, -2) @ R2)
 
 
-def _as_angle(t, like: torch.Tensor | None = None) -> torch.Tensor:
+def _as_angle(t) -> torch.Tensor:
     if isinstance(t, torch.Tensor):
-        return t
-    if like is not None:
-        return torch.as_tensor(t, dtype=like.dtype, device=like.device)
+        return t if t.is_floating_point() else t.to(torch.get_default_dtype())
     return torch.as_tensor(t, dtype=torch.get_default_dtype())
 
 
@@ -230,12 +228,21 @@ def rot_z(t) -> torch.Tensor:
 def euler_xyz(alpha, beta, gamma) -> torch.Tensor:
     """``R(alpha, beta, gamma) = Rx(alpha) @ Ry(beta) @ Rz(gamma)`` (report Sec. 3.4).
 
-    Angles are tensors of broadcastable shapes ``(...)`` or Python floats (floats take the
-    dtype/device of the first tensor argument, else the default dtype). Returns
-    ``(..., 3, 3)``. Equals SciPy's intrinsic ``Rotation.from_euler("XYZ", [alpha, beta, gamma])``.
+    Angles are tensors of broadcastable shapes ``(...)`` or Python floats; the result has the
+    promoted float dtype of the tensor arguments and the device of the first one (the default
+    dtype when all are floats). Returns ``(..., 3, 3)``. Equals SciPy's *intrinsic*
+    ``Rotation.from_euler("XYZ", [alpha, beta, gamma])``, not the extrinsic ``"xyz"``.
+    Differentiable in the angles.
     """
-    like = next((t for t in (alpha, beta, gamma) if isinstance(t, torch.Tensor)), None)
-    a, b, g = torch.broadcast_tensors(*(_as_angle(t, like) for t in (alpha, beta, gamma)))
+    tensors = [_as_angle(t) for t in (alpha, beta, gamma) if isinstance(t, torch.Tensor)]
+    if tensors:
+        dtype, device = tensors[0].dtype, tensors[0].device
+        for t in tensors[1:]:
+            dtype = torch.promote_types(dtype, t.dtype)
+    else:
+        dtype, device = torch.get_default_dtype(), None
+    angles = [torch.as_tensor(t, dtype=dtype, device=device) for t in (alpha, beta, gamma)]
+    a, b, g = torch.broadcast_tensors(*angles)
     return rot_x(a) @ rot_y(b) @ rot_z(g)
 
 

@@ -162,9 +162,10 @@ def log(R: torch.Tensor) -> torch.Tensor:
       orthogonal polar factor of ``I + R`` (scaled Newton iteration, see ``_polar_sqrt``),
       bring every rotation angle below ``pi/16``; then ``log = 2^5 atanh(C)`` by its series in
       the Cayley transform ``C = (X - I)(X + I)^{-1}``. Correct for rotations whose angles are
-      all ``< pi`` (accuracy degrades like ``1/(pi - t)`` as an angle approaches pi; at
-      exactly pi the logarithm is not unique and the result is not finite).
-      Differentiable (only matmul, inverse and solve).
+      all ``< pi``; the error grows like ``eps / (pi - t)`` as an angle ``t`` approaches pi.
+      Matrices with an angle within ``get_eps("near_pi", dtype)`` of pi (where the logarithm
+      is ill-conditioned, and not unique at pi) give NaN, without raising and without
+      affecting the other batch elements. Differentiable (only matmul, inverse and solve).
 
     ``exp(log(R)) == R``; ``log(exp(K)) == K`` for skew ``K`` with all angles ``< pi``.
     The input is not validated (see :func:`check_rotation`).
@@ -178,7 +179,14 @@ def log(R: torch.Tensor) -> torch.Tensor:
         return torch.stack((torch.stack((z, -t), -1), torch.stack((t, z), -1)), -2)
     if n == 3:
         return so3.hat(so3.log(R))
-    return _log_iss(R)
+    eye = torch.eye(n, dtype=R.dtype, device=R.device)
+    with torch.no_grad():
+        # smallest singular value of I + R is 2 cos(t_max / 2) ~ pi - t_max
+        margin = torch.linalg.svdvals(R.detach() + eye).amin(-1)
+        bad = ~(margin >= get_eps("near_pi", R.dtype))  # also catches NaN input
+    # safe-where: iterate on the identity where the input is (too close to) angle pi
+    L = _log_iss(torch.where(bad[..., None, None], eye, R))
+    return torch.where(bad[..., None, None], torch.full_like(L, float("nan")), L)
 
 
 def random_rotation(
