@@ -230,3 +230,20 @@ def test_general_log_near_pi_gives_nan_only_there(dtype):
     torch.testing.assert_close(L[[0, 2]], K[[0, 2]], rtol=0, atol=100 * REF_TOL[dtype])
     L[[0, 2]].sum().backward()
     assert torch.isfinite(R.grad).all()
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("n", RANKS)
+def test_sqrt(n, dtype, gen):
+    K = _skew(n, 32, gen, max_angle=3.0, dtype=dtype)
+    S = son.sqrt(son.exp(K))
+    torch.testing.assert_close(S, son.exp(K / 2), rtol=0, atol=100 * REF_TOL[dtype])
+    torch.testing.assert_close(S @ S, son.exp(K), rtol=0, atol=10 * REF_TOL[dtype])
+
+
+def test_gradcheck_sqrt(gen):
+    R = son.exp(_skew(4, 2, gen, max_angle=2.5)).requires_grad_()
+    assert gradcheck(son.sqrt, (R,))
+    K = torch.zeros(4, 4, dtype=torch.float64)
+    K[1, 0], K[0, 1] = math.pi, -math.pi
+    assert torch.isnan(son.sqrt(son.exp(K))).all()

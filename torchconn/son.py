@@ -26,7 +26,9 @@ import torch
 from . import so3
 from .tolerances import get_eps
 
-__all__ = ["dim", "hat", "vee", "exp", "exp_params", "log", "random_rotation", "check_rotation"]
+__all__ = [
+    "dim", "hat", "vee", "exp", "exp_params", "log", "sqrt", "random_rotation", "check_rotation"
+]
 
 
 def dim(n: int) -> int:
@@ -179,14 +181,37 @@ def log(R: torch.Tensor) -> torch.Tensor:
         return torch.stack((torch.stack((z, -t), -1), torch.stack((t, z), -1)), -2)
     if n == 3:
         return so3.hat(so3.log(R))
-    eye = torch.eye(n, dtype=R.dtype, device=R.device)
+    return _guard_near_pi(R, _log_iss)
+
+
+def _guard_near_pi(R: torch.Tensor, fn) -> torch.Tensor:
+    """``fn(R)``, with NaN for the matrices having an angle within ``near_pi`` of pi."""
+    eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     with torch.no_grad():
-        # smallest singular value of I + R is 2 cos(t_max / 2) ~ pi - t_max
+        # the smallest singular value of I + R is 2 cos(t_max / 2) ~ pi - t_max
         margin = torch.linalg.svdvals(R.detach() + eye).amin(-1)
         bad = ~(margin >= get_eps("near_pi", R.dtype))  # also catches NaN input
     # safe-where: iterate on the identity where the input is (too close to) angle pi
-    L = _log_iss(torch.where(bad[..., None, None], eye, R))
-    return torch.where(bad[..., None, None], torch.full_like(L, float("nan")), L)
+    out = fn(torch.where(bad[..., None, None], eye, R))
+    return torch.where(bad[..., None, None], torch.full_like(out, float("nan")), out)
+
+
+def sqrt(R: torch.Tensor) -> torch.Tensor:
+    """Principal square root ``exp(log(R)/2)`` of a rotation: ``(..., n, n) -> (..., n, n)``.
+
+    The half transport of report Sec. 3.3 for any rank. ``n = 3``: :func:`so3.sqrt`;
+    ``n <= 2``: ``exp(log(R)/2)``; ``n >= 4``: the orthogonal polar factor of ``I + R``
+    (``I + R = sqrt(R) (sqrt(R) + sqrt(R)^T)`` with a positive definite second factor when all
+    angles are ``< pi``), by a scaled Newton iteration -- cheaper and more accurate than
+    ``exp(log(R)/2)``. For ``n >= 4``, matrices with an angle within ``get_eps("near_pi")``
+    of pi give NaN (as :func:`log`). ``sqrt(R) @ sqrt(R) == R``. Differentiable.
+    """
+    n = _check_square(R, "sqrt")
+    if n <= 2:
+        return exp(0.5 * log(R))
+    if n == 3:
+        return so3.sqrt(R)
+    return _guard_near_pi(R, lambda X: _polar_sqrt(X, iters=10))
 
 
 def random_rotation(
