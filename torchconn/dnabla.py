@@ -495,28 +495,20 @@ def connection_form(T: torch.Tensor) -> torch.Tensor:
     return T - torch.eye(n, dtype=T.dtype, device=T.device)
 
 
-def solder_form(points: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor:
-    """Discrete solder form ``θ[i, j] = v_j - v_i`` on a simplex (Sec. 3.3).
+def solder_form(points: torch.Tensor) -> torch.Tensor:
+    """Discrete solder form ``θ[i, j] = v_j - v_i`` on a simplex (Sec. 3.3, global coordinate frame).
 
     Args:
         points: ``(..., s, d)`` vertex positions.
-        frames: optional ``(..., s, d, n)``: column ``c`` of ``frames[i]`` is frame vector ``c``
-            of the fiber at ``x_i`` in ambient coordinates; then ``θ[i, j] = F_i^T (v_j - v_i)``
-            (coordinates in the fiber of ``x_i``; a gauge ``F_i -> F_i G_i^T`` gives ``G_i θ``).
 
     Returns:
-        ``(..., s, s, n)`` (``n = d`` without frames), value in the fiber of the first label.
+        ``(..., s, s, d)``, value "in the fiber of the first label" expressed in the global frame
+        (the report's numerical setting, where every fiber uses the coordinate frame).
     """
     if not torch.is_tensor(points) or points.ndim < 2:
         raise ValueError(f"solder_form: points must have shape (..., s, d), got "
                          f"{tuple(points.shape) if torch.is_tensor(points) else type(points).__name__}")
-    theta = points.unsqueeze(-3) - points.unsqueeze(-2)  # [i, j] = p_j - p_i
-    if frames is not None:
-        s, d = points.shape[-2:]
-        if frames.ndim < 3 or frames.shape[-3:-1] != (s, d):
-            raise ValueError(f"solder_form: frames must have shape (..., {s}, {d}, n), got {tuple(frames.shape)}")
-        theta = (frames.unsqueeze(-3).transpose(-1, -2) @ theta.unsqueeze(-1)).squeeze(-1)
-    return theta
+    return points.unsqueeze(-3) - points.unsqueeze(-2)  # [i, j] = p_j - p_i
 
 
 def solder_form_sqrt(T_half: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -776,42 +768,73 @@ def tet_transports(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
     return dense_simplex_transports(pair, 4)
 
 
-def _default_half(edge_rot: torch.Tensor, half_rot, fn: str) -> torch.Tensor:
-    if half_rot is not None:
-        if half_rot.shape != edge_rot.shape:
-            raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
-        return half_rot
-    if edge_rot.shape[-1] != 3:
-        raise ValueError(f"{fn}: half transports √R are computed with so3.sqrt only for n = 3; "
-                         f"pass half_rot for n = {edge_rot.shape[-1]}")
-    from . import so3
-    return so3.sqrt(edge_rot)
+def _check_frames(frames, mesh, edge_rot, fn):
+    V = mesh.vertices.shape[0]
+    n = edge_rot.shape[-1]
+    if frames.shape != (V, 3, 3) or n != 3:
+        raise ValueError(f"{fn}: frames must be (V, 3, 3) = ({V}, 3, 3) rotations and n = 3, got frames "
+                         f"{tuple(frames.shape)}, n = {n}")
+    return frames.to(device=edge_rot.device, dtype=edge_rot.dtype)
+
+
+def _tet_points(edge_rot, mesh):
+    return mesh.vertices.to(device=edge_rot.device, dtype=edge_rot.dtype)[mesh.tets.to(edge_rot.device)]
 
 
 def _tet_theta(edge_rot: torch.Tensor, mesh, frames, fn: str) -> torch.Tensor:
-    pts = mesh.vertices.to(device=edge_rot.device, dtype=edge_rot.dtype)[mesh.tets.to(edge_rot.device)]
-    n = edge_rot.shape[-1]
+    """Plain per-tet ``θ[t, i, j] = F_i^T (v_j - v_i)`` ``(T, 4, 4, n)`` (fiber of ``tets[t,i]``)."""
+    pts = _tet_points(edge_rot, mesh)
+    theta = solder_form(pts)
     if frames is None:
-        if n != pts.shape[-1]:
-            raise ValueError(f"{fn}: rank n={n} differs from the ambient dimension {pts.shape[-1]}; "
-                             f"pass frames (V, {pts.shape[-1]}, {n})")
-        return solder_form(pts)
-    V = mesh.vertices.shape[0]
-    if frames.shape != (V, pts.shape[-1], n):
-        raise ValueError(f"{fn}: frames must have shape (V, 3, n) = ({V}, {pts.shape[-1]}, {n}), got {tuple(frames.shape)}")
-    return solder_form(pts, frames[mesh.tets.to(edge_rot.device)])
+        if edge_rot.shape[-1] != pts.shape[-1]:
+            raise ValueError(f"{fn}: rank n={edge_rot.shape[-1]} differs from the ambient dimension "
+                             f"{pts.shape[-1]}; the solder form needs n = 3")
+        return theta
+    F = _check_frames(frames, mesh, edge_rot, fn)[mesh.tets.to(edge_rot.device)]  # (T, 4, 3, 3)
+    return (F.unsqueeze(-3).transpose(-1, -2) @ theta.unsqueeze(-1)).squeeze(-1)
 
 
 def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
     """Per-tet dense ``θ̃[t, i, j] = √R_ij θ_ij`` ``(T, 4, 4, n)``, value in the fiber of ``tets[t,i]``.
 
-    ``θ_ij = F_i^T (v_j - v_i)`` with ``frames (V, 3, n)`` (identity by default, then ``n = 3``);
-    ``half_rot (E, n, n)`` per-edge ``√R`` (default ``so3.sqrt(edge_rot)``, n = 3 only).
+    Without ``frames`` every fiber uses the global coordinate frame (report Sec. 3.3):
+    ``θ_ij = v_j - v_i`` and ``√R_ij = half_rot`` (default ``so3.sqrt(edge_rot)``; pass
+    ``half_rot (E, n, n)`` for ``n != 3`` or for the experiments' ``exp(½ ω_m[v_j - v_i])``).
+
+    With ``frames (V, 3, 3)`` (column ``c`` of ``frames[v]`` = frame vector ``c`` of the fiber at
+    ``v`` in ambient coordinates) ``edge_rot`` is read in those frames, ``R'_ij = F_i^T R_ij F_j``
+    with ``R`` in ambient coordinates. The edge midpoint keeps the ambient frame as in the
+    report, so ``θ̃'_ij = F_i^T √R_ij (v_j - v_i)`` with ``√R_ij = sqrt(F_i R'_ij F_j^T)``, or
+    ``√R_ij = F_i half_rot_ij F_j^T`` when ``half_rot`` (in vertex frames) is given. This makes
+    the result exactly gauge covariant (``G_i = F_i^T``) and keeps ``θ̃_ji = -R'_ji θ̃_ij``.
     """
     fn = "tet_solder_sqrt"
     _check_mesh_rot(edge_rot, mesh, fn)
-    half = _default_half(edge_rot, half_rot, fn)
-    return solder_form_sqrt(tet_transports(half, mesh), _tet_theta(edge_rot, mesh, frames, fn))
+    if half_rot is not None and half_rot.shape != edge_rot.shape:
+        raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
+    pts = _tet_points(edge_rot, mesh)
+    if frames is None:
+        if half_rot is None:
+            if edge_rot.shape[-1] != 3:
+                raise ValueError(f"{fn}: half transports √R are computed with so3.sqrt only for n = 3; "
+                                 f"pass half_rot for n = {edge_rot.shape[-1]}")
+            from . import so3
+            half_rot = so3.sqrt(edge_rot)
+        if edge_rot.shape[-1] != pts.shape[-1]:
+            raise ValueError(f"{fn}: rank n={edge_rot.shape[-1]} differs from the ambient dimension "
+                             f"{pts.shape[-1]}; the solder form needs n = 3")
+        return solder_form_sqrt(tet_transports(half_rot, mesh), solder_form(pts))
+    from . import so3
+    Fv = _check_frames(frames, mesh, edge_rot, fn)
+    e = mesh.edges.to(edge_rot.device)
+    Fi, Fj = Fv[e[:, 0]], Fv[e[:, 1]]
+    if half_rot is None:
+        half_amb = so3.sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2))
+    else:
+        half_amb = Fi @ half_rot @ Fj.transpose(-1, -2)
+    th_amb = solder_form_sqrt(tet_transports(half_amb, mesh), solder_form(pts))
+    F = Fv[mesh.tets.to(edge_rot.device)]  # (T, 4, 3, 3)
+    return (F.unsqueeze(-3).transpose(-1, -2) @ th_amb.unsqueeze(-1)).squeeze(-1)
 
 
 def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
