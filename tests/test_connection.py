@@ -243,11 +243,13 @@ def test_errors_name_offenders(gen):
 
 
 # ----------------------------------------------------------------------------- ConnectionField
-@pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.parametrize("n", [2, 3, 4])
 def test_field_gradcheck(n, gen):
-    edges = torch.tensor(EDGES[:5])
+    # n = 4 goes through torch.linalg.matrix_exp, whose backward is slow: fewer edges, fast mode
+    E = 2 if n == 4 else 5
+    edges = torch.tensor(EDGES[:E])
     field = ConnectionField(edges, V, n=n, dtype=F64)
-    p = torch.randn(5, son.dim(n), generator=gen, dtype=F64)
+    p = torch.randn(E, son.dim(n), generator=gen, dtype=F64)
     p[0] = 0.0  # exactly the identity: Taylor branch, gradient must be finite and correct
     p[1] = 1e-9
     p.requires_grad_(True)
@@ -255,7 +257,7 @@ def test_field_gradcheck(n, gen):
     def f(params):
         return torch.func.functional_call(field, {"params": params}, ()).edge_rot
 
-    assert torch.autograd.gradcheck(f, (p,))
+    assert torch.autograd.gradcheck(f, (p,), fast_mode=(n == 4))
     # derivative at params = 0 is the Lie-algebra basis: d exp(hat(t e_k))/dt = hat(e_k)
     z = torch.zeros(1, son.dim(n), dtype=F64, requires_grad=True)
     f1 = ConnectionField(edges[:1], V, n=n, dtype=F64)
@@ -307,13 +309,13 @@ def test_field_training_step_and_state_dict(gen):
     def loss():
         return ((field().path(loops) - eye) ** 2).sum()
 
-    opt = torch.optim.SGD(field.parameters(), lr=0.02)
+    # plain gradient descent (torch.optim's first use imports torch._dynamo: seconds)
     l0 = loss().item()
     for _ in range(20):
-        opt.zero_grad()
-        L = loss()
-        L.backward()
-        opt.step()
+        field.params.grad = None
+        loss().backward()
+        with torch.no_grad():
+            field.params -= 0.02 * field.params.grad
     assert loss().item() < 0.5 * l0
     sd = field.state_dict()
     assert set(sd) == {"params", "edges"}
