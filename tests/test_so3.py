@@ -320,3 +320,20 @@ def test_bad_shapes_raise():
         so3.hat(torch.zeros(4))
     with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
         so3.log(torch.zeros(2, 2))
+
+
+def test_no_hard_coded_device():
+    # on the meta device any constant created on the CPU would raise a device mismatch
+    m = torch.zeros(5, 3, 3, device="meta")
+    for out in (so3.exp(torch.zeros(5, 3, device="meta")), so3.log(m), so3.sqrt(m), so3.angle(m),
+                so3.geodesic_distance(m, m), so3.project_to_rotation(m),
+                so3.euler_xyz(torch.zeros(5, device="meta"), 0.1, 0.2), so3.random_rotation(5, device="meta")):
+        assert out.device.type == "meta"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu(gen):
+    R = so3.random_rotation(100, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(so3.log(R.cuda()).cpu(), so3.log(R))
+    torch.testing.assert_close(so3.sqrt(R.cuda()).cpu(), so3.sqrt(R))
+    so3.check_rotation(R.cuda())

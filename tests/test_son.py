@@ -247,3 +247,21 @@ def test_gradcheck_sqrt(gen):
     K = torch.zeros(4, 4, dtype=torch.float64)
     K[1, 0], K[0, 1] = math.pi, -math.pi
     assert torch.isnan(son.sqrt(son.exp(K))).all()
+
+
+def test_no_hard_coded_device():
+    # on the meta device any constant created on the CPU would raise a device mismatch
+    for n in (2, 3, 4):
+        m = torch.zeros(5, n, n, device="meta")
+        for out in (son.exp(m), son.log(m), son.sqrt(m), son.hat(torch.zeros(5, son.dim(n), device="meta"), n),
+                    son.random_rotation(5, n=n, device="meta")):
+            assert out.device.type == "meta"
+        assert son.vee(m).device.type == "meta"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu(gen):
+    R = son.random_rotation(50, n=5, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(son.log(R.cuda()).cpu(), son.log(R))
+    torch.testing.assert_close(son.exp(son.log(R).cuda()).cpu(), R)
+    son.check_rotation(R.cuda())
