@@ -1,0 +1,253 @@
+"""``nn.Module`` wrappers of the operators, for pipelines (STYLE: functional core, thin modules).
+
+Each module is built once from a mesh; the mesh's integer topology (and its vertex positions)
+are registered as *buffers*, so ``module.to(device)`` / ``module.double()`` move them and the
+forward pass never recomputes topology. ``forward`` takes the connection as
+
+* a :class:`~torchconn.connection.Connection` (its ``edge_rot`` is used),
+* a :class:`~torchconn.connection.ConnectionField` (called to get the connection — gradients
+  flow to its skew parameters), or
+* a plain ``(E, n, n)`` tensor of edge rotations ``R_ij`` of the canonical edges ``(i<j)``.
+
+All modules compute exactly what the functional operators compute (they call them):
+
+====================== ============================================ =========================
+module                 value                                        report
+====================== ============================================ =========================
+:class:`Curvature`     ``(F, n, n)`` per face, two-prong / holonomy Sec. 3.2, (3.2.1)
+:class:`Torsion`       ``(F, n)`` per face, √R or naive             Def. 3.2
+:class:`AveragedCovariantD` ``(T, n)`` ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet   Def. 5.2, end of Ch. 5
+:class:`CovariantD`    ``(T, n)`` d∇d∇θ with variant averaged /     Ch. 4, Defs. 5.1-5.2
+                       behs21 / wedge
+:class:`BianchiCheck`  dict of max residuals; raises BianchiError   Sec. 2.4, 3.6, Ch. 5
+====================== ============================================ =========================
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from . import bianchi as _bianchi
+from . import curvature as _curvature
+from . import dnabla as _dnabla
+from . import torsion as _torsion
+from .mesh import FaceGroup
+
+__all__ = [
+    "edge_rotations",
+    "MeshBuffers",
+    "Curvature",
+    "Torsion",
+    "AveragedCovariantD",
+    "CovariantD",
+    "BianchiCheck",
+]
+
+# TetMesh buffers the operators read (docs/architecture.md).
+_TET_BUFFERS = (
+    "vertices",
+    "tets",
+    "edges",
+    "faces",
+    "face_edges",
+    "face_edge_signs",
+    "tet_edges",
+    "tet_edge_signs",
+    "tet_faces",
+    "tet_face_signs",
+)
+
+
+def edge_rotations(connection: Any) -> torch.Tensor:
+    """``(E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor."""
+    if isinstance(connection, torch.Tensor):
+        if connection.ndim != 3 or connection.shape[-1] != connection.shape[-2]:
+            raise ValueError(f"edge rotations must have shape (E, n, n), got {tuple(connection.shape)}")
+        return connection
+    if isinstance(connection, nn.Module):
+        connection = connection()
+    R = getattr(connection, "edge_rot", None)
+    if not isinstance(R, torch.Tensor):
+        raise TypeError(
+            f"expected a Connection, a ConnectionField or an (E, n, n) tensor, got {type(connection).__name__}"
+        )
+    return R
+
+
+class MeshBuffers(nn.Module):
+    """The topology (and vertex positions) of a ``TetMesh`` or ``CellComplex`` as module buffers.
+
+    The module itself duck-types as the mesh for the functional operators: it exposes the
+    attributes they read (``vertices``, ``edges``, ``faces``, ``face_edges``, ``tet_edges``, ...
+    for a tet mesh; ``vertices``, ``edges``, ``face_groups`` for a cell complex), and they follow
+    ``.to(device/dtype)`` of any parent module. Nothing is recomputed.
+    """
+
+    def __init__(self, mesh: Any):
+        super().__init__()
+        self.kind = "cell_complex" if hasattr(mesh, "face_groups") else "tet_mesh"
+        if self.kind == "tet_mesh":
+            missing = [k for k in _TET_BUFFERS if not hasattr(mesh, k)]
+            if missing:
+                raise TypeError(f"MeshBuffers: {type(mesh).__name__} lacks the TetMesh buffers {missing}")
+            for k in _TET_BUFFERS:
+                self.register_buffer(k, getattr(mesh, k).clone())
+        else:
+            self.register_buffer("vertices", mesh.vertices.clone())
+            self.register_buffer("edges", mesh.edges.clone())
+            self._sizes = sorted(mesh.face_groups)
+            for m in self._sizes:
+                g = mesh.face_groups[m]
+                for field in ("loops", "loop_edges", "loop_signs", "face_ids"):
+                    self.register_buffer(f"_g{m}_{field}", getattr(g, field).clone())
+
+    @property
+    def face_groups(self) -> dict[int, FaceGroup]:
+        """Face groups of a cell complex rebuilt from the buffers (no copy)."""
+        if self.kind != "cell_complex":
+            raise AttributeError("face_groups exists only for a CellComplex")
+        return {
+            m: FaceGroup(
+                loops=getattr(self, f"_g{m}_loops"),
+                loop_edges=getattr(self, f"_g{m}_loop_edges"),
+                loop_signs=getattr(self, f"_g{m}_loop_signs"),
+                face_ids=getattr(self, f"_g{m}_face_ids"),
+            )
+            for m in self._sizes
+        }
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_edges(self) -> int:
+        return int(self.edges.shape[0])
+
+    def extra_repr(self) -> str:
+        return f"kind={self.kind}, V={self.n_vertices}, E={self.n_edges}"
+
+
+def _check_edges(R: torch.Tensor, mesh: MeshBuffers, who: str) -> None:
+    if R.shape[0] != mesh.n_edges:
+        raise ValueError(f"{who}: got {R.shape[0]} edge rotations for a mesh with {mesh.n_edges} edges")
+
+
+class Curvature(nn.Module):
+    """Per-face discrete curvature of a connection (report Sec. 3.2; CONVENTIONS §1).
+
+    Args:
+        mesh: ``TetMesh`` (sorted faces ``[a<b<c]``, loop ``a -> b -> c``) or ``CellComplex``.
+        kind: ``"two_prong"`` (default; ``⟨Ω,f⟩_{x0}^{xc}``) or ``"holonomy"`` ((3.2.1)).
+        cut: cut position in each loop (default ``-1``: last vertex, so a tet-mesh face gives
+            ``⟨Ω,[abc]⟩_a^c = R_ab R_bc − R_ac``).
+
+    Forward: connection → ``(F, n, n)`` in global face order, mapping the cut fiber to the
+    evaluation fiber (first loop vertex).
+    """
+
+    def __init__(self, mesh: Any, kind: str = "two_prong", cut: int = -1):
+        super().__init__()
+        if kind not in ("two_prong", "holonomy"):
+            raise ValueError(f"Curvature: kind must be 'two_prong' or 'holonomy', got {kind!r}")
+        self.mesh = MeshBuffers(mesh)
+        self.kind, self.cut = kind, cut
+
+    def forward(self, connection: Any) -> torch.Tensor:
+        R = edge_rotations(connection)
+        _check_edges(R, self.mesh, "Curvature")
+        return _curvature.face_curvature(R, self.mesh, cut=self.cut, kind=self.kind)
+
+
+class Torsion(nn.Module):
+    """Per-face discrete torsion of the solder form (report Def. 3.2; Sec. 3.3).
+
+    Args:
+        mesh: ``TetMesh`` or ``CellComplex`` (its vertex positions define the solder form).
+        kind: ``"sqrt"`` (θ̃_ij = √R_ij θ_ij, convergent) or ``"naive"`` (plain θ, divergent).
+        cut: cut position (default ``-1``: last loop vertex).
+
+    Forward: ``(connection, frames=None)`` → ``(F, n)`` in the fiber of each face's evaluation
+    vertex; ``frames (V, n, n)`` expresses the solder form in a frame field
+    (θ_ij = F_iᵀ (v_j − v_i)); ``None`` means the global coordinate frame.
+    """
+
+    def __init__(self, mesh: Any, kind: str = "sqrt", cut: int = -1):
+        super().__init__()
+        if kind not in ("sqrt", "naive"):
+            raise ValueError(f"Torsion: kind must be 'sqrt' or 'naive', got {kind!r}")
+        self.mesh = MeshBuffers(mesh)
+        self.kind, self.cut = kind, cut
+
+    def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
+        R = edge_rotations(connection)
+        _check_edges(R, self.mesh, "Torsion")
+        return _torsion.face_torsion(R, self.mesh, kind=self.kind, cut=self.cut, frames=frames)
+
+
+class CovariantD(nn.Module):
+    """Per-tet second covariant exterior derivative of the solder form, ``(T, n)``.
+
+    Args:
+        mesh: ``TetMesh``.
+        variant: ``"averaged"`` — ``𝔡∇ Alt 𝔡∇ Alt θ̃`` (Def. 5.2, convergent);
+            ``"behs21"`` — BEHS21 twice on the plain θ, ``(R_ab R_bc − R_ac) θ_cd`` (Ch. 4,
+            divergent); ``"wedge"`` — the explicit end-of-Ch. 5 discrete ``Ω∧θ``.
+
+    Forward: ``(connection, frames=None)`` → ``(T, n)`` in the fiber of ``tets[t, 0]``; divide
+    by the tet volume to compare with the smooth ``Ω∧θ``.
+    """
+
+    _FUNCS = {
+        "averaged": _dnabla.averaged_dd_solder,
+        "behs21": _dnabla.behs21_dd_solder,
+        "wedge": _dnabla.wedge_solder,
+    }
+
+    def __init__(self, mesh: Any, variant: str = "averaged"):
+        super().__init__()
+        if variant not in self._FUNCS:
+            raise ValueError(f"CovariantD: variant must be one of {sorted(self._FUNCS)}, got {variant!r}")
+        if not hasattr(mesh, "tets"):
+            raise TypeError(f"CovariantD needs a TetMesh, got {type(mesh).__name__}")
+        self.mesh = MeshBuffers(mesh)
+        self.variant = variant
+
+    def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
+        R = edge_rotations(connection)
+        _check_edges(R, self.mesh, "CovariantD")
+        return self._FUNCS[self.variant](R, self.mesh, frames)
+
+
+class AveragedCovariantD(CovariantD):
+    """The averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2): ``CovariantD(mesh, "averaged")``."""
+
+    def __init__(self, mesh: Any):
+        super().__init__(mesh, variant="averaged")
+
+
+class BianchiCheck(nn.Module):
+    """Invariant check: the exact discrete Bianchi identities on every tet.
+
+    Forward: ``(connection, frames=None)`` → ``{"differential": max residual, "algebraic": max
+    residual}`` (floats) — the differential identity ``⟨𝔡∇Ω,[abcd]⟩_a^d = 0`` with ``Ω = 𝔡∇w``
+    and the algebraic one ``𝔡∇Alt𝔡∇Alt θ̃ − Ω∧θ = 0`` (explicit Ch. 5 wedge). Raises
+    :class:`torchconn.bianchi.BianchiError` naming the worst tets when a residual exceeds
+    ``atol`` (default: the dtype's ``identity`` tolerance) or is not finite — a structural bug
+    or a NaN. The check runs on detached rotations (it is a diagnostic, not a loss term).
+    """
+
+    def __init__(self, mesh: Any, atol: float | None = None):
+        super().__init__()
+        if not hasattr(mesh, "tets"):
+            raise TypeError(f"BianchiCheck needs a TetMesh, got {type(mesh).__name__}")
+        self.mesh = MeshBuffers(mesh)
+        self.atol = atol
+
+    @torch.no_grad()
+    def forward(self, connection: Any, frames: torch.Tensor | None = None) -> dict[str, float]:
+        R = edge_rotations(connection).detach()
+        _check_edges(R, self.mesh, "BianchiCheck")
+        return _bianchi.check(R, self.mesh, atol=self.atol, frames=frames)
