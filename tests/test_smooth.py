@@ -304,6 +304,10 @@ def test_errors(gen):
         SmoothConnection().omega(a)
     with pytest.raises(ValueError, match="square"):
         expm_skew(torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"midpoint_integral expects points of shape \(\.\.\., 3\), got \(2, 2\)"):
+        rc.midpoint_transport(a, b[:, :2])
+    with pytest.raises(ValueError, match="path_ordered_transport expects points"):
+        rc.path_ordered_transport(a[:, :2], b[:, :2])
 
 
 def test_path_ordered_chunking_matches(gen, monkeypatch):

@@ -67,6 +67,13 @@ def expm_skew(K: torch.Tensor) -> torch.Tensor:
     return son.exp(K.contiguous())
 
 
+def _check_points(fn: str, *pts: torch.Tensor) -> None:
+    for p in pts:
+        if not isinstance(p, torch.Tensor) or p.dim() < 1 or p.shape[-1] != 3:
+            shape = tuple(p.shape) if isinstance(p, torch.Tensor) else type(p).__name__
+            raise ValueError(f"{fn} expects points of shape (..., 3), got {shape}")
+
+
 def _commutator(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
     return X @ Y - Y @ X
 
@@ -145,11 +152,13 @@ class SmoothConnection:
     # ------------------------------------------------------------------ evaluation helpers
     def along(self, a: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``ω_x[b - a]``: the connection at ``x (..., 3)`` applied to ``b - a`` -> ``(..., n, n)``."""
+        _check_points("along", a, b, x)
         om = self.omega(x)
         return torch.einsum("...a,...aij->...ij", (b - a).to(om.dtype), om)
 
     def midpoint_integral(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """One-point quadrature ``ω_m[b - a]`` of ``∫_{[a,b]} ω``, ``m = (a+b)/2`` -> ``(..., n, n)``."""
+        _check_points("midpoint_integral", a, b)
         return self.along(a, b, 0.5 * (a + b))
 
     # ------------------------------------------------------------------ transports
@@ -206,6 +215,7 @@ class SmoothConnection:
         """
         if steps < 1:
             raise ValueError(f"path_ordered_transport: steps must be >= 1, got {steps}")
+        _check_points("path_ordered_transport", a, b)
         a, b = torch.broadcast_tensors(a, b)
         batch = a.shape[:-1]
         d = b - a
@@ -385,6 +395,7 @@ class ReportConnection(SmoothConnection):
 
     def segment_integral(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Closed-form ``∫_{[a,b]} ω`` for ``a, b (..., 3)`` -> ``(..., 3, 3)`` (report Sec. 3.4)."""
+        _check_points("segment_integral", a, b)
         a, b = torch.broadcast_tensors(a, b)
         A, B = _report_generators(a.dtype, a.device)
         cx = 0.5 * (a[..., 0] + b[..., 0]) * (b[..., 2] - a[..., 2])
