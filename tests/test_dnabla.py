@@ -78,7 +78,7 @@ def slow_wedge(T, th):
 
 
 def theta_tilde(Th, pts):
-    return D.solder_form_sqrt(Th, D.solder_form(pts))
+    return D.solder_form_sqrt(Th, pts)
 
 
 def tol(dtype, scale=1.0):
@@ -187,6 +187,7 @@ def test_alt_vector_properties(gen):
     torch.testing.assert_close(D.alt_vector(T, th), th, atol=1e-13, rtol=0)
     # ... while the plain θ is changed by it
     theta = D.solder_form(pts)
+    torch.testing.assert_close(D.solder_form_sqrt(Th, theta), th, atol=0, rtol=0)  # θ or points accepted
     assert (D.alt_vector(T, theta) - theta).abs().max() > 1e-2
     # Alt of a 1-form is alternating under transport; Alt of a 2-form is antisymmetric when x0 is fixed
     a1 = D.alt_vector(T, theta)

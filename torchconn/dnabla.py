@@ -511,23 +511,35 @@ def solder_form(points: torch.Tensor) -> torch.Tensor:
     return points.unsqueeze(-3) - points.unsqueeze(-2)  # [i, j] = p_j - p_i
 
 
-def solder_form_sqrt(T_half: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """Half-transported solder form ``θ̃[i, j] = √R_ij θ_ij`` (Sec. 3.3).
+def solder_form_sqrt(T_half: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Half-transported solder form ``θ̃[i, j] = √R_ij θ_ij = √R_ij (v_j - v_i)`` (Sec. 3.3).
+
+    The solder form is taken at the edge midpoint in the global coordinate frame and carried to
+    ``x_i`` by the half transport (report Fig. 3.2).
 
     Args:
         T_half: ``(..., s, s, n, n)`` half transports ``√R_{x_i x_j}`` (midpoint of ``ij`` ->
             ``x_i``; ``so3.sqrt`` of ``R_ij`` for a discrete connection, ``exp(½ ω_m[v_j - v_i])``
             in the experiments); ``√R_ji = √R_ij^T``.
-        theta: ``(..., s, s, n)`` from :func:`solder_form`.
+        points: ``(..., s, n)`` vertex positions, or an already formed dense solder form
+            ``θ (..., s, s, n)`` (:func:`solder_form`); the two are told apart by their number of
+            dims relative to ``T_half`` (same number of batch dims).
 
     Returns:
         ``(..., s, s, n)`` in the fiber of the first label; ``R_ji θ̃_ij = -θ̃_ji`` whenever
-        ``R_ij = √R_ij²``.
+        ``R_ij = √R_ij²`` (erratum 9).
     """
-    _check_T(T_half, "solder_form_sqrt")
-    if theta.shape[-3:] != T_half.shape[-4:-1]:
-        raise ValueError(f"solder_form_sqrt: theta shape {tuple(theta.shape)} does not match half "
-                         f"transports {tuple(T_half.shape)} (expected (..., s, s, n))")
+    batch_nd, s_, n = _check_T(T_half, "solder_form_sqrt")
+    if not torch.is_tensor(points):
+        raise TypeError(f"solder_form_sqrt: points must be a tensor, got {type(points).__name__}")
+    if points.ndim == batch_nd + 2 and points.shape[-2:] == (s_, n):
+        theta = solder_form(points)
+    elif points.ndim == batch_nd + 3 and points.shape[-3:] == (s_, s_, n):
+        theta = points
+    else:
+        raise ValueError(f"solder_form_sqrt: expected points (..., {s_}, {n}) or a solder form "
+                         f"(..., {s_}, {s_}, {n}) with {batch_nd} batch dims like T_half "
+                         f"{tuple(T_half.shape)}, got {tuple(points.shape)}")
     return (T_half @ theta.unsqueeze(-1)).squeeze(-1)
 
 
@@ -823,7 +835,7 @@ def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) ->
         if edge_rot.shape[-1] != pts.shape[-1]:
             raise ValueError(f"{fn}: rank n={edge_rot.shape[-1]} differs from the ambient dimension "
                              f"{pts.shape[-1]}; the solder form needs n = 3")
-        return solder_form_sqrt(tet_transports(half_rot, mesh), solder_form(pts))
+        return solder_form_sqrt(tet_transports(half_rot, mesh), pts)
     from . import so3
     Fv = _check_frames(frames, mesh, edge_rot, fn)
     e = mesh.edges.to(edge_rot.device)
@@ -832,7 +844,7 @@ def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) ->
         half_amb = so3.sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2))
     else:
         half_amb = Fi @ half_rot @ Fj.transpose(-1, -2)
-    th_amb = solder_form_sqrt(tet_transports(half_amb, mesh), solder_form(pts))
+    th_amb = solder_form_sqrt(tet_transports(half_amb, mesh), pts)
     F = Fv[mesh.tets.to(edge_rot.device)]  # (T, 4, 3, 3)
     return (F.unsqueeze(-3).transpose(-1, -2) @ th_amb.unsqueeze(-1)).squeeze(-1)
 
