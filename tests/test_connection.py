@@ -6,6 +6,8 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchconn import so3, son
 from torchconn.connection import Connection, ConnectionField
@@ -74,6 +76,35 @@ def test_transport_lookup_and_transpose(gen):
     idx, sign = c.edge_index(i, j)
     assert torch.equal(sign, torch.where(i < j, 1, -1))
     assert torch.equal(torch.sort(edges[idx], -1).values, torch.stack((torch.minimum(i, j), torch.maximum(i, j)), -1))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n_vertices=st.integers(2, 12),
+    pairs=st.lists(st.tuples(st.integers(0, 11), st.integers(0, 11)), min_size=1, max_size=30),
+    queries=st.lists(st.tuples(st.integers(0, 11), st.integers(0, 11)), min_size=1, max_size=20),
+    seed=st.integers(0, 2**16),
+)
+def test_lookup_property(n_vertices, pairs, queries, seed):
+    """Random edge sets and queries: lookup agrees with a dict, non-edges are reported."""
+    edge_set = sorted({(min(i, j), max(i, j)) for i, j in pairs if i != j and max(i, j) < n_vertices})
+    if not edge_set:
+        return
+    g = torch.Generator().manual_seed(seed)
+    edges = torch.tensor(edge_set)[torch.randperm(len(edge_set), generator=g)]
+    c = Connection.random(edges, n_vertices, generator=g, dtype=F64)
+    table = {tuple(e): c.edge_rot[k] for k, e in enumerate(edges.tolist())}
+    qs = [(i, j) for i, j in queries if max(i, j) < n_vertices]
+    good = [(i, j) for i, j in qs if (min(i, j), max(i, j)) in table and i != j]
+    bad = [(i, j) for i, j in qs if (i, j) not in good]
+    if good:
+        R = c.transport(torch.tensor([q[0] for q in good]), torch.tensor([q[1] for q in good]))
+        for (i, j), Rij in zip(good, R):
+            ref = table[(i, j)] if i < j else table[(j, i)].T
+            assert torch.equal(Rij, ref)
+    for i, j in bad[:3]:
+        with pytest.raises(ValueError, match=r"not edges.*\[\[%d, %d\]\]" % (i, j)):
+            c.transport(torch.tensor([i]), torch.tensor([j]))
 
 
 def test_path_products_against_plain_loop(gen):

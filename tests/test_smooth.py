@@ -290,6 +290,18 @@ def test_gradcheck_transports(gen):
     assert torch.isfinite(z.grad).all()
 
 
+def test_gradcheck_numeric_invariants(gen):
+    """The autograd-derived forms stay differentiable in x (create_graph when grad mode is on)."""
+    conn = CONNECTIONS["nonlinear"]
+    x = torch.randn(1, 3, generator=gen, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(conn.curvature_form, (x,), fast_mode=True)
+    assert torch.autograd.gradcheck(conn.curvature_wedge_solder, (x,))
+    assert torch.autograd.gradcheck(conn.torsion_form, (x,))
+    with torch.no_grad():
+        C = conn.curvature_form(x)
+    assert not C.requires_grad and (C - conn.curvature_form(x)).abs().max() == 0
+
+
 def test_errors(gen):
     rc = ReportConnection()
     a, b = _random_segments(gen, 2)
