@@ -353,6 +353,10 @@ def test_field_training_step_and_state_dict(gen):
     g2 = ConnectionField(edges, V, dtype=F64)
     g2.load_state_dict(sd)
     assert torch.equal(g2().edge_rot, field().edge_rot)
+    # loading other edges (same count) rebuilds the transport lookup
+    g3 = ConnectionField(edges.flip(0), V, dtype=F64)
+    g3.load_state_dict(sd)
+    assert torch.equal(g3().transport(edges[:, 0], edges[:, 1]), field().edge_rot)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

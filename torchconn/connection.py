@@ -238,6 +238,10 @@ class Connection:
         Raises:
             ValueError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
                 and out-of-range vertices).
+
+        This is a topology-level lookup (``searchsorted`` on keys ``min*V + max``) that checks
+        every pair and therefore synchronizes with the device; operators on meshes should use
+        precomputed ``(edge_idx, edge_sign)`` buffers with :meth:`oriented` instead.
         """
         dev = self.edges.device
         i = torch.as_tensor(i, device=dev)
@@ -523,8 +527,10 @@ class ConnectionField(torch.nn.Module):
         self.n = int(n)
         self.n_vertices = int(n_vertices)
         self.register_buffer("edges", edges)
+        # edge lookup of :meth:`Connection.transport`, built once (rebuilt after load_state_dict)
         self.register_buffer("_sorted_keys", sorted_keys, persistent=False)
         self.register_buffer("_perm", perm, persistent=False)
+        self.register_load_state_dict_post_hook(ConnectionField._rebuild_lookup)
 
         if init is None:
             params = torch.zeros(E, m, dtype=dtype, device=edges.device)
@@ -548,6 +554,13 @@ class ConnectionField(torch.nn.Module):
         else:
             raise TypeError(f"init must be None, a Connection or a tensor, got {type(init).__name__}")
         self.params = torch.nn.Parameter(params)
+
+    @staticmethod
+    def _rebuild_lookup(module: "ConnectionField", incompatible_keys) -> None:
+        """Re-validate loaded edges and rebuild the lookup buffers (load_state_dict post-hook)."""
+        keys, perm = _check_edges(module.edges, module.n_vertices)
+        module._sorted_keys = keys
+        module._perm = perm
 
     @classmethod
     def from_connection(cls, conn: Connection) -> "ConnectionField":
