@@ -472,3 +472,32 @@ def test_bad_input_raises(gen):
         D.tet_transports(so3.random_rotation(3, generator=gen, dtype=F64), mesh)
     with pytest.raises(ValueError, match="half_rot"):
         D.averaged_dd_solder(son.random_rotation(mesh.edges.shape[0], n=4, generator=gen, dtype=F64), mesh)
+
+
+# ----------------------------------------------------------------------------- convergence (Ch. 5)
+
+def test_averaged_dd_converges_linearly_behs21_does_not():
+    """Case D of CONVENTIONS §3 (report Fig. 5.1): d∇d∇θ / vol -> Ω∧θ = (0, 0, -xy) at vertex 0."""
+    import numpy as np
+
+    from torchconn import smooth
+
+    sc = smooth.ReportConnection()
+    Rot = so3.euler_xyz(torch.tensor(-2.2, dtype=F64), torch.tensor(2.1, dtype=F64), torch.tensor(1.7, dtype=F64))
+    v = torch.tensor([1.1, -1.2, -1.2], dtype=F64)
+    base = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]], dtype=F64)
+    ref = sc.curvature_wedge_solder(v)
+    hs, err_avg, err_behs = [], [], []
+    for level in range(5, 10):
+        h = 2.0 ** -level
+        P = v + h * base @ Rot.T
+        a, b = P[:, None, :].expand(4, 4, 3), P[None, :, :].expand(4, 4, 3)
+        T, Th = sc.midpoint_transport(a, b), sc.half_transport(a, b)
+        vol = torch.det(torch.stack([P[1] - P[0], P[2] - P[0], P[3] - P[0]])) / 6
+        err_avg.append(float((D.averaged_dd_tet(T, D.solder_form_sqrt(Th, P)) / vol - ref).norm()))
+        err_behs.append(float((D.behs21_dd_tet(T, D.solder_form(P)) / vol - ref).norm()))
+        hs.append(h)
+    slope_avg = np.polyfit(np.log(hs), np.log(err_avg), 1)[0]
+    slope_behs = np.polyfit(np.log(hs), np.log(err_behs), 1)[0]
+    assert 0.9 < slope_avg < 1.1 and err_avg[-1] < 5e-3
+    assert abs(slope_behs) < 0.1 and err_behs[-1] > 1.0
