@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 
 from .transport import orient, path_product
@@ -107,7 +108,8 @@ def _gather_k(P: torch.Tensor, c: Any) -> torch.Tensor:
     if isinstance(c, int):
         return P[..., c, :, :]
     n = P.shape[-1]
-    batch = torch.broadcast_shapes(P.shape[:-3], c.shape)
+    # numpy's broadcast rule (torch.broadcast_shapes lazily imports torch._refs: ~1 s on first use)
+    batch = tuple(np.broadcast_shapes(tuple(P.shape[:-3]), tuple(c.shape)))
     P = P.expand(*batch, *P.shape[-3:])
     idx = c.expand(batch)[..., None, None, None].expand(*batch, 1, n, n)
     return torch.gather(P, -3, idx).squeeze(-3)
