@@ -127,8 +127,8 @@ def log(R: torch.Tensor) -> torch.Tensor:
     c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
     s2 = (v * v).sum(-1)
     small = (s2 < eps_small * eps_small) & (c > 0)
-    near_pi = c < 0
-    generic = ~(small | near_pi)
+    obtuse = c < 0
+    generic = ~(small | obtuse)
 
     # generic branch (safe-where: |v| = 1, c = 0 where unused, so sqrt/atan2 stay smooth)
     s_g = torch.sqrt(torch.where(generic, s2, torch.ones_like(s2)))
@@ -141,7 +141,7 @@ def log(R: torch.Tensor) -> torch.Tensor:
 
     # obtuse / near-pi branch, evaluated on a harmless rotation by pi about x where unused
     R_pi = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype, device=device))
-    Rp = torch.where(near_pi[..., None, None], R, R_pi)
+    Rp = torch.where(obtuse[..., None, None], R, R_pi)
     vp = vee(Rp)
     cp = 0.5 * (Rp.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
     eye = torch.eye(3, dtype=dtype, device=device)
@@ -153,7 +153,7 @@ def log(R: torch.Tensor) -> torch.Tensor:
     n = n * sign[..., None]
     omega_pi = torch.atan2((n * vp).sum(-1), cp)[..., None] * n
 
-    return torch.where(near_pi[..., None], omega_pi, omega_main)
+    return torch.where(obtuse[..., None], omega_pi, omega_main)
 
 
 def sqrt(R: torch.Tensor) -> torch.Tensor:
