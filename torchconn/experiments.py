@@ -295,7 +295,6 @@ def triangle_quantities(
         curvatures. Values live in the fiber of ``v0`` (barycentric torsion: of the centroid),
         all identified with R^3 by the global frame.
     """
-
     unknown = [q for q in quantities if q not in TRIANGLE_QUANTITIES]
     if unknown:
         raise ValueError(f"unknown triangle quantities {unknown}; known: {list(TRIANGLE_QUANTITIES)}")

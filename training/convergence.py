@@ -229,7 +229,8 @@ def _secondary_claims(res: E.StudyResult) -> list[str]:
         lines.append("- Ch. 5, primal-dual d∇d∇θ more accurate than the averaged one (error ratio averaged/primal-dual: "
                      + ", ".join(f"{c} {float(r):.2f}" for c, r in zip(res.cases, ratio)) + "): "
                      + ("reproduced in every case." if len(wins) == len(res.cases)
-                        else f"holds in cases {', '.join(wins) or 'none'} only, **not in every case**."))
+                        else f"holds in cases {', '.join(wins)} only, **not in every case**." if wins
+                        else "holds in no case."))
     return lines if len(lines) > 2 else []
 
 
@@ -309,6 +310,10 @@ def train(cfg) -> dict:
            f"levels 0..{s['levels'] - 1}, slope fit over levels {main_res.settings['fit_levels']}",
            f"- claim thresholds: converges ⇔ slope ≥ {th['converge']}; does not converge ⇔ slope ≤ {th['diverge']}",
            ""]
+    if list(main_res.settings["fit_levels"]) != [n for n in s["fit_levels"]]:
+        md += [f"Note: the configured fit levels {list(s['fit_levels'])} were not all computed (levels 0..{s['levels'] - 1}); "
+               f"slopes are fitted over levels {main_res.settings['fit_levels']} and may be pre-asymptotic "
+               "(a reduced study, not a test of the report's claims).", ""]
     md += ["## Main series (`convergence.csv`, `slopes.csv`, `convergence_<case>.png`)", ""]
     table, main_ok = _verdict_table(main_res, th)
     md += table + [""]
