@@ -143,6 +143,27 @@ def test_chain_tet_boundary_ball(gen):
     check_patch(cx, ids, gen, n=4)
 
 
+def test_chain_tet_boundary_shared_sphere(gen):
+    from torchconn import io
+
+    cx = io.load_tet_mesh(data_path("sphere_r0.17.mesh")).boundary_complex()
+    check_patch(cx, chains.patch(cx, seed_face=5, n_faces=200), gen)
+
+
+def test_single_face_chain(gen):
+    V, F, vid = quad_grid(2, 1)
+    cx = CellComplex(V, F)
+    R = rand_rot(cx.edges.shape[0], gen=gen)
+    loop = F[1]
+    ei, es = cx.edge_index(torch.tensor(loop), torch.tensor(loop[1:] + loop[:1]))
+    L = transport.orient(R, ei, es)
+    for k in range(4):
+        for c in range(4):
+            X = chains.curvature_over_chain(R, cx, [1], loop[k], loop[c])
+            ref = curvature.two_prong(curvature.roll(L, k), (c - k) % 4)
+            assert (X - ref).abs().max() < 1e-13
+
+
 def test_chain_gauge_covariance(gen):
     V, F, vid = quad_grid(6, 5)
     cx = CellComplex(V, F)
@@ -224,6 +245,19 @@ def test_not_a_disk_errors(gen):
     flipped = CellComplex(V, [F[0], F[1][::-1]])
     with pytest.raises(ValueError, match="consistently oriented"):
         chains.boundary_loop(flipped, [0, 1])
+
+
+def test_punctured_torus_is_not_a_disk():
+    """One boundary loop and edge-connected, but Euler characteristic -1."""
+    k = 4
+    V = np.array([[i, j, 0.0] for j in range(k) for i in range(k)])
+    vid = lambda i, j: (j % k) * k + (i % k)  # noqa: E731
+    F = [[vid(i, j), vid(i + 1, j), vid(i + 1, j + 1), vid(i, j + 1)] for j in range(k) for i in range(k)]
+    cx = CellComplex(V, F)
+    with pytest.raises(ValueError, match="Euler characteristic -1"):
+        chains.boundary_loop(cx, list(range(1, k * k)))
+    with pytest.raises(ValueError, match="no boundary"):
+        chains.boundary_loop(cx, list(range(k * k)))
 
 
 def test_closed_surface_errors(gen):

@@ -308,6 +308,8 @@ def patch(cx: Any, seed_face: int, n_faces: int) -> torch.Tensor:
 
     A face is added only if it meets the current patch along one contiguous boundary arc and
     brings no other patch vertex, so the patch stays a disk; the returned order is a shelling.
+    Meant for edge-manifold, consistently oriented complexes; the result is validated with the
+    checks of :func:`boundary_loop`.
 
     Returns:
         ``(n_faces,)`` long tensor of global face ids. Raises ``ValueError`` if fewer faces can be
@@ -353,6 +355,7 @@ def patch(cx: Any, seed_face: int, n_faces: int) -> torch.Tensor:
         push(g)
     if len(out) < n_faces:
         raise ValueError(f"could only grow a disk patch of {len(out)} faces from face {seed}, asked for {n_faces}")
+    _boundary_cycle(faces, out)  # a non-manifold complex could still fool the local test
     return torch.tensor(out, dtype=torch.long, device=cx.edges.device)
 
 
