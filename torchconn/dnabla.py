@@ -608,7 +608,9 @@ def averaged_dd_tet(T: torch.Tensor, theta_tilde: torch.Tensor) -> torch.Tensor:
     """``⟨d∇d∇θ, [abcd]⟩_a = 𝔡∇ Alt 𝔡∇ Alt θ̃`` at ``[0123]`` (Def. 5.2 twice, CONVENTIONS §1).
 
     Computed through the generic operators. ``T (..., 4, 4, n, n)``, ``theta_tilde (..., 4, 4, n)``
-    -> ``(..., n)`` in the fiber of local vertex 0.
+    -> ``(..., n)`` in the fiber of local vertex 0. Equals :func:`wedge_curvature_solder_tet` to
+    round-off. The first Alt is a no-op on ``θ̃`` (``Alt(θ̃)_ij = ½(θ̃_ij - R_ij θ̃_ji) = θ̃_ij``
+    since ``θ̃_ji = -R_ji θ̃_ij``); it matters for forms without that symmetry (plain θ).
     """
     _check_tet(T, theta_tilde, "averaged_dd_tet")
     # only distinct-label entries are ever read: 12 pairs -> 24 triples -> 4 faces -> [0123]
