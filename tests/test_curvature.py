@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import curvature, so3, son, transport
+from torchconn import curvature, so3, son
 from torchconn.tolerances import get_eps
 
 DTYPES = [torch.float32, torch.float64]
