@@ -46,23 +46,27 @@ def _norm_or_raw(res: torch.Tensor, reduce: bool, value_nd: int) -> torch.Tensor
 def differential_residual(edge_rot: torch.Tensor, mesh, reduce: bool = True, *, alternate: bool = False) -> torch.Tensor:
     """Differential Bianchi residual ``⟨𝔡∇Ω,[abcd]⟩_a^d`` on every tet (Ch. 5).
 
-    ``Ω = unsymmetrized_vector(T, connection_form(T), matrix_values=True)`` on all ordered
-    triangles of the tet, then ``unsymmetrized_lie`` at ``[0123]`` (evaluation ``tets[t,0]``, cut
-    ``tets[t,3]``). With ``alternate=True`` the averaged ``d∇Ω = 𝔡∇ Alt Ω`` (Def. 5.2) is used.
+    ``Ω = unsymmetrized_vector(T, connection_form(T), matrix_values=True)`` on the triangles the
+    next step reads (``[123], [023], [013], [012]``; all 24 orderings with ``alternate``), then
+    ``unsymmetrized_lie`` at ``[0123]`` (evaluation ``tets[t,0]``, cut ``tets[t,3]``). With
+    ``alternate=True`` the averaged ``d∇Ω = 𝔡∇ Alt Ω`` (Def. 5.2, Lie Alt of Ch. 5) is used.
 
     Args:
         edge_rot: ``(E, n, n)`` rotations of ``mesh.edges``; mesh: a ``TetMesh``.
         reduce: return Frobenius norms ``(T,)``; else the raw residual ``(T, n, n)``.
     """
-    T = dnabla.tet_transports(edge_rot, mesh)
+    res = _differential(dnabla.tet_transports(edge_rot, mesh), alternate)
+    return _norm_or_raw(res, reduce, 2)
+
+
+def _differential(T: torch.Tensor, alternate: bool) -> torch.Tensor:
     faces = dnabla.faces_of(_TET)  # the four triangles 𝔡∇ reads on [0123]
     need = dnabla.permutations_of(faces) if alternate else faces  # Alt reads all reorderings
     w = dnabla.connection_form(T)
     omega = dnabla.ListForm(dnabla.unsymmetrized_vector(T, w, need, matrix_values=True), need)
     if alternate:
         omega = dnabla.ListForm(dnabla.alt_lie(T, omega, faces), faces)
-    res = dnabla.unsymmetrized_lie(T, omega, _TET).squeeze(-3)
-    return _norm_or_raw(res, reduce, 2)
+    return dnabla.unsymmetrized_lie(T, omega, _TET).squeeze(-3)
 
 
 def algebraic_residual(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None, reduce: bool = True) -> torch.Tensor:
@@ -153,11 +157,12 @@ def _check(edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
     eps = get_eps("identity", edge_rot.dtype) if atol is None else float(atol)
     n = edge_rot.shape[-1]
     out = {}
-    diff = differential_residual(edge_rot, mesh)
+    T = dnabla.tet_transports(edge_rot, mesh)  # shared by both identities
+    diff = _norm_or_raw(_differential(T, False), True, 2)
     out["differential"] = assert_residual(diff, "differential", eps * n)
-    theta = dnabla.tet_solder_sqrt(edge_rot.detach(), mesh, frames, half_rot)
+    theta = dnabla.tet_solder_sqrt(edge_rot, mesh, frames, half_rot)
     scale = 1.0 + torch.linalg.vector_norm(theta, dim=-1).flatten(1).amax(1)
-    alg = algebraic_residual(edge_rot, mesh, frames, half_rot)
+    alg = torch.linalg.vector_norm(dnabla.averaged_dd_tet(T, theta) - dnabla.wedge_curvature_solder_tet(T, theta), dim=-1)
     out["algebraic"] = assert_residual(alg, "algebraic", eps * n * scale)
     if dual is not None:
         tfr, fer, ev = dual
