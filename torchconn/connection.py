@@ -357,11 +357,11 @@ class Connection:
         """Half transports ``√R_ij = exp(½ log R_ij)`` per edge (report Sec. 3.3; CONVENTIONS §1).
 
         Edge midpoint -> ``v_i``. Uses :func:`so3.sqrt` for ``n = 3`` and
-        ``son.exp(son.log(R) / 2)`` otherwise (principal branch: angles ``< pi``).
+        ``son.sqrt`` otherwise (principal branch: angles ``< pi``).
         """
         if self.n == 3:
             return self._replace(so3.sqrt(self.edge_rot))
-        return self._replace(son.exp(0.5 * son.log(self.edge_rot)))
+        return self._replace(son.sqrt(self.edge_rot))
 
     def to(self, *args, **kwargs) -> "Connection":
         """Move/cast ``edge_rot`` like :meth:`torch.Tensor.to`; edges follow the device."""

@@ -17,7 +17,8 @@ __all__ = ["get_eps", "TOLERANCES"]
 TOLERANCES: dict[str, dict[torch.dtype, float]] = {
     # Angle below which Rodrigues / log use Taylor expansions (|theta| small).
     "small_angle": {torch.float32: 1e-2, torch.float64: 1e-4, torch.float16: 5e-2, torch.bfloat16: 5e-2},
-    # Distance to pi below which log switches to the symmetric-part axis extraction.
+    # Distance to pi within which the general-n log/sqrt (son, n >= 4) is ill-conditioned and
+    # returns NaN for that element (so3.log is exact up to pi and does not use it).
     "near_pi": {torch.float32: 1e-2, torch.float64: 1e-5, torch.float16: 5e-2, torch.bfloat16: 5e-2},
     # Tolerance of ||R^T R - I|| and |det R - 1| when validating rotations.
     "rotation": {torch.float32: 1e-4, torch.float64: 1e-9, torch.float16: 1e-2, torch.bfloat16: 2e-2},
