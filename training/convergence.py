@@ -266,7 +266,9 @@ def train(cfg) -> dict:
     main_res = E.study(smooth, transport=s["transport"], reference_point=s["reference_point"], **common)
     timings["main"] = time.perf_counter() - t
     title = f"{s['connection']} connection, {s['transport']} transports, reference {s['reference_point']}, {s['dtype']}"
+    t = time.perf_counter()
     files = _write_study(out, main_res, s["plots"], title)
+    timings["writing csv/plots"] = time.perf_counter() - t
 
     variant_results = {}
     skipped = []
@@ -280,7 +282,9 @@ def train(cfg) -> dict:
         res = E.study(smooth, **setting, **common)
         timings[f"variant {name}"] = time.perf_counter() - t
         vtitle = f"{s['connection']} connection, {setting['transport']} transports, reference {setting['reference_point']}, {s['dtype']}"
+        t = time.perf_counter()
         files += _write_study(out / "variants" / name, res, s["plots"], vtitle)
+        timings["writing csv/plots"] += time.perf_counter() - t
         variant_results[name] = res
 
     mesh_rows, mesh_slopes, mesh_info = [], [], ""
