@@ -95,8 +95,10 @@ def test_flat_frame_connection_zero_torsion_on_mesh(gen):
     for cut in (0, 1, 2):
         T = torsion.face_torsion(R, mesh, kind="naive", cut=cut, frames=Fr)
         assert T.abs().max() < 1e-13
-    # not an empty statement: the sqrt kind with the principal root and these frames is not 0
-    assert torsion.face_torsion(R, mesh, kind="sqrt", frames=Fr).abs().max() > 1e-2
+    # the sqrt kind takes the root of the ambient (frame-independent) rotation: also exactly 0
+    assert torsion.face_torsion(R, mesh, kind="sqrt", frames=Fr).abs().max() < 1e-13
+    # not an empty statement: a non-flat connection in the same frames has torsion
+    assert torsion.face_torsion(rand_rot(R.shape[0], gen=gen), mesh, kind="sqrt", frames=Fr).abs().max() > 1e-2
 
 
 def test_cut_dependence_is_governed_by_holonomy(gen):
@@ -170,8 +172,9 @@ def test_gauge_covariance(gen):
         assert (torsion.sqrt(Lg, G[vloop] @ H, P, c) - G[0] @ torsion.sqrt(L, H, P, c)).abs().max() < 1e-13
 
 
-def test_gauge_covariance_mesh_frames(gen):
-    """Frame change F'_i = F_i G_i^T with R'_ij = G_i R_ij G_j^T: naive face torsion -> G_a Theta."""
+@pytest.mark.parametrize("kind", ["naive", "sqrt"])
+def test_gauge_covariance_mesh_frames(gen, kind):
+    """Frame change F'_i = F_i G_i^T with R'_ij = G_i R_ij G_j^T: face torsion -> G_a Theta (both kinds)."""
     from torchconn import io
 
     mesh = io.box(n=1)
@@ -180,8 +183,9 @@ def test_gauge_covariance_mesh_frames(gen):
     G = rand_rot(mesh.n_vertices, gen=gen)
     i, j = mesh.edges[:, 0], mesh.edges[:, 1]
     Rg = G[i] @ R @ G[j].transpose(-1, -2)
-    T = torsion.face_torsion(R, mesh, kind="naive", frames=Fr)
-    Tg = torsion.face_torsion(Rg, mesh, kind="naive", frames=Fr @ G.transpose(-1, -2))
+    T = torsion.face_torsion(R, mesh, kind=kind, frames=Fr)
+    Tg = torsion.face_torsion(Rg, mesh, kind=kind, frames=Fr @ G.transpose(-1, -2))
+    assert T.abs().max() > 1e-2
     a = mesh.faces[:, 0]
     assert (Tg - (G[a] @ T[..., None]).squeeze(-1)).abs().max() < 1e-13
 
@@ -221,21 +225,24 @@ def test_face_torsion_tet_mesh_matches_slow_loop(gen, kind, use_frames):
     mesh = io.box(n=2)
     R = rand_rot(mesh.edges.shape[0], gen=gen)
     Fr = rand_rot(mesh.n_vertices, gen=gen) if use_frames else None
-    H = so3.sqrt(R)
     rot, half = {}, {}
     for e, (i, j) in enumerate(mesh.edges.tolist()):
-        rot[(i, j)], rot[(j, i)] = R[e], R[e].T
-        half[(i, j)], half[(j, i)] = H[e], H[e].T
+        # with frames, the rotation read in the vertex frames and carried to the ambient frame
+        Ra = Fr[i] @ R[e] @ Fr[j].T if use_frames else R[e]
+        Ha = so3.sqrt(Ra)
+        rot[(i, j)], rot[(j, i)] = Ra, Ra.T
+        half[(i, j)], half[(j, i)] = Ha, Ha.T
     V = mesh.vertices
 
     def theta(i, j):
         t = V[j] - V[i]
-        if Fr is not None:
-            t = Fr[i].T @ t
         return half[(i, j)] @ t if kind == "sqrt" else t
 
     got = torsion.face_torsion(R, mesh, kind=kind, cut=2, frames=Fr)
-    ref = torch.stack([theta(a, b) + rot[(a, b)] @ theta(b, c) - theta(a, c) for a, b, c in mesh.faces.tolist()])
+    ref = torch.stack([
+        (Fr[a].T if use_frames else torch.eye(3, dtype=R.dtype)) @ (theta(a, b) + rot[(a, b)] @ theta(b, c) - theta(a, c))
+        for a, b, c in mesh.faces.tolist()
+    ])
     assert (got - ref).abs().max() < 1e-13
     if not use_frames and kind == "sqrt":  # = the functional core on the loops a -> b -> c
         F = mesh.faces

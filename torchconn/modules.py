@@ -170,8 +170,10 @@ class Torsion(nn.Module):
         cut: cut position (default ``-1``: last loop vertex).
 
     Forward: ``(connection, frames=None)`` → ``(F, n)`` in the fiber of each face's evaluation
-    vertex; ``frames (V, n, n)`` expresses the solder form in a frame field
-    (θ_ij = F_iᵀ (v_j − v_i)); ``None`` means the global coordinate frame.
+    vertex; ``frames (V, n, n)`` reads the rotations in a frame field (same convention as
+    :func:`torchconn.torsion.face_torsion` and :func:`torchconn.dnabla.tet_solder_sqrt`:
+    computed with ``F_i R_ij F_jᵀ`` in the ambient frame, returned in ``F_{x0}``, exactly gauge
+    covariant); ``None`` means the global coordinate frame.
     """
 
     def __init__(self, mesh: Any, kind: str = "sqrt", cut: int = -1):

@@ -167,19 +167,26 @@ def solder_form(vertices: torch.Tensor, edges: torch.Tensor, frames: torch.Tenso
 def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, frames: torch.Tensor | None = None) -> torch.Tensor:
     """Torsion of every face of a mesh, batched per face size (Def. 3.2).
 
-    For each loop edge ``x_k -> x_{k+1}`` the solder form in the frame of its start vertex is
-    ``theta_{x_k x_{k+1}} = F_{x_k}^T (x_{k+1} - x_k)`` (``frames=None``: identity frames), and
-    the reverse ``theta_{x_{k+1} x_k} = F_{x_{k+1}}^T (x_k - x_{k+1})``.
+    Without frames (``frames=None``, the global coordinate frame of the numerical tests), the
+    solder form of the loop edge ``x_k -> x_{k+1}`` is ``theta = x_{k+1} - x_k`` and
 
-    * ``kind="naive"``: these values as they are.
-    * ``kind="sqrt"``: ``theta~_ij = sqrt(R_ij) theta_ij`` for both directions, with the principal
-      root ``so3.sqrt`` (``n = 3``) and ``sqrt(R_ji) = sqrt(R_ij)^T``. With identity frames this is
-      exactly :func:`sqrt` (then ``theta~_ji = -R_ji theta~_ij``).
+    * ``kind="naive"``: these values as they are (diverges under refinement, report Sec. 3.3);
+    * ``kind="sqrt"``: ``theta~_ij = sqrt(R_ij) theta_ij`` with the principal root ``so3.sqrt``
+      (``n = 3``), ``theta~_ji = -R_ji theta~_ij`` — exactly :func:`sqrt` on each loop.
+
+    With a frame field ``frames (V, n, n)`` (columns = frame axes in world coordinates), the
+    rotations ``edge_rot`` are read in those vertex frames. The same convention as
+    :func:`torchconn.dnabla.tet_solder_sqrt`: the connection is carried to the ambient frame,
+    ``R^amb_ij = F_i R_ij F_j^T``, the torsion is computed there and expressed in the frame of
+    the evaluation vertex, ``F_{x0}^T Θ^amb``. This is exactly gauge covariant (the principal
+    root is taken of the frame-independent ``R^amb``), so the flat connection ``R_ij = F_i^T F_j``
+    of any frame field has zero torsion of both kinds. For the naive kind it equals the solder
+    form expressed per vertex, ``theta_ij = F_i^T (x_j - x_i)``.
 
     Args:
         edge_rot: ``(E, n, n)`` or a ``Connection``; cells: ``CellComplex`` or ``TetMesh`` (its
-            ``vertices`` are used); kind, cut as above (cut convention of :func:`two_prong`);
-            frames: ``(V, n, n)`` or ``None``.
+            ``vertices`` and ``edges`` are used); kind, cut as above (cut convention of
+            :func:`two_prong`); frames: ``(V, n, n)`` or ``None``.
 
     Returns:
         ``(F, n)`` in global face order, each in the fiber of its evaluation vertex (first loop
@@ -196,6 +203,9 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
         raise ValueError(f"face_torsion: vertices of dimension {V.shape[-1]} do not match rotations of size {n}")
     if frames is not None and frames.shape != (V.shape[0], n, n):
         raise ValueError(f"face_torsion: frames must have shape {(V.shape[0], n, n)}, got {tuple(frames.shape)}")
+    if frames is not None:
+        e = cells.edges.to(R.device)
+        R = frames[e[:, 0]] @ R @ frames[e[:, 1]].transpose(-1, -2)  # ambient connection
     H = so3.sqrt(R) if kind == "sqrt" else None
     F, groups = face_loops(cells)
     out = R.new_zeros(F, n)
@@ -203,18 +213,14 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
         L = orient(R, le, ls)
         pts = V[loops]
         d = torch.roll(pts, shifts=-1, dims=-2) - pts  # x_{k+1} - x_k
-        if frames is None:
-            fwd, bwd = d, -d
-        else:
-            Fa = frames[loops]
-            Fb = torch.roll(Fa, shifts=-1, dims=-3)
-            fwd = (Fa.transpose(-1, -2) @ d[..., None]).squeeze(-1)
-            bwd = -(Fb.transpose(-1, -2) @ d[..., None]).squeeze(-1)
+        fwd, bwd = d, -d
         if H is not None:
             Hf = orient(H, le, ls)  # sqrt(R_{x_k x_{k+1}}), transpose for the reversed edge
             fwd = (Hf @ fwd[..., None]).squeeze(-1)
             bwd = (Hf.transpose(-1, -2) @ bwd[..., None]).squeeze(-1)
         val = two_prong(L, fwd, bwd, cut)
+        if frames is not None:  # express in the frame of the evaluation vertex x0
+            val = (frames[loops[:, 0]].transpose(-1, -2) @ val[..., None]).squeeze(-1)
         if face_ids is None:
             return val
         out = out.index_copy(0, face_ids.to(out.device), val)
