@@ -1,0 +1,171 @@
+"""Fixed quality metrics of an octahedral frame field on a tet mesh (compute for every method).
+
+Definitions (all angles in degrees; ``frames[i][:, k]`` is axis ``k`` at vertex ``i`` in world
+coordinates):
+
+* **smoothness** over all mesh edges ``(i, j)``: with the best match
+  ``g* = octahedral.match(F_i, F_j)`` the residual rotation is ``(F_i g*)^T F_j``; report the mean
+  and the RMS of its geodesic angle and the mean of ``||F_i g* - F_j||_F^2``.
+* **feature edges**: boundary edges whose two boundary faces' normals differ by more than
+  ``angle_deg`` (30 by default); **feature vertices** are their endpoints.
+* **alignment** at the other boundary vertices: angle between the area-weighted vertex normal and
+  the closest frame axis (up to sign); mean and max.
+* **feature alignment** at feature vertices: for every (feature vertex, incident boundary face)
+  pair, angle between the face normal and the closest frame axis; mean and max (``nan`` if the
+  mesh has no feature vertex).
+* **singularities**: number of faces with non-identity matched holonomy and number of tets with
+  exactly one such face (:mod:`torchconn.octahedral`).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .. import octahedral, so3
+
+__all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS"]
+
+METRIC_KEYS = (
+    "smoothness_mean_deg",
+    "smoothness_rms_deg",
+    "smoothness_mean_sqfrob",
+    "alignment_mean_deg",
+    "alignment_max_deg",
+    "feature_alignment_mean_deg",
+    "feature_alignment_max_deg",
+    "n_feature_vertices",
+    "n_singular_faces",
+    "n_tets_one_singular_face",
+)
+
+
+def _require(mesh, *names: str) -> None:
+    missing = [n for n in names if not hasattr(mesh, n)]
+    if missing:
+        raise TypeError(f"expected a TetMesh; {type(mesh).__name__} lacks {missing}")
+
+
+def boundary_face_normals(mesh) -> torch.Tensor:
+    """Outward unit normals ``(B, 3)`` of ``mesh.boundary_faces``."""
+    _require(mesh, "vertices", "boundary_faces")
+    p = mesh.vertices[mesh.boundary_faces]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
+
+
+def feature_edges(mesh, angle_deg: float = 30.0) -> torch.Tensor:
+    """Sharp boundary edges ``(K, 2)`` long (rows ``i < j``, sorted lexicographically).
+
+    A boundary edge is sharp when the normals of its two boundary faces make an angle larger
+    than ``angle_deg``. Boundary edges not shared by exactly two boundary faces (non-manifold
+    boundary) are ignored.
+    """
+    _require(mesh, "vertices", "boundary_faces")
+    if not 0.0 <= angle_deg <= 180.0:
+        raise ValueError(f"angle_deg must lie in [0, 180], got {angle_deg}")
+    bf = mesh.boundary_faces
+    device = bf.device
+    nf = boundary_face_normals(mesh)
+    half = torch.cat([bf[:, [1, 2]], bf[:, [2, 0]], bf[:, [0, 1]]], 0)  # (3B, 2) directed edges
+    face_of = torch.arange(bf.shape[0], device=device).repeat(3)
+    und = half.sort(dim=1).values
+    V = mesh.vertices.shape[0]
+    key = und[:, 0] * V + und[:, 1]
+    ukey, inv, cnt = torch.unique(key, return_inverse=True, return_counts=True)
+    # the two faces of each boundary edge: sort half-edges by edge key, then take pairs
+    order = torch.argsort(inv, stable=True)
+    start = torch.cumsum(cnt, 0) - cnt
+    two = cnt == 2
+    f0 = face_of[order[start[two]]]
+    f1 = face_of[order[start[two] + 1]]
+    n0, n1 = nf[f0], nf[f1]
+    # angle between normals via atan2 (accurate for small and large angles)
+    ang = torch.atan2(torch.linalg.cross(n0, n1, dim=-1).norm(dim=-1), (n0 * n1).sum(-1))
+    sharp = ang > math.radians(angle_deg)
+    k = ukey[two][sharp]
+    return torch.stack([k // V, k % V], dim=1)
+
+
+def feature_vertices(mesh, angle_deg: float = 30.0) -> torch.Tensor:
+    """Sorted endpoints ``(Vf,)`` long of :func:`feature_edges`."""
+    return torch.unique(feature_edges(mesh, angle_deg).reshape(-1))
+
+
+def axis_alignment_angle(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """Angle (radians) between each unit ``normals (..., 3)`` and the closest axis ``±frames[..., :, k]``.
+
+    ``frames (..., 3, 3)`` broadcast against ``normals``. Uses ``atan2(|a x n|, |a . n|)`` for the
+    axis with the largest ``|a . n|`` (no ``acos``, accurate near 0).
+    """
+    c = (frames * normals[..., :, None]).sum(-2)  # (..., 3): a_k . n
+    k = c.abs().argmax(-1, keepdim=True)
+    a = torch.gather(frames, -1, k[..., None, :].expand(*frames.shape[:-1], 1)).squeeze(-1)
+    s = torch.linalg.cross(a, normals.expand_as(a), dim=-1).norm(dim=-1)
+    return torch.atan2(s, torch.gather(c, -1, k).squeeze(-1).abs())
+
+
+def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
+    """All fixed metrics of a frame field (see the module docstring) as a dict of Python numbers.
+
+    Args:
+        frames: ``(V, 3, 3)`` rotations, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
+        mesh: a ``TetMesh``.
+        angle_deg: feature-edge threshold (30 degrees in the fixed definition).
+
+    Returns:
+        dict with exactly the keys of :data:`METRIC_KEYS` (floats, counts as ints).
+    """
+    _require(mesh, "vertices", "edges", "faces", "tet_faces", "boundary_faces",
+             "boundary_vertices", "boundary_vertex_normals")
+    V = mesh.vertices.shape[0]
+    if not torch.is_tensor(frames) or frames.shape != (V, 3, 3):
+        shape = tuple(frames.shape) if torch.is_tensor(frames) else type(frames).__name__
+        raise ValueError(f"frames must have shape (V, 3, 3) = ({V}, 3, 3) for this mesh, got {shape}")
+    frames = frames.to(mesh.vertices.dtype)
+    deg = 180.0 / math.pi
+
+    # smoothness
+    Fi, Fj = frames[mesh.edges[:, 0]], frames[mesh.edges[:, 1]]
+    _, g = octahedral.match(Fi, Fj)
+    Fm = Fi @ g
+    ang = so3.geodesic_distance(Fm, Fj) * deg
+    sqf = ((Fm - Fj) ** 2).sum((-2, -1))
+
+    # alignment at non-feature boundary vertices
+    fv = feature_vertices(mesh, angle_deg)
+    bv = mesh.boundary_vertices
+    is_feat = torch.zeros(V, dtype=torch.bool, device=bv.device)
+    is_feat[fv] = True
+    keep = ~is_feat[bv]
+    al = axis_alignment_angle(frames[bv[keep]], mesh.boundary_vertex_normals[keep].to(frames.dtype)) * deg
+
+    # alignment at feature vertices against each incident boundary face normal
+    nf = boundary_face_normals(mesh).to(frames.dtype)
+    bf = mesh.boundary_faces
+    vert = bf.reshape(-1)
+    face = torch.arange(bf.shape[0], device=bf.device).repeat_interleave(3)
+    sel = is_feat[vert]
+    fal = axis_alignment_angle(frames[vert[sel]], nf[face[sel]]) * deg
+
+    mask, _ = octahedral.singular_faces(frames, mesh)
+    one = octahedral.tets_with_one_singular_face(mask, mesh)
+
+    def _mean(x):
+        return float(x.mean()) if x.numel() else float("nan")
+
+    def _max(x):
+        return float(x.max()) if x.numel() else float("nan")
+
+    return {
+        "smoothness_mean_deg": _mean(ang),
+        "smoothness_rms_deg": float(torch.sqrt((ang**2).mean())) if ang.numel() else float("nan"),
+        "smoothness_mean_sqfrob": _mean(sqf),
+        "alignment_mean_deg": _mean(al),
+        "alignment_max_deg": _max(al),
+        "feature_alignment_mean_deg": _mean(fal),
+        "feature_alignment_max_deg": _max(fal),
+        "n_feature_vertices": int(fv.numel()),
+        "n_singular_faces": int(mask.sum()),
+        "n_tets_one_singular_face": int(one.sum()),
+    }
