@@ -74,10 +74,10 @@ def test_slopes_summary_and_plots(reduced_run):
 
 def test_mesh_outputs(reduced_run):
     header, rows = _read_csv(reduced_run / "mesh_convergence.csv")
-    assert header == ["level", "h", "cells", "quantity", "kind", "mean_error", "max_error", "min_quality"]
+    assert header == ["level", "h", "cells", "quantity", "kind", "mean_error", "p95_error", "max_error", "min_quality"]
     assert len(rows) == 2 * len(E.MESH_QUANTITIES)
     header, rows = _read_csv(reduced_run / "mesh_slopes.csv")
-    assert header == ["quantity", "kind", "slope_mean", "slope_max"]
+    assert header == ["quantity", "kind", "slope_mean", "slope_p95", "slope_max"]
     assert [r[0] for r in rows] == [q for q, _ in E.MESH_QUANTITIES]
     assert "## Whole-mesh convergence" in (reduced_run / "summary.md").read_text()
 
