@@ -25,7 +25,7 @@ How ``D(R)`` is computed: band 4 is closed under rotations, so for a fixed set `
 sphere points with full-rank ``Y(X) (N, 9)``, ``Y(X R) = Y(X) D(R)`` holds exactly and
 ``D(R) = Y(X)^+ Y(X R)`` (points as rows, ``x^T R = (R^T x)^T``). This is batched, exact to
 round-off, differentiable and avoids Euler-angle round trips. The generators are its
-derivative at the identity (computed once by forward-mode autodiff).
+derivative at the identity (computed once, in float64, by autograd).
 """
 from __future__ import annotations
 
@@ -141,7 +141,7 @@ def _generators64() -> torch.Tensor:
     gens = []
     for k in range(3):
         f = lambda t, k=k: sh_rotation(so3.exp(t * eye[k]))  # noqa: E731
-        _, dD = torch.func.jvp(f, (torch.zeros((), dtype=torch.float64),), (torch.ones((), dtype=torch.float64),))
+        dD = torch.autograd.functional.jacobian(f, torch.zeros((), dtype=torch.float64))
         gens.append(0.5 * (dD - dD.T))  # exactly skew (it is, up to round-off)
     return torch.stack(gens)
 
