@@ -1,0 +1,171 @@
+"""frame_metrics against a slow per-element Python reference written from the definitions."""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import io, so3
+from torchconn.frames import METRIC_KEYS, feature_edges, feature_vertices, frame_metrics
+from torchconn.mesh import TetMesh
+
+
+def _cube_group():
+    mats = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            M = np.zeros((3, 3))
+            for c, r in enumerate(perm):
+                M[r, c] = signs[c]
+            if np.linalg.det(M) > 0:
+                mats.append(M)
+    return mats
+
+
+def _angle_between(u, v):
+    c = np.clip(np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v)), -1.0, 1.0)
+    return math.degrees(math.acos(c))
+
+
+def _closest_axis_angle(F, n):
+    return min(min(_angle_between(F[:, k], n), _angle_between(-F[:, k], n)) for k in range(3))
+
+
+def _reference_metrics(frames, vertices, tets, angle_deg=30.0):
+    """Plain loops over edges, faces, tets; its own topology (not the TetMesh buffers)."""
+    G = _cube_group()
+    V = len(vertices)
+    # topology
+    edges, faces = set(), {}
+    for t in tets:
+        for a, b in itertools.combinations(sorted(t), 2):
+            edges.add((a, b))
+        for f in itertools.combinations(sorted(t), 3):
+            faces[f] = faces.get(f, 0) + 1
+    # smoothness
+    angles, sq = [], []
+    match = {}
+    for i, j in sorted(edges):
+        dists = [np.linalg.norm(frames[i] @ g - frames[j]) for g in G]
+        g = G[int(np.argmin(dists))]
+        match[(i, j)] = g
+        res = (frames[i] @ g).T @ frames[j]
+        angles.append(math.degrees(math.acos(np.clip((np.trace(res) - 1) / 2, -1, 1))))
+        sq.append(np.sum((frames[i] @ g - frames[j]) ** 2))
+    # outward boundary faces: the face of a single tet, oriented away from the 4th vertex
+    bfaces = []
+    for t in tets:
+        for f in itertools.combinations(t, 3):
+            if faces[tuple(sorted(f))] == 1:
+                (o,) = set(t) - set(f)
+                a, b, c = f
+                n = np.cross(vertices[b] - vertices[a], vertices[c] - vertices[a])
+                if np.dot(n, vertices[o] - vertices[a]) > 0:
+                    b, c = c, b
+                bfaces.append((a, b, c))
+    fnormal = []
+    for a, b, c in bfaces:
+        n = np.cross(vertices[b] - vertices[a], vertices[c] - vertices[a])
+        fnormal.append(n)
+    edge_faces = {}
+    for fi, f in enumerate(bfaces):
+        for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            edge_faces.setdefault((min(a, b), max(a, b)), []).append(fi)
+    feat_edges = sorted(e for e, fs in edge_faces.items() if len(fs) == 2 and _angle_between(fnormal[fs[0]], fnormal[fs[1]]) > angle_deg)
+    feat = {v for e in feat_edges for v in e}
+    bverts = sorted({v for f in bfaces for v in f})
+    al, fal = [], []
+    for v in bverts:
+        if v in feat:
+            for fi, f in enumerate(bfaces):
+                if v in f:
+                    fal.append(_closest_axis_angle(frames[v], fnormal[fi]))
+        else:
+            n = sum(fnormal[fi] for fi, f in enumerate(bfaces) if v in f)  # |cross| = 2*area
+            al.append(_closest_axis_angle(frames[v], n))
+
+    def g(i, j):
+        return match[(i, j)] if i < j else match[(j, i)].T
+
+    sing = {}
+    for a, b, c in faces:
+        sing[(a, b, c)] = not np.allclose(g(a, b) @ g(b, c) @ g(c, a), np.eye(3))
+    one = sum(1 for t in tets if sum(sing[f] for f in itertools.combinations(sorted(t), 3)) == 1)
+    return {
+        "smoothness_mean_deg": float(np.mean(angles)),
+        "smoothness_rms_deg": float(np.sqrt(np.mean(np.square(angles)))),
+        "smoothness_mean_sqfrob": float(np.mean(sq)),
+        "alignment_mean_deg": float(np.mean(al)) if al else float("nan"),
+        "alignment_max_deg": float(np.max(al)) if al else float("nan"),
+        "feature_alignment_mean_deg": float(np.mean(fal)) if fal else float("nan"),
+        "feature_alignment_max_deg": float(np.max(fal)) if fal else float("nan"),
+        "n_feature_vertices": len(feat),
+        "n_singular_faces": int(sum(sing.values())),
+        "n_tets_one_singular_face": one,
+    }, feat_edges
+
+
+def _jittered_box(gen, n=3):
+    """A box whose vertices are jittered (so normals are generic) but stay a valid mesh."""
+    m = io.box(n)
+    v = m.vertices + 0.03 / n * torch.randn(m.vertices.shape, generator=gen, dtype=m.vertices.dtype)
+    return TetMesh(v, m.tets)
+
+
+def _compare(met, ref):
+    assert set(met) == set(METRIC_KEYS)
+    for k in METRIC_KEYS:
+        if isinstance(ref[k], int):
+            assert met[k] == ref[k], k
+        elif math.isnan(ref[k]):
+            assert math.isnan(met[k]), k
+        else:
+            # the reference uses acos (loses ~1e-8 rad near 0); the library uses atan2
+            assert met[k] == pytest.approx(ref[k], rel=1e-6, abs=1e-5), k
+
+
+@pytest.mark.parametrize("scale", [0.2, 3.0])
+def test_metrics_equal_slow_reference_on_random_frames(gen, scale):
+    m = _jittered_box(gen)
+    # frames near a smooth field (scale 0.2, few singular faces) and fully random (scale 3)
+    frames = so3.exp(scale * torch.randn(m.vertices.shape[0], 3, generator=gen, dtype=torch.float64))
+    met = frame_metrics(frames, m)
+    ref, ref_feat = _reference_metrics(frames.numpy(), m.vertices.numpy(), m.tets.tolist())
+    _compare(met, ref)
+    assert feature_edges(m).tolist() == [list(e) for e in ref_feat]
+    assert met["n_feature_vertices"] > 0 and not math.isnan(met["alignment_mean_deg"])
+    if scale > 1:
+        assert met["n_singular_faces"] > 0
+
+
+def test_metrics_on_a_smooth_ball_have_no_features(gen):
+    m = io.ball(edge_length=0.5)
+    frames = so3.random_rotation(m.vertices.shape[0], generator=gen, dtype=m.vertices.dtype)
+    met = frame_metrics(frames, m)
+    ref, _ = _reference_metrics(frames.numpy(), m.vertices.numpy(), m.tets.tolist())
+    _compare(met, ref)
+    assert met["n_feature_vertices"] == 0 and math.isnan(met["feature_alignment_mean_deg"])
+
+
+def test_identity_frames_on_box_are_perfect():
+    m = io.box(2)
+    F = torch.eye(3, dtype=m.vertices.dtype).expand(m.vertices.shape[0], 3, 3)
+    met = frame_metrics(F, m)
+    assert met["smoothness_mean_deg"] < 1e-12 and met["n_singular_faces"] == 0
+    assert met["feature_alignment_max_deg"] < 1e-12 and met["alignment_max_deg"] < 1e-12
+    # box(2): all 8 corners and 12 edge midpoints (3x3x3 grid minus face and cell centres)
+    assert met["n_feature_vertices"] == 20
+    assert feature_vertices(m).numel() == 20
+
+
+def test_metrics_bad_input():
+    m = io.box(2)
+    with pytest.raises(ValueError, match="shape"):
+        frame_metrics(torch.eye(3).expand(5, 3, 3), m)
+    with pytest.raises(TypeError, match="TetMesh"):
+        frame_metrics(torch.eye(3).expand(5, 3, 3), object())
+    with pytest.raises(ValueError, match="angle_deg"):
+        feature_edges(m, angle_deg=-1.0)
