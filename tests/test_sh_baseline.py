@@ -206,3 +206,25 @@ def test_gear_runs_and_aligns():
     assert met["alignment_max_deg"] < 1e-6
     assert met["feature_alignment_mean_deg"] < 10.0
     assert met["smoothness_mean_deg"] < 10.0
+
+
+def test_sh_rotation_equals_exponential_of_generators(gen):
+    """Independent route: D(R) = matrix_exp(sum_k w_k L_k) with w = log(R) (Lie homomorphism)."""
+    R = so3.random_rotation(20, generator=gen, dtype=torch.float64)
+    w = so3.log(R)
+    L = sh.sh_generators(torch.float64)
+    D = torch.linalg.matrix_exp(torch.einsum("nk,kab->nab", w, L))
+    assert torch.allclose(D, sh.sh_rotation(R), atol=1e-11)
+
+
+def test_frame_to_sh_gradcheck(gen):
+    w = (0.5 * torch.randn(4, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda w: sh.frame_to_sh(so3.exp(w)), (w,))
+    assert torch.autograd.gradcheck(lambda w: sh.sh_rotation(so3.exp(w)), (w,))
+
+
+def test_float32_box():
+    m = io.box(2, dtype=torch.float32)
+    F = sh.sh_frame_field(m)
+    assert F.dtype == torch.float32
+    assert _is_in_O(F, 1e-4)
