@@ -343,3 +343,20 @@ def test_tensor_inputs_and_dtype():
         TetMesh(v32, t32, dtype=torch.int64)
     with pytest.raises(ValueError, match="unreferenced"):
         TetMesh(v32, t32, unreferenced="ignore")
+
+
+def test_subdivide_keeps_shape_quality_bounded():
+    """Shortest-diagonal red refinement: the worst tet quality does not decay with the level."""
+    from torchconn import io
+
+    def min_quality(m):
+        p = m.vertices[m.tets]
+        pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+        lrms = torch.stack([(p[:, i] - p[:, j]).norm(dim=-1) for i, j in pairs], 1).square().mean(1).sqrt()
+        return float((6 * 2**0.5 * m.signed_volumes() / lrms**3).min())  # 1 for a regular tet
+
+    m0 = io.ball(edge_length=0.7)
+    m2 = m0.subdivide().subdivide()
+    assert m2.n_tets == 64 * m0.n_tets
+    assert min_quality(m2) >= 0.9 * min_quality(m0)
+    torch.testing.assert_close(m2.volume(), m0.volume())
