@@ -37,7 +37,6 @@ def _closest_axis_angle(F, n):
 def _reference_metrics(frames, vertices, tets, angle_deg=30.0):
     """Plain loops over edges, faces, tets; its own topology (not the TetMesh buffers)."""
     G = _cube_group()
-    V = len(vertices)
     # topology
     edges, faces = set(), {}
     for t in tets:
