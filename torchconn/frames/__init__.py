@@ -1,4 +1,12 @@
-"""Octahedral frame fields: the spherical-harmonic baseline (Ray et al. 2016) and fixed metrics."""
+"""Octahedral frame fields: the spherical-harmonic baseline (Ray et al. 2016) and fixed metrics.
+
+>>> from torchconn import io
+>>> from torchconn.frames import sh_frame_field, frame_metrics
+>>> mesh = io.box(3)
+>>> frames = sh_frame_field(mesh)          # (V, 3, 3); frames[i][:, k] = axis k at vertex i
+>>> frame_metrics(frames, mesh)["n_singular_faces"]
+0
+"""
 from .metrics import METRIC_KEYS, axis_alignment_angle, feature_edges, feature_vertices, frame_metrics
 from .sh import (
     boundary_constraint,
