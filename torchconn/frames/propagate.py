@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..transport import orient
 
-__all__ = ["TreeLevel", "SpanningTree", "spanning_tree", "propagate_frames"]
+__all__ = ["TreeLevel", "SpanningTree", "spanning_tree", "propagate_frames", "comb_frames"]
 
 
 @dataclass
@@ -208,6 +208,37 @@ def propagate_frames(edge_rot: torch.Tensor, tree: SpanningTree, root_frames: to
     for lv in tree.levels:
         R = orient(edge_rot, lv.edge, lv.sign)  # R_{parent, child}
         blocks.append(blocks[-1][lv.parent_pos] @ R)
+    F_sorted = torch.cat(blocks, 0)
+    inv = torch.empty_like(tree.order)
+    inv[tree.order] = torch.arange(tree.order.numel(), device=tree.order.device)
+    return F_sorted[inv]
+
+
+def comb_frames(frames: torch.Tensor, tree: SpanningTree) -> torch.Tensor:
+    """Relabel cross frames along the tree so that every tree edge matches without relabeling.
+
+    Each frame ``F_v`` is replaced by ``F_v g_v`` with ``g_v in O`` (the same octahedral frame,
+    other axis labels), level by level from the roots: ``g_child`` is the best match of the
+    child onto its (already combed) parent, ``octahedral.match(F_child, F_parent)``. Afterwards
+    ``octahedral.match(F_parent, F_child)`` is the identity on every tree edge (up to exact ties),
+    so a connection ``R_ij = F_i^T F_j`` is close to ``I`` there; label jumps remain only on
+    non-tree edges (around singular curves and across the cut of their monodromy).
+
+    Args:
+        frames: ``(V, 3, 3)``; tree: :func:`spanning_tree` of the same mesh.
+
+    Returns:
+        ``(V, 3, 3)`` relabeled frames (no gradient through the discrete choice).
+    """
+    from ..octahedral import match
+
+    if frames.dim() != 3 or frames.shape[1:] != (3, 3) or frames.shape[0] != tree.n_vertices:
+        raise ValueError(f"frames must have shape ({tree.n_vertices}, 3, 3), got {tuple(frames.shape)}")
+    blocks = [frames[tree.roots]]
+    for lv in tree.levels:  # loop over BFS levels only
+        child = frames[lv.child]
+        _, g = match(child, blocks[-1][lv.parent_pos])
+        blocks.append(child @ g)
     F_sorted = torch.cat(blocks, 0)
     inv = torch.empty_like(tree.order)
     inv[tree.order] = torch.arange(tree.order.numel(), device=tree.order.device)

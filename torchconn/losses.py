@@ -1,0 +1,206 @@
+"""Losses for octahedral frame fields from a differentiable connection (the ``train_frames`` method).
+
+Conventions (CONVENTIONS §1, :mod:`torchconn.octahedral`):
+
+* ``edge_rot (E, 3, 3)`` holds ``R_ij`` for the canonical edges ``(i, j)``, ``i < j``: it maps
+  coordinates at ``v_j`` to coordinates at ``v_i``.
+* ``frames (V, 3, 3)``: ``frames[i][:, k]`` is axis ``k`` at vertex ``i`` in world coordinates.
+  A frame ``F_j`` is parallel to ``F_i`` along ``(i, j)`` when ``F_j = F_i R_ij``
+  (:mod:`torchconn.frames.propagate`). Cross frames are classes ``{F g, g in O}``, so the
+  relation the connection has to satisfy is ``F_i R_ij = F_j h_ij`` for *some* ``h_ij in O``.
+* The connection is the *residual* (matched) connection: smooth frames mean ``R_ij ~ I``; a
+  face around a singular curve has holonomy ``R_ab R_bc R_ca`` near a non-identity element of O
+  (a 90 or 180 degree turn), a regular face near ``I``.
+
+Terms (each a mean over its elements, so that weights do not depend on the mesh size; all are
+dimensionless):
+
+* ``smooth``  — ``mean_e rho(||R_e - I||_F)``: ``rho(x) = x^2`` (``= 8 sin^2(angle/2)``, the chordal
+  Dirichlet energy of the connection) or a smoothed ``x^p`` (``smooth_power``; ``p = 1`` is
+  total variation, see :func:`smoothness_loss`).
+* ``tie``     — ``mean_e rho(||F_i R_ij - F_j h_ij||_F)`` (same ``rho`` as ``smooth``; for ``p = 1`` and
+  ``w_tie > w_smooth`` it is an exact penalty: the optimum transports the frames exactly) with ``h_ij = argmin_{h in O}`` (chosen
+  without gradient, re-chosen at every evaluation): the connection transports the frame at
+  ``i`` onto the cross frame at ``j``. This is the edge-wise torsion-free condition: with
+  ``θ_ij = F_i^T (v_j - v_i)`` the solder form in frame coordinates, the naive triangle torsion
+  ``θ_ab + R_ab θ_bc - θ_ac`` equals ``(R_ab F_b^T - F_a^T)(v_c - v_b)``, which vanishes for every
+  triangle exactly when ``F_a R_ab = F_b`` on its edges.
+* ``flat``    — symmetric flatness ``mean_f min_{g in O} ||H_f - g||_F^2`` with ``H_f`` the face
+  holonomy (report eq. 3.2.1 plus the identity; :func:`torchconn.curvature.face_curvature`).
+  Singular faces (``H_f`` near a non-identity element) are allowed, anything else is penalized.
+* ``torsion`` — solder-form torsion (report Def. 3.2, √R transports, :mod:`torchconn.torsion`)
+  of ``θ`` expressed in the frames, per face ``|Θ_f|^2 / area_f`` (dimensionless), averaged over
+  the faces whose three edges are *unrelabeled* (``h = I``; elsewhere the frame labels jump and
+  the solder form is not expressed in one gauge). It ties the connection to the Euclidean
+  geometry beyond the edge-wise ``tie``.
+* ``align``   — at non-feature boundary vertices with unit normal ``n``:
+  ``mean (1 - sum_k (F[:, k] . n)^4)``, zero iff one axis is ``±n``.
+* ``feature`` — the same for every (feature vertex, incident boundary face normal) pair, so
+  that at sharp edges the frame follows every incident face.
+"""
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import torch
+
+from . import octahedral
+
+__all__ = [
+    "TERMS",
+    "smoothness_loss",
+    "tie_loss",
+    "symmetric_flatness_loss",
+    "normal_alignment_loss",
+    "FrameFieldLoss",
+]
+
+#: Names of the loss terms, in display order.
+TERMS = ("smooth", "tie", "flat", "torsion", "align", "feature")
+
+
+def smoothness_loss(edge_rot: torch.Tensor, power: float = 2.0, eps: float = 1e-3,
+                    weight: torch.Tensor | None = None) -> torch.Tensor:
+    """``mean_e w_e rho(||R_e - I||_F)`` for ``edge_rot (E, 3, 3)`` (``weight (E,)``, default 1).
+
+    ``rho(x) = x^2`` for ``power=2`` (Dirichlet energy of the connection, ``x^2 = 8 sin^2(t/2)``
+    for angle ``t``); otherwise the smoothed ``rho(x) = (x^2 + eps^2)^(power/2) - eps^power``
+    (``power=1``: total variation, ~ ``2 sqrt(2) sin(t/2)``, which concentrates the turning of
+    the frames near singular curves instead of spreading it; ``eps`` keeps the gradient finite
+    at ``R = I``).
+    """
+    eye = torch.eye(3, dtype=edge_rot.dtype, device=edge_rot.device)
+    d = _rho(((edge_rot - eye) ** 2).sum((-2, -1)), power, eps)
+    return (d * weight).sum() / weight.sum() if weight is not None else d.mean()
+
+
+def _rho(d2: torch.Tensor, power: float, eps: float) -> torch.Tensor:
+    """``d2`` for ``power=2``, else ``(d2 + eps^2)^(power/2) - eps^power`` (smoothed ``|x|^power``)."""
+    if power == 2.0:
+        return d2
+    return (d2 + eps * eps) ** (0.5 * power) - eps**power
+
+
+def tie_loss(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor, power: float = 2.0,
+             eps: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+    """``mean_e rho(min_{h in O} ||F_i R_ij - F_j h||_F)`` (``rho`` as in :func:`smoothness_loss`).
+
+    Args:
+        edge_rot: ``(E, 3, 3)`` ``R_ij`` of the canonical edges ``edges (E, 2)``.
+        frames: ``(V, 3, 3)``.
+
+    Returns:
+        ``(loss, unrelabeled (E,) bool)``: the loss and where the best ``h`` is the identity.
+        ``h`` is chosen by :func:`octahedral.match` without gradient (a piecewise-constant choice).
+    """
+    Fi = frames[edges[:, 0]] @ edge_rot  # frame at i transported to j
+    Fj = frames[edges[:, 1]]
+    with torch.no_grad():
+        idx, _ = octahedral.match(Fj, Fi)  # F_j h ~ F_i R_ij
+    G = octahedral.group(frames.dtype, frames.device)
+    d = _rho(((Fi - Fj @ G[idx]) ** 2).sum((-2, -1)), power, eps)
+    return d.mean(), idx == 0
+
+
+def symmetric_flatness_loss(face_hol: torch.Tensor) -> torch.Tensor:
+    """``mean_f min_{g in O} ||H_f - g||_F^2`` for holonomies ``face_hol (F, 3, 3)``.
+
+    The nearest element is chosen without gradient (the min of smooth functions: its gradient
+    is that of the active branch).
+    """
+    with torch.no_grad():
+        idx, _ = octahedral.closest_element(face_hol)
+    G = octahedral.group(face_hol.dtype, face_hol.device)
+    return ((face_hol - G[idx]) ** 2).sum((-2, -1)).mean()
+
+
+def normal_alignment_loss(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """``mean (1 - sum_k (F[:, k] . n)^4)`` for ``frames (N, 3, 3)`` and unit ``normals (N, 3)``.
+
+    In ``[0, 2/3]``; zero iff an axis is ``±n``. Empty input gives 0.
+    """
+    if normals.shape[0] == 0:
+        return frames.new_zeros(())
+    c = (frames * normals[:, :, None]).sum(-2)  # (N, 3): F[:, k] . n
+    return (1.0 - (c**4).sum(-1)).mean()
+
+
+class FrameFieldLoss:
+    """All terms of the frame-field objective on one mesh; topology gathered once.
+
+    Args:
+        mesh: a ``TetMesh``.
+        weights: mapping from term name (:data:`TERMS`) to its weight; missing names weigh 0
+            and are not evaluated.
+        feature_angle_deg: threshold of :func:`torchconn.frames.metrics.feature_edges`.
+
+    Call with ``(edge_rot (E,3,3), frames (V,3,3))``; returns a dict of the unweighted terms
+    (0-dim tensors) plus ``"total" = sum_k w_k term_k``. Terms with zero weight are skipped
+    (not computed) except that ``tie`` always runs when ``torsion`` is on (it supplies the mask).
+    """
+
+    def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
+                 smooth_power: float = 2.0, smooth_eps: float = 1e-3):
+        from .frames.metrics import boundary_face_normals, feature_vertices
+
+        unknown = set(weights) - set(TERMS)
+        if unknown:
+            raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS)}")
+        if not (0.5 <= float(smooth_power) <= 2.0 and float(smooth_eps) > 0):
+            raise ValueError(f"smooth_power must lie in [0.5, 2] and smooth_eps be > 0, got {smooth_power}, {smooth_eps}")
+        self.smooth_power, self.smooth_eps = float(smooth_power), float(smooth_eps)
+        self.mesh = mesh
+        self.weights = {k: float(weights.get(k, 0.0)) for k in TERMS}
+        bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
+        if bad:
+            raise ValueError(f"loss weights must be finite and >= 0: {[(k, self.weights[k]) for k in bad]}")
+        V = mesh.n_vertices
+        fv = feature_vertices(mesh, feature_angle_deg)
+        is_feat = torch.zeros(V, dtype=torch.bool, device=mesh.vertices.device)
+        is_feat[fv] = True
+        self.is_feature = is_feat
+        bv = mesh.boundary_vertices
+        keep = ~is_feat[bv]
+        self.align_vertices = bv[keep]
+        self.align_normals = mesh.boundary_vertex_normals[keep]
+        bf = mesh.boundary_faces
+        vert = bf.reshape(-1)
+        face = torch.arange(bf.shape[0], device=bf.device).repeat_interleave(3)
+        sel = is_feat[vert]
+        self.feature_vertices_rep = vert[sel]
+        self.feature_normals = boundary_face_normals(mesh)[face[sel]]
+        # face areas for the torsion normalization
+        p = mesh.vertices[mesh.faces]
+        self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+
+    def __call__(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> dict[str, torch.Tensor]:
+        from . import curvature, torsion
+
+        mesh, w = self.mesh, self.weights
+        out: dict[str, torch.Tensor] = {}
+        if w["smooth"]:
+            out["smooth"] = smoothness_loss(edge_rot, self.smooth_power, self.smooth_eps)
+        unrel = None
+        if w["tie"] or w["torsion"]:
+            out["tie"], unrel = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
+        if w["flat"]:
+            hol = curvature.face_curvature(edge_rot, mesh, kind="holonomy")
+            eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
+            out["flat"] = symmetric_flatness_loss(hol + eye)
+        if w["torsion"]:
+            tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
+            face_ok = unrel[mesh.face_edges].all(-1)
+            per = (tor**2).sum(-1) / self.face_area
+            out["torsion"] = per[face_ok].mean() if bool(face_ok.any()) else per.sum() * 0.0
+        if w["align"]:
+            out["align"] = normal_alignment_loss(frames[self.align_vertices], self.align_normals.to(frames.dtype))
+        if w["feature"]:
+            out["feature"] = normal_alignment_loss(frames[self.feature_vertices_rep],
+                                                   self.feature_normals.to(frames.dtype))
+        total = frames.new_zeros(())
+        for k, v in out.items():
+            if w[k]:
+                total = total + w[k] * v
+        out["total"] = total
+        return out
