@@ -11,6 +11,7 @@ from . import (
     connection,
     curvature,
     dnabla,
+    frames,
     io,
     mesh,
     modules,
@@ -34,7 +35,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     # submodules
-    "bianchi", "chains", "connection", "curvature", "dnabla", "io", "mesh", "modules",
+    "bianchi", "chains", "connection", "curvature", "dnabla", "frames", "io", "mesh", "modules",
     "octahedral", "smooth", "so3", "son", "tolerances", "torsion", "transport",
     # meshes
     "TetMesh", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",
