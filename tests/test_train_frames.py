@@ -1,0 +1,209 @@
+"""End-to-end tests of the `train_frames` command (training/train_frames.py)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+import torch
+
+from torchconn import losses
+from torchconn.frames.metrics import METRIC_KEYS
+from torchconn.mesh import MeshError
+from training import io_utils
+from training.train_frames import NonFiniteLossError, load_config, train
+
+ROOT = Path(__file__).resolve().parents[1]
+# a tiny generated mesh with singular curves and sharp rims (about 180 vertices)
+TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1}
+OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "singular_faces.vtu", "loss.png", "singularities.png",
+           "checkpoint.pt")
+
+
+def _cfg(tmp_path, name="run", **kw):
+    cfg = {**TINY, "output_dir": str(tmp_path / name)}
+    cfg.update(kw)
+    return cfg
+
+
+def _run_cli(args, cwd=ROOT, timeout=300):
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-m", "training.train_frames", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_end_to_end(tmp_path):
+    out = tmp_path / "cli"
+    r = _run_cli(["mesh=cylinder", "edge_length=0.6", "steps=3", "sh.n_smooth_iters=5", f"output_dir={out}",
+                  "checkpoint_every=2"])
+    assert r.returncode == 0, r.stderr[-3000:]
+    for name in OUTPUTS:
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    m = json.loads((out / "metrics.json").read_text())
+    for part in ("final", "init"):
+        assert set(METRIC_KEYS) <= set(m[part]), part
+    assert m["method"] == "connection"
+    assert set(m["loss_history"]) >= {"total", "smooth", "tie", "flat", "torsion", "align", "feature"}
+    assert all(len(v) == 3 for v in m["loss_history"].values())
+    inv = m["invariants"]
+    assert inv["bianchi_ok"] is True and inv["bianchi_differential_max"] <= inv["bianchi_tolerance"]
+    assert inv["n_tets_one_singular_face"] == m["final"]["n_tets_one_singular_face"]
+    assert m["timings"]["iterations"] == 3 and m["timings"]["wall_s"] > 0
+    z = np.load(out / "frames.npz")
+    V, T = z["vertices"], z["tets"]
+    assert V.dtype == np.float64 and T.dtype == np.int64 and z["frames"].dtype == np.float64
+    assert z["frames"].shape == (V.shape[0], 3, 3) and T.shape[1] == 4
+    assert z["singular_faces"].shape == (m["final"]["n_singular_faces"], 3)
+    F = z["frames"]
+    assert np.allclose(F.transpose(0, 2, 1) @ F, np.eye(3), atol=1e-10)
+    vtu = meshio.read(out / "frames.vtu")
+    assert {"axis0", "axis1", "axis2"} <= set(vtu.point_data)
+    assert np.allclose(vtu.point_data["axis1"], F[:, :, 1])
+    ck = io_utils.load_checkpoint(out / "checkpoint.pt")
+    assert ck["step"] == 3
+
+
+def test_loss_decreases_and_field_improves(tmp_path):
+    m = train(_cfg(tmp_path, steps=25))
+    h = m["loss_history"]
+    assert h["total"][-1] < h["total"][0]
+    assert h["feature"][-1] < h["feature"][0]  # the rims follow their face normals better
+    f, i = m["final"], m["init"]
+    assert f["smoothness_mean_deg"] < i["smoothness_mean_deg"]
+    # exact alignment at non-feature boundary vertices is kept (rotation about the normal only)
+    assert i["alignment_max_deg"] < 1e-6 and f["alignment_max_deg"] < 1e-6
+    assert m["final_loss_terms"]["total"] < h["total"][0]
+
+
+def test_sh_baseline_method(tmp_path):
+    m = train(_cfg(tmp_path, method="sh_baseline"))
+    assert m["final"] == m["init"] and m["timings"]["iterations"] == 0
+    assert (tmp_path / "run" / "frames.npz").is_file()
+
+
+def test_resume_equals_uninterrupted(tmp_path, monkeypatch):
+    full = train(_cfg(tmp_path, "full", steps=6, checkpoint_every=2))
+    # simulate a crash during step 3 (the checkpoint of step 2 is on disk), then resume
+    real = losses.smoothness_loss
+    calls = {"n": 0}
+
+    def crash(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise RuntimeError("simulated crash")
+        return real(*a, **k)
+
+    monkeypatch.setattr(losses, "smoothness_loss", crash)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(_cfg(tmp_path, "part", steps=6, checkpoint_every=2))
+    monkeypatch.setattr(losses, "smoothness_loss", real)
+    assert io_utils.load_checkpoint(tmp_path / "part" / "checkpoint.pt")["step"] == 2
+    resumed = train(_cfg(tmp_path, "part", steps=6, checkpoint_every=2, resume=True))
+    a = np.load(tmp_path / "full" / "frames.npz")["frames"]
+    b = np.load(tmp_path / "part" / "frames.npz")["frames"]
+    assert np.abs(a - b).max() <= 1e-10
+    assert np.allclose(full["loss_history"]["total"], resumed["loss_history"]["total"], rtol=0, atol=1e-12)
+    assert resumed["timings"]["iterations"] == 4
+
+
+def test_resume_rejects_other_configuration(tmp_path):
+    train(_cfg(tmp_path, steps=1))
+    with pytest.raises(ValueError, match="refusing to resume"):
+        train(_cfg(tmp_path, steps=1, resume=True, weights={"tie": 3.0}))
+    with pytest.raises(FileNotFoundError, match="checkpoint"):
+        train(_cfg(tmp_path, "empty", steps=2, resume=True))
+
+
+def test_nan_stops_with_term_name_and_keeps_checkpoint(tmp_path, monkeypatch):
+    real = losses.smoothness_loss
+    calls = {"n": 0}
+
+    def poisoned(*a, **k):
+        calls["n"] += 1
+        val = real(*a, **k)
+        return val * float("nan") if calls["n"] > 5 else val  # steps 0..4 fine, NaN at step 5
+
+    monkeypatch.setattr(losses, "smoothness_loss", poisoned)
+    with pytest.raises(NonFiniteLossError, match=r"'smooth'.*step 5"):
+        train(_cfg(tmp_path, steps=10, checkpoint_every=2))
+    ck = io_utils.load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    assert ck["step"] == 4  # the last good checkpoint survives
+    assert all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
+    assert not any(p.name.endswith(".tmp") for p in (tmp_path / "run").iterdir())
+
+
+def test_unknown_config_key_fails_before_anything(tmp_path):
+    from hydra.errors import ConfigCompositionException
+    from omegaconf.errors import ConfigKeyError
+
+    with pytest.raises(ConfigCompositionException):
+        load_config(["weigths.smooth=1"])
+    with pytest.raises(ConfigKeyError, match="smoth"):
+        train(_cfg(tmp_path, weights={"smoth": 1.0}))
+    with pytest.raises(ValueError, match="optim"):
+        train(_cfg(tmp_path, optim="sgd"))
+    assert not (tmp_path / "run").exists()
+    cfg = load_config(["steps=7", "optim=lbfgs", "method=sh_baseline", "dtype=float32"])
+    assert cfg.steps == 7 and cfg.optim == "lbfgs"
+
+
+def test_cli_unknown_key_exits_nonzero(tmp_path):
+    r = _run_cli(["no_such_key=1", f"output_dir={tmp_path / 'x'}"], timeout=120)
+    assert r.returncode != 0 and "no_such_key" in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_unwritable_output_dir(tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    with pytest.raises(io_utils.OutputDirError, match="file.txt"):
+        train(_cfg(tmp_path, output_dir=str(blocker / "sub")))
+    with pytest.raises(io_utils.OutputDirError, match="not a directory"):
+        train(_cfg(tmp_path, output_dir=str(blocker)))
+
+
+def test_inverted_tet_mesh_fails_cleanly(tmp_path):
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], dtype=float)
+    tets = np.array([[0, 1, 2, 3], [1, 2, 4, 3]])  # the second one is negatively oriented
+    path = tmp_path / "bad.mesh"
+    meshio.write(path, meshio.Mesh(pts, [("tetra", tets)]))
+    with pytest.raises(MeshError, match="inverted"):
+        train(_cfg(tmp_path, mesh=str(path)))
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+    with pytest.raises(FileNotFoundError, match="no_such.mesh"):
+        train(_cfg(tmp_path, mesh=str(tmp_path / "no_such.mesh")))
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path):
+    p = tmp_path / "a.json"
+    io_utils.atomic_write_json(p, {"x": 1})
+
+    def boom(f):
+        f.write(b"partial")
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        io_utils.atomic_write(p, boom)
+    assert json.loads(p.read_text()) == {"x": 1}
+    assert [q.name for q in tmp_path.iterdir()] == ["a.json"]
+
+
+@pytest.mark.slow
+def test_propagate_formulation_and_lbfgs(tmp_path):
+    m = train(_cfg(tmp_path, steps=5, formulation="propagate", optim="lbfgs", lr=0.5))
+    assert m["formulation"] == "propagate" and np.isfinite(m["final"]["smoothness_mean_deg"])
+
+
+@pytest.mark.slow
+def test_hydra_multirun(tmp_path):
+    sweep = tmp_path / "sweep"
+    r = _run_cli(["-m", "mesh=cylinder", "edge_length=0.6", "steps=1", "sh.n_smooth_iters=2",
+                  "weights.flat=0.1,1.0", f"hydra.sweep.dir={sweep}"], timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    for job in ("0", "1"):
+        assert (sweep / job / "metrics.json").is_file()

@@ -1,0 +1,515 @@
+"""Octahedral frame fields on tet meshes from a differentiable connection.
+
+Usage::
+
+    python -m training.train_frames                                  # built-in cylinder
+    python -m training.train_frames mesh=../shared/data/sphere_r0.17.mesh steps=300
+    python -m training.train_frames mesh=bunny.obj edge_length=0.05 method=sh_baseline
+    python -m training.train_frames optim=lbfgs weights.tie=5 output_dir=out/run1
+    python -m training.train_frames optim=lbfgs weights.tie=5 output_dir=out/run1 resume=true  # after a crash
+    python -m training.train_frames -m mesh=cylinder,torus weights.flat=0.1,1
+
+Method (``method=connection``; details in :mod:`torchconn.losses`):
+
+1. Initialization: the spherical-harmonic baseline ``F^0`` (Ray, Sokolov, Lévy 2016;
+   :func:`torchconn.frames.sh.sh_frame_field`), its axis labels combed along a BFS tree
+   (:func:`torchconn.frames.propagate.comb_frames`), and the matched connection
+   ``R_ij = F_i^T F_j h_ij`` with ``h_ij in O`` the relabeling that makes ``R_ij`` closest to
+   ``I`` (``F_j h_ij ~ F_i``), so that ``F_i R_ij = F_j h_ij`` exactly.
+2. Variables: the connection as per-edge skew parameters (:class:`ConnectionField`) and
+
+   * ``formulation=vertex`` (default): per-vertex rotations ``F_i = exp(hat(w_i)) F_i^0``;
+     at non-feature boundary vertices ``w_i = (w_i . n_i) n_i`` (rotation about the normal, so
+     the aligned axis stays exactly on ``n_i``);
+   * ``formulation=propagate``: one root rotation per connected component; all frames are
+     the parallel propagation ``F_child = F_parent R_parent,child`` along a BFS tree
+     (:mod:`torchconn.frames.propagate`).
+
+3. Loss: ``smooth + tie + flat + torsion + align + feature`` (weights in the config).
+4. Invariants: the differential (and algebraic) Bianchi residuals of the optimized connection
+   (:func:`torchconn.bianchi.check`, error above tolerance) and the count of tets with exactly
+   one singular face; both in ``metrics.json``.
+
+Outputs in ``output_dir``: ``frames.npz``, ``metrics.json``, ``frames.vtu``,
+``singular_faces.vtu``, ``loss.png``, ``singularities.png``, ``checkpoint.pt`` (atomic, every
+``checkpoint_every`` steps and at the end). ``resume=true`` continues an interrupted run from
+the checkpoint and reaches the same result as an uninterrupted run (model, optimizer, lr
+schedule, RNG state and step saved); the configuration must be the same (including ``steps``,
+which fixes the cosine schedule), otherwise the resume is refused.
+
+Bad input fails before any optimization: unknown config keys (struct mode), unknown
+choices, an unwritable ``output_dir``, a mesh that cannot be read, is not closed/manifold or
+has inverted/degenerate tets (:class:`torchconn.mesh.MeshError` with the indices). A NaN/inf
+loss term stops the run with :class:`NonFiniteLossError` naming the term and the step; the
+last good checkpoint is kept.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from torchconn import bianchi, io as tio, octahedral, so3
+from torchconn.connection import ConnectionField
+from torchconn.frames.metrics import METRIC_KEYS, frame_metrics
+from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_tree
+from torchconn.frames.sh import sh_frame_field
+from torchconn.losses import TERMS, FrameFieldLoss
+from torchconn.mesh import MeshError
+
+from . import io_utils
+
+__all__ = ["train", "load_config", "FrameFieldModel", "NonFiniteLossError", "CONFIG_DIR", "BUILTIN_MESHES"]
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+BUILTIN_MESHES = ("box", "ball", "cylinder", "torus")
+_CHOICES = {
+    "method": ("connection", "sh_baseline"),
+    "formulation": ("vertex", "propagate"),
+    "optim": ("adam", "lbfgs"),
+    "dtype": ("float32", "float64"),
+    "lr_schedule": ("cosine", "constant"),
+}
+
+
+class NonFiniteLossError(FloatingPointError):
+    """A loss term became NaN/inf; the message names the term and the step."""
+
+
+# ----------------------------------------------------------------------------- config
+def _schema() -> DictConfig:
+    base = OmegaConf.load(CONFIG_DIR / "train_frames.yaml")
+    base.pop("hydra", None)
+    base.pop("defaults", None)
+    return base
+
+
+def load_config(overrides: list[str] | None = None) -> DictConfig:
+    """Compose ``configs/train_frames.yaml`` with Hydra overrides (struct mode), without running.
+
+    Unknown keys raise (Hydra's ``ConfigCompositionException``).
+    """
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(config_name="train_frames", overrides=list(overrides or []))
+
+
+def _validate(cfg) -> DictConfig:
+    """Merge ``cfg`` onto the schema in struct mode (unknown keys raise) and check the choices."""
+    schema = _schema()
+    OmegaConf.set_struct(schema, True)
+    user = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
+    user = OmegaConf.masked_copy(user, [k for k in user.keys() if k != "hydra"]) if "hydra" in user else user
+    merged = OmegaConf.merge(schema, user)  # raises ConfigKeyError on unknown keys
+    for key, allowed in _CHOICES.items():
+        if merged[key] not in allowed:
+            raise ValueError(f"config {key}={merged[key]!r} is not one of {list(allowed)}")
+    if int(merged.steps) < 0:
+        raise ValueError(f"config steps must be >= 0, got {merged.steps}")
+    if not float(merged.lr) > 0:
+        raise ValueError(f"config lr must be > 0, got {merged.lr}")
+    if int(merged.checkpoint_every) < 1:
+        raise ValueError(f"config checkpoint_every must be >= 1, got {merged.checkpoint_every}")
+    for k, w in merged.weights.items():
+        if not (math.isfinite(float(w)) and float(w) >= 0):
+            raise ValueError(f"config weights.{k} must be finite and >= 0, got {w}")
+    return merged
+
+
+def _load_mesh(cfg, dtype, device):
+    name = str(cfg.mesh)
+    kw = {} if cfg.edge_length is None else {"edge_length": float(cfg.edge_length)}
+    if name in BUILTIN_MESHES:
+        if name == "box":
+            n = 4 if cfg.edge_length is None else max(1, round(1.0 / float(cfg.edge_length)))
+            mesh = tio.box(n=n)
+        else:
+            mesh = getattr(tio, name)(**kw)
+    else:
+        path = Path(name).expanduser()
+        if not path.is_file():
+            raise FileNotFoundError(f"mesh {name!r}: no such file (built-ins: {list(BUILTIN_MESHES)})")
+        mesh = tio.load_mesh(path, **kw)
+    if mesh.boundary_faces.shape[0] == 0:
+        raise MeshError(f"mesh {name!r} has no boundary faces; a frame field needs a boundary to align to")
+    return mesh.to(device=device, dtype=dtype)
+
+
+# ----------------------------------------------------------------------------- model
+def matched_connection(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """``R_ij = F_i^T F_j h_ij (E, 3, 3)`` with ``h_ij = argmin_{h in O} ||F_j h - F_i||``.
+
+    Then ``F_i R_ij = F_j h_ij`` exactly and ``R_ij`` is the residual rotation closest to ``I``.
+    """
+    Fi, Fj = frames[edges[:, 0]], frames[edges[:, 1]]
+    _, h = octahedral.match(Fj, Fi)
+    return Fi.transpose(-1, -2) @ Fj @ h
+
+
+class FrameFieldModel(torch.nn.Module):
+    """Connection (+ frames) parametrization; ``forward() -> (edge_rot (E,3,3), frames (V,3,3))``.
+
+    Args:
+        mesh: ``TetMesh``.
+        init_frames: ``(V, 3, 3)`` initial frames ``F^0``.
+        formulation: ``"vertex"`` or ``"propagate"`` (see the module docstring).
+        constrained: ``(V,) bool`` vertices whose rotation is restricted to the axis
+            ``normals[i]`` (``formulation="vertex"`` only).
+        normals: ``(V, 3)`` unit axes for the constrained vertices.
+    """
+
+    def __init__(self, mesh, init_frames: torch.Tensor, formulation: str, constrained: torch.Tensor,
+                 normals: torch.Tensor):
+        super().__init__()
+        self.formulation = formulation
+        # comb the labels of the initial cross frames along a BFS tree: the matched connection
+        # is then in one gauge on the tree (R_ij ~ I there), so that face holonomies are near I
+        # on regular faces and near a non-identity element of O only around singular curves
+        self.tree = spanning_tree(mesh)
+        init_frames = comb_frames(init_frames, self.tree)
+        R0 = matched_connection(init_frames, mesh.edges)
+        self.connection = ConnectionField(mesh.edges, mesh.n_vertices, init=R0)
+        self.register_buffer("F0", init_frames.detach().clone())
+        if formulation == "vertex":
+            self.w = torch.nn.Parameter(torch.zeros_like(init_frames[:, :, 0]))
+            self.register_buffer("constrained", constrained.clone())
+            self.register_buffer("normals", normals.clone())
+        elif formulation == "propagate":
+            self.w = torch.nn.Parameter(init_frames.new_zeros(self.tree.roots.numel(), 3))
+        else:
+            raise ValueError(f"unknown formulation {formulation!r}")
+
+    def forward(self) -> tuple[torch.Tensor, torch.Tensor]:
+        R = self.connection.edge_rotations()
+        if self.formulation == "vertex":
+            n = self.normals
+            w = torch.where(self.constrained[:, None], (self.w * n).sum(-1, keepdim=True) * n, self.w)
+            F = so3.exp(w) @ self.F0
+        else:
+            roots = self.tree.roots.to(self.F0.device)
+            F = propagate_frames(R, self.tree, so3.exp(self.w) @ self.F0[roots])
+        return R, F
+
+
+# ----------------------------------------------------------------------------- helpers
+def _fingerprint(cfg, mesh) -> str:
+    """Hash of what a resumed run must share with the checkpoint (mesh, method, optimizer)."""
+    h = hashlib.sha256()
+    h.update(mesh.vertices.detach().cpu().double().numpy().tobytes())
+    h.update(mesh.tets.cpu().numpy().tobytes())
+    keys = ["method", "formulation", "optim", "dtype", "feature_angle_deg", "smooth_power", "smooth_eps",
+            "lr", "lr_schedule", "steps"]
+    h.update(repr([(k, cfg[k]) for k in keys]).encode())
+    h.update(repr(OmegaConf.to_container(cfg.weights)).encode())
+    h.update(repr(OmegaConf.to_container(cfg.lbfgs)).encode())
+    return h.hexdigest()
+
+
+def _check_finite_terms(terms: dict, step: int) -> None:
+    for k, v in terms.items():
+        if not bool(torch.isfinite(v).all()):
+            raise NonFiniteLossError(
+                f"loss term {k!r} is {float(v)} at step {step}; stopping "
+                f"(the last good checkpoint is kept)")
+
+
+def _make_optimizer(cfg, params):
+    if cfg.optim == "adam":
+        opt = torch.optim.Adam(params, lr=float(cfg.lr))
+    else:
+        opt = torch.optim.LBFGS(params, lr=float(cfg.lr), history_size=int(cfg.lbfgs.history_size),
+                                max_iter=int(cfg.lbfgs.max_iter), line_search_fn="strong_wolfe")
+    steps = max(int(cfg.steps), 1)
+    if cfg.lr_schedule == "cosine":  # lr -> 0 at the last step: Adam settles instead of jittering
+        fn = lambda s: 0.5 * (1.0 + math.cos(math.pi * min(s, steps) / steps))  # noqa: E731
+    else:
+        fn = lambda s: 1.0  # noqa: E731
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, fn)
+
+
+def _save_outputs(out: Path, mesh, frames: torch.Tensor, sing_faces: torch.Tensor, history: dict,
+                  metrics: dict) -> None:
+    import meshio
+
+    V = mesh.vertices.detach().cpu().double().numpy()
+    T = mesh.tets.cpu().numpy().astype(np.int64)
+    F = frames.detach().cpu().double().numpy()
+    S = sing_faces.cpu().numpy().astype(np.int64).reshape(-1, 3)
+    io_utils.atomic_savez(out / "frames.npz", vertices=V, tets=T, frames=F, singular_faces=S)
+    io_utils.atomic_write_json(out / "metrics.json", metrics)
+
+    def write_mesh(path, m):
+        # meshio writes to a path: write a temp file in the same dir, then replace atomically
+        tmp = path.with_name(f".{path.name}.tmp.vtu")
+        meshio.write(str(tmp), m)
+        os.replace(tmp, path)
+
+    write_mesh(out / "frames.vtu", meshio.Mesh(V, [("tetra", T)], point_data={
+        f"axis{k}": F[:, :, k] for k in range(3)}))
+    write_mesh(out / "singular_faces.vtu", meshio.Mesh(V, [("triangle", S)]))
+    _plot_loss(out / "loss.png", history)
+    _plot_singularities(out / "singularities.png", mesh, sing_faces)
+
+
+def _plot_loss(path: Path, history: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, vals in history.items():
+        v = np.asarray(vals, dtype=float)
+        if v.size and np.any(v > 0):
+            ax.semilogy(np.arange(v.size), np.where(v > 0, v, np.nan), label=k, lw=2 if k == "total" else 1)
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss term (unweighted; total weighted)")
+    ax.set_title("train_frames loss")
+    if ax.lines:
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no optimization steps", ha="center", va="center", transform=ax.transAxes)
+    fig.tight_layout()
+    io_utils.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+
+
+def _plot_singularities(path: Path, mesh, sing_mask_faces: torch.Tensor) -> None:
+    """Boundary vertices (points) and singular curves: for every singular face the dual segments
+    from the barycenters of its tets through the face barycenter."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    P = mesh.vertices.detach().cpu().double().numpy()
+    bv = mesh.boundary_vertices.cpu().numpy()
+    fig = plt.figure(figsize=(6, 6))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(P[bv, 0], P[bv, 1], P[bv, 2], s=1, c="0.6", alpha=0.3)
+    S = sing_mask_faces.cpu().numpy().reshape(-1, 3)
+    if S.shape[0]:
+        faces = mesh.faces.cpu().numpy()
+        key = lambda a: (a[:, 0] * P.shape[0] + a[:, 1]) * P.shape[0] + a[:, 2]  # noqa: E731
+        idx = np.searchsorted(key(faces), key(np.sort(S, axis=1)))
+        fb = mesh.face_barycenters.detach().cpu().double().numpy()[idx]
+        tb = mesh.tet_barycenters.detach().cpu().double().numpy()
+        ft = mesh.face_tets.cpu().numpy()[idx]
+        segs = [np.stack([tb[ft[:, c][ft[:, c] >= 0]], fb[ft[:, c] >= 0]], 1) for c in range(2)]
+        segs = np.concatenate(segs, 0)
+        ax.add_collection3d(Line3DCollection(segs, colors="r", linewidths=1.5))
+    ax.set_title(f"singular curves ({S.shape[0]} singular faces)")
+    lo, hi = P.min(0), P.max(0)
+    c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    fig.tight_layout()
+    io_utils.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- train
+def train(cfg) -> dict:
+    """Run the frame-field optimization described by ``cfg``; return the metrics dict.
+
+    Args:
+        cfg: a ``DictConfig`` or dict with the keys of ``configs/train_frames.yaml`` (missing
+            keys take the defaults; unknown keys raise). ``output_dir`` must be set.
+
+    Returns:
+        The dict written to ``metrics.json`` (``final`` and ``init`` frame metrics, loss
+        history, invariants, timings).
+    """
+    t_start = time.perf_counter()
+    cfg = _validate(cfg)
+    try:
+        out_dir_value = cfg.output_dir
+    except Exception as exc:  # unresolved ${hydra:...} outside Hydra
+        raise ValueError("output_dir must be set when train() runs outside Hydra") from exc
+    out = io_utils.check_output_dir(out_dir_value)
+    ckpt_path = out / "checkpoint.pt"
+    if cfg.resume and not ckpt_path.is_file():
+        raise FileNotFoundError(f"resume=true but there is no checkpoint at {str(ckpt_path)!r}")
+    dtype = getattr(torch, cfg.dtype)
+    device = torch.device(cfg.device)
+    if cfg.num_threads is not None:
+        torch.set_num_threads(int(cfg.num_threads))
+    torch.manual_seed(int(cfg.seed))
+    np.random.seed(int(cfg.seed))
+
+    mesh = _load_mesh(cfg, dtype, device)
+    fp = _fingerprint(cfg, mesh)
+    ckpt = None
+    if cfg.resume:
+        ckpt = io_utils.load_checkpoint(ckpt_path, map_location=device)
+        if ckpt.get("fingerprint") != fp:
+            raise ValueError(f"checkpoint {str(ckpt_path)!r} was written for another mesh/method/optimizer/"
+                             f"weights configuration; refusing to resume")
+
+    # --- initialization (SH baseline); stored in the checkpoint so a resume does not redo it
+    t0 = time.perf_counter()
+    if ckpt is not None:
+        F0 = ckpt["init_frames"].to(device=device, dtype=dtype)
+        init_metrics = ckpt["init_metrics"]
+    else:
+        F0 = sh_frame_field(mesh, boundary_weight=float(cfg.sh.boundary_weight),
+                            n_smooth_iters=int(cfg.sh.n_smooth_iters),
+                            feature_angle_deg=float(cfg.feature_angle_deg))
+        init_metrics = frame_metrics(F0, mesh, cfg.feature_angle_deg)
+    t_init = time.perf_counter() - t0
+
+    loss_fn = FrameFieldLoss(mesh, dict(cfg.weights), feature_angle_deg=float(cfg.feature_angle_deg),
+                             smooth_power=float(cfg.smooth_power), smooth_eps=float(cfg.smooth_eps))
+    V = mesh.n_vertices
+    normals = torch.zeros(V, 3, dtype=dtype, device=device)
+    normals[mesh.boundary_vertices] = mesh.boundary_vertex_normals
+    constrained = torch.zeros(V, dtype=torch.bool, device=device)
+    constrained[mesh.boundary_vertices] = True
+    constrained &= ~loss_fn.is_feature
+    model = FrameFieldModel(mesh, F0, cfg.formulation, constrained, normals).to(device)
+
+    history = {k: [] for k in (*TERMS, "total") if k == "total" or cfg.weights[k] > 0}
+    if cfg.weights["torsion"] > 0 and "tie" not in history:
+        history["tie"] = []
+    start = 0
+    steps = int(cfg.steps) if cfg.method == "connection" else 0
+    optimizer, scheduler = _make_optimizer(cfg, model.parameters())
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        io_utils.set_rng_state(ckpt["rng"])
+        start = int(ckpt["step"])
+        history = {k: list(v) for k, v in ckpt["history"].items()}
+        if start > steps:
+            raise ValueError(f"checkpoint is at step {start}, beyond steps={steps}")
+
+    def checkpoint(step: int) -> None:
+        io_utils.save_checkpoint(ckpt_path, {
+            "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "rng": io_utils.get_rng_state(), "history": history, "fingerprint": fp,
+            "init_frames": F0.detach().cpu(), "init_metrics": init_metrics,
+            "config": OmegaConf.to_container(cfg, resolve=True),
+        })
+
+    # --- optimization
+    t0 = time.perf_counter()
+    bar = None
+    if cfg.progress and steps > start:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, initial=start, desc="train_frames", dynamic_ncols=True)
+    if ckpt is None and steps > 0:
+        checkpoint(0)
+    try:
+        for step in range(start, steps):
+            record = {}
+
+            def closure():
+                optimizer.zero_grad(set_to_none=True)
+                R, F = model()
+                terms = loss_fn(R, F)
+                _check_finite_terms(terms, step)
+                terms["total"].backward()
+                if not record:
+                    record.update({k: float(v.detach()) for k, v in terms.items()})
+                return terms["total"]
+
+            if cfg.optim == "lbfgs":
+                optimizer.step(closure)
+            else:
+                closure()
+                optimizer.step()
+            scheduler.step()
+            for k in history:
+                history[k].append(record.get(k, 0.0))
+            if (step + 1) % int(cfg.checkpoint_every) == 0 or step + 1 == steps:
+                checkpoint(step + 1)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    t_opt = time.perf_counter() - t0
+
+    # --- final field, invariants, metrics
+    with torch.no_grad():
+        R, F = model()
+        final_terms = {k: float(v) for k, v in loss_fn(R, F).items()}
+    if cfg.method == "sh_baseline":
+        F = F0
+    final_metrics = frame_metrics(F, mesh, cfg.feature_angle_deg)
+    mask, sing = octahedral.singular_faces(F, mesh)
+    one = octahedral.tets_with_one_singular_face(mask, mesh)
+    atol = None if cfg.bianchi_atol is None else float(cfg.bianchi_atol)
+    bianchi_error = None
+    try:
+        bres = bianchi.check(R.detach(), mesh, atol=atol)
+    except bianchi.BianchiError as exc:
+        bianchi_error = str(exc)
+        bres = {"differential": float(bianchi.differential_residual(R.detach(), mesh).max())}
+    from torchconn.tolerances import get_eps
+
+    metrics = {
+        "mesh": {"source": str(cfg.mesh), "n_vertices": V, "n_edges": mesh.n_edges, "n_faces": mesh.n_faces,
+                 "n_tets": mesh.n_tets, "n_boundary_vertices": int(mesh.boundary_vertices.numel())},
+        "method": cfg.method,
+        "formulation": cfg.formulation if cfg.method == "connection" else None,
+        "final": final_metrics,
+        "init": init_metrics,
+        "final_loss_terms": final_terms,
+        "loss_history": history,
+        "invariants": {
+            "bianchi_differential_max": bres.get("differential"),
+            "bianchi_algebraic_max": bres.get("algebraic"),
+            "bianchi_tolerance": (atol if atol is not None else get_eps("identity", dtype)) * 3,
+            "bianchi_ok": bianchi_error is None,
+            "bianchi_error": bianchi_error,
+            "n_singular_faces": int(mask.sum()),
+            "n_tets_one_singular_face": int(one.sum()),
+        },
+        "timings": {
+            "wall_s": time.perf_counter() - t_start,
+            "init_s": t_init,
+            "optimize_s": t_opt,
+            "iterations": steps - start,
+            "total_steps": steps,
+            "s_per_iteration": t_opt / max(steps - start, 1),
+        },
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    assert set(METRIC_KEYS) <= set(final_metrics)
+    _save_outputs(out, mesh, F, sing, history, metrics)
+    if bianchi_error is not None:
+        raise bianchi.BianchiError(bianchi_error)
+    return metrics
+
+
+def _main() -> None:
+    import hydra
+
+    @hydra.main(config_path=str(CONFIG_DIR), config_name="train_frames", version_base="1.3")
+    def app(cfg: DictConfig) -> None:
+        m = train(cfg)
+        f, i = m["final"], m["init"]
+        print(f"[train_frames] {cfg.method}: smoothness {i['smoothness_mean_deg']:.2f} -> "
+              f"{f['smoothness_mean_deg']:.2f} deg, alignment mean {f['alignment_mean_deg']:.3f} deg, "
+              f"singular faces {f['n_singular_faces']}, wall {m['timings']['wall_s']:.1f} s, "
+              f"output {cfg.output_dir}")
+
+    app()
+
+
+if __name__ == "__main__":
+    _main()
