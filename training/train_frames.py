@@ -216,7 +216,7 @@ def _check_finite_terms(terms: dict, step: int) -> None:
     for k, v in terms.items():
         if not bool(torch.isfinite(v).all()):
             raise NonFiniteLossError(
-                f"loss term {k!r} is {float(v)} at step {step}; stopping "
+                f"loss term {k!r} is {float(v.detach())} at step {step}; stopping "
                 f"(the last good checkpoint is kept)")
 
 
