@@ -863,10 +863,28 @@ def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None)
     """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet: ``(T, n)`` in the fiber of ``tets[t,0]``.
 
     Report Def. 5.2 twice (CONVENTIONS §1); arguments as in :func:`tet_solder_sqrt`. Divide by
-    the tet volume to compare with the smooth ``Ω∧θ``.
+    the tet volume to compare with the smooth ``Ω∧θ``. For ``n = 3`` this is evaluated by the
+    fused closed form :func:`torchconn.fast.tet_dd_solder` (the Ch. 5 tet formula, equal to
+    the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
+    generic operators.
     """
+    if _fast_ok(edge_rot, mesh, frames, half_rot, "averaged_dd_solder"):
+        from .fast import tet_dd_solder
+        return tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
     T = tet_transports(edge_rot, mesh)
     return averaged_dd_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
+
+
+def _fast_ok(edge_rot, mesh, frames, half_rot, fn) -> bool:
+    """Whether the fused n = 3 tet kernel applies (after the same argument checks as the generic path)."""
+    _check_mesh_rot(edge_rot, mesh, fn)
+    if edge_rot.shape[-1] != 3 or mesh.vertices.shape[-1] != 3:
+        return False
+    if half_rot is not None and half_rot.shape != edge_rot.shape:
+        raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
+    if frames is not None:
+        _check_frames(frames, mesh, edge_rot, fn)
+    return True
 
 
 def behs21_dd_solder(edge_rot: torch.Tensor, mesh, frames=None) -> torch.Tensor:
@@ -876,7 +894,14 @@ def behs21_dd_solder(edge_rot: torch.Tensor, mesh, frames=None) -> torch.Tensor:
 
 
 def wedge_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
-    """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(T, n)`` at ``tets[t,0]``."""
+    """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(T, n)`` at ``tets[t,0]``.
+
+    For ``n = 3`` evaluated by the fused regrouping of the same formula
+    (:func:`torchconn.fast.tet_dd_solder`); other ranks use the dense tables.
+    """
+    if _fast_ok(edge_rot, mesh, frames, half_rot, "wedge_solder"):
+        from .fast import tet_dd_solder
+        return tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
     T = tet_transports(edge_rot, mesh)
     return wedge_curvature_solder_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
 

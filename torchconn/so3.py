@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from .tolerances import get_eps
+from . import fast as _fast
 
 __all__ = [
     "hat",
@@ -71,20 +71,6 @@ def vee(K: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _exp_coeffs(theta2: torch.Tensor):
-    """Return ``A = sin(t)/t`` and ``B = (1-cos t)/t^2`` as functions of ``t^2``, stable at 0."""
-    eps = get_eps("small_angle", theta2.dtype)
-    small = theta2 < eps * eps
-    # safe-where: the unused branch gets a harmless input so its gradient stays finite
-    t2_safe = torch.where(small, torch.ones_like(theta2), theta2)
-    t = torch.sqrt(t2_safe)
-    A_big = torch.sin(t) / t
-    B_big = (1.0 - torch.cos(t)) / t2_safe
-    A_small = 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0
-    B_small = 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0
-    return torch.where(small, A_small, A_big), torch.where(small, B_small, B_big)
-
-
 def exp(omega: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula ``exp(hat(omega))``: ``omega (..., 3) -> (..., 3, 3)`` rotation.
 
@@ -93,11 +79,10 @@ def exp(omega: torch.Tensor) -> torch.Tensor:
     below the dtype's ``small_angle`` threshold keep value and gradient finite (and exact to
     round-off) at ``omega = 0``. Differentiable.
     """
-    K = hat(omega)
-    theta2 = (omega * omega).sum(-1)
-    A, B = _exp_coeffs(theta2)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+    if omega.dim() < 1 or omega.shape[-1:] != (3,):
+        raise ValueError(f"exp expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
+    # entries written out, closed-form backward (torchconn.fast; same value as I + A K + B K²)
+    return _fast.exp_rotvec(omega)
 
 
 def log(R: torch.Tensor) -> torch.Tensor:
@@ -121,39 +106,8 @@ def log(R: torch.Tensor) -> torch.Tensor:
     The input is not validated (see :func:`check_rotation`).
     """
     _check_mat3(R, "log")
-    dtype, device = R.dtype, R.device
-    eps_small = get_eps("small_angle", dtype)
-    v = vee(R)
-    c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
-    s2 = (v * v).sum(-1)
-    small = (s2 < eps_small * eps_small) & (c > 0)
-    obtuse = c < 0
-    generic = ~(small | obtuse)
-
-    # generic branch (safe-where: |v| = 1, c = 0 where unused, so sqrt/atan2 stay smooth)
-    s_g = torch.sqrt(torch.where(generic, s2, torch.ones_like(s2)))
-    c_g = torch.where(generic, c, torch.zeros_like(c))
-    fac_g = torch.atan2(s_g, c_g) / s_g
-    # small-angle branch: t/sin(t) = asin(s)/s = 1 + s^2/6 + 3 s^4/40 + 5 s^6/112 + ...
-    s2_s = torch.where(small, s2, torch.zeros_like(s2))
-    fac_s = 1.0 + s2_s * (1.0 / 6.0 + s2_s * (3.0 / 40.0 + s2_s * (5.0 / 112.0)))
-    omega_main = torch.where(small, fac_s, fac_g)[..., None] * v
-
-    # obtuse / near-pi branch, evaluated on a harmless rotation by pi about x where unused
-    R_pi = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype, device=device))
-    Rp = torch.where(obtuse[..., None, None], R, R_pi)
-    vp = vee(Rp)
-    cp = 0.5 * (Rp.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
-    eye = torch.eye(3, dtype=dtype, device=device)
-    Bp = 0.5 * (Rp + Rp.transpose(-1, -2)) - cp[..., None, None] * eye
-    k = Bp.diagonal(dim1=-2, dim2=-1).argmax(-1)  # largest |n_k|: column norm >= (1-c)/sqrt(3)
-    col = torch.gather(Bp, -1, k[..., None, None].expand(*k.shape, 3, 1)).squeeze(-1)
-    n = col / torch.linalg.vector_norm(col, dim=-1, keepdim=True)
-    sign = torch.where((n * vp).sum(-1) < 0, -torch.ones_like(cp), torch.ones_like(cp))
-    n = n * sign[..., None]
-    omega_pi = torch.atan2((n * vp).sum(-1), cp)[..., None] * n
-
-    return torch.where(obtuse[..., None], omega_pi, omega_main)
+    # the three branches evaluated entrywise with safe-where (torchconn.fast.log_rotmat)
+    return _fast.log_rotmat(R)
 
 
 def sqrt(R: torch.Tensor) -> torch.Tensor:
@@ -161,9 +115,12 @@ def sqrt(R: torch.Tensor) -> torch.Tensor:
 
     The half transport ``sqrt(R_ij)`` of report Sec. 3.3 (midpoint of edge ``ij`` -> ``v_i``).
     ``sqrt(R) @ sqrt(R) == R``; at angle exactly pi the branch follows :func:`log`.
-    Differentiable.
+    Differentiable. Computed by the quaternion half-angle identity
+    ``((1 + s) I + R + (R - R^T)/s) / (2 + s)``, ``s = sqrt(1 + tr R)``, below 120 degrees and as
+    ``exp(log(R)/2)`` above (:func:`torchconn.fast.sqrt_rotmat`): same value to round-off.
     """
-    return exp(0.5 * log(R))
+    _check_mat3(R, "sqrt")
+    return _fast.sqrt_rotmat(R)
 
 
 def _safe_norm(x: torch.Tensor, dims) -> torch.Tensor:

@@ -1,0 +1,220 @@
+"""Fused kernels of torchconn.fast against the generic operators and plain autograd."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation as Rot
+from torch.autograd import gradcheck, gradgradcheck
+
+from torchconn import dnabla, fast, io, so3
+from torchconn.connection import Connection
+from torchconn.transport import orient
+
+DTYPES = [torch.float32, torch.float64]
+TOL = {torch.float32: 2e-6, torch.float64: 1e-13}
+
+
+def _rotvecs(n, dtype, seed=0, max_angle=math.pi):
+    g = torch.Generator().manual_seed(seed)
+    axis = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    ang = torch.rand(n, 1, generator=g, dtype=torch.float64) * max_angle
+    w = axis * ang
+    w[:3] = 0.0
+    w[3:6] *= 1e-6  # inside the Taylor branch
+    return w.to(dtype)
+
+
+def _rodrigues_matrix_route(w):
+    """Slow obviously-correct reference: the matrix exponential of the skew matrix."""
+    return torch.linalg.matrix_exp(so3.hat(w))
+
+
+# ---------------------------------------------------------------- exp
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exp_matches_matrix_exp_and_autograd(dtype):
+    w = _rotvecs(2000, dtype).requires_grad_()
+    R = fast.exp_rotvec(w)
+    torch.testing.assert_close(R, _rodrigues_matrix_route(w.detach().double()).to(dtype), atol=TOL[dtype] * 4, rtol=0)
+    G = torch.randn(R.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    (g_fast,) = torch.autograd.grad((R * G).sum(), w)
+    w2 = w.detach().clone().requires_grad_()
+    R2 = fast.exp_rotvec_autograd(w2)
+    (g_ref,) = torch.autograd.grad((R2 * G).sum(), w2)
+    assert torch.equal(R.detach(), R2.detach())
+    torch.testing.assert_close(g_fast, g_ref, atol=10 * TOL[dtype], rtol=0)
+    assert torch.isfinite(g_fast).all()
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-3, 1.0, 3.0])
+def test_exp_gradcheck_and_double_backward(scale):
+    g = torch.Generator().manual_seed(2)
+    w = (torch.randn(6, 3, generator=g, dtype=torch.float64) * scale).requires_grad_()
+    assert gradcheck(fast.exp_rotvec, (w,))
+    assert gradgradcheck(fast.exp_rotvec, (w,))
+
+
+def test_exp_gradient_at_identity_is_hat_pairing():
+    # dR/dw at 0 is hat(e_k): the gradient of <G, R> is (G21 - G12, G02 - G20, G10 - G01)
+    w = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    G = torch.arange(9, dtype=torch.float64).reshape(1, 3, 3) ** 1.5
+    (g,) = torch.autograd.grad((fast.exp_rotvec(w) * G).sum(), w)
+    Gm = G[0]
+    expect = torch.stack((Gm[2, 1] - Gm[1, 2], Gm[0, 2] - Gm[2, 0], Gm[1, 0] - Gm[0, 1]))
+    torch.testing.assert_close(g[0], expect)
+
+
+# ---------------------------------------------------------------- log / sqrt
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_log_matches_scipy(dtype):
+    w = _rotvecs(3000, torch.float64, seed=3, max_angle=math.pi - 1e-6)
+    R = torch.from_numpy(Rot.from_rotvec(w.numpy()).as_matrix()).to(dtype)
+    ref = torch.from_numpy(Rot.from_matrix(R.double().numpy()).as_rotvec())
+    out = fast.log_rotmat(R).double()
+    # float32 near pi: the angle itself is only known to ~sqrt(eps)-ish from rounded entries
+    atol = 1e-12 if dtype == torch.float64 else 5e-4
+    torch.testing.assert_close(out, ref, atol=atol, rtol=0)
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-5, 0.5, 1.4, 1.8, 2.5, math.pi - 1e-3])
+def test_log_sqrt_gradcheck_all_branches(theta):
+    # (not at a branch switch, t = pi/2 or 2 pi/3: gradcheck perturbs R off SO(3), where the
+    # branches extend differently)
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    R = so3.exp(axis / axis.norm() * theta)[None].requires_grad_()
+    assert gradcheck(fast.log_rotmat, (R,))
+    assert gradcheck(fast.sqrt_rotmat, (R,))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_log_sqrt_finite_gradient_at_pi(dtype):
+    # at exactly pi log jumps (+pi n or -pi n), so only finiteness of value and gradient is asked
+    R = so3.rot_x(torch.tensor([math.pi], dtype=dtype)).requires_grad_()
+    for fn in (fast.log_rotmat, fast.sqrt_rotmat):
+        out = fn(R)
+        (g,) = torch.autograd.grad(out.sum(), R)
+        assert torch.isfinite(out).all() and torch.isfinite(g).all()
+    torch.testing.assert_close(fast.log_rotmat(R).abs().detach(),
+                               torch.tensor([[math.pi, 0.0, 0.0]], dtype=dtype))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_sqrt_equals_half_log_route(dtype):
+    R = so3.random_rotation(5000, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    S = fast.sqrt_rotmat(R)
+    ref = fast.exp_rotvec(0.5 * fast.log_rotmat(R))
+    torch.testing.assert_close(S, ref, atol=5 * TOL[dtype], rtol=0)
+    torch.testing.assert_close(S @ S, R, atol=5 * TOL[dtype], rtol=0)
+    # batch shape kept, both branches present
+    tr = R.diagonal(dim1=-2, dim2=-1).sum(-1)
+    assert (tr > 0).any() and (tr <= 0).any()
+    assert fast.sqrt_rotmat(R.reshape(50, 100, 3, 3)).shape == (50, 100, 3, 3)
+
+
+def test_half_exp_is_principal_root():
+    w = _rotvecs(500, torch.float64, seed=5, max_angle=math.pi - 1e-3)
+    torch.testing.assert_close(fast.half_exp(w), so3.sqrt(so3.exp(w)), atol=1e-11, rtol=0)
+
+
+# ---------------------------------------------------------------- tet kernel
+
+
+def _setup(dtype, n=3, scale=0.6, seed=0):
+    mesh = io.box(n).to(dtype=dtype)
+    conn = Connection.random_on_mesh(mesh, generator=torch.Generator().manual_seed(seed), scale=scale)
+    return mesh, conn.edge_rot
+
+
+def _generic_dd(edge_rot, mesh, frames=None, half_rot=None):
+    """The dense generic path (𝔡∇ Alt 𝔡∇ Alt θ̃ through the tuple machinery)."""
+    T = dnabla.tet_transports(edge_rot, mesh)
+    return dnabla.averaged_dd_tet(T, dnabla.tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
+
+
+def test_tet_kernel_indices_match_orient():
+    mesh, R = _setup(torch.float64)
+    k = fast.tet_kernel(mesh)
+    both = torch.stack((R, R.transpose(-1, -2)), 1).reshape(-1, 3, 3)
+    torch.testing.assert_close(both[k.rot_index], orient(R, mesh.tet_edges, mesh.tet_edge_signs))
+    th = dnabla.tet_solder_sqrt(R, mesh)  # dense (T, 4, 4, 3)
+    H = so3.sqrt(R)
+    e = mesh.edges
+    vec = mesh.vertices[e[:, 1]] - mesh.vertices[e[:, 0]]
+    edge_th = fast.edge_solder_sqrt(H, vec).reshape(-1, 3)[k.theta_index]
+    for col, (x, y) in enumerate(fast.TetKernel._DIRECTED):
+        torch.testing.assert_close(edge_th[:, col], th[:, x, y])
+    assert fast.tet_kernel(mesh) is k  # cached
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("with_frames", [False, True])
+def test_tet_dd_matches_generic(dtype, with_frames):
+    mesh, R = _setup(dtype)
+    frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(7),
+                                 dtype=dtype) if with_frames else None
+    ref = _generic_dd(R, mesh, frames)
+    out = fast.tet_dd_solder(R, mesh, frames=frames)
+    torch.testing.assert_close(out, ref, atol=20 * TOL[dtype], rtol=0)
+    # the explicit printed formula on the dense tables agrees too
+    wedge = dnabla.wedge_curvature_solder_tet(dnabla.tet_transports(R, mesh),
+                                             dnabla.tet_solder_sqrt(R, mesh, frames))
+    torch.testing.assert_close(out, wedge, atol=20 * TOL[dtype], rtol=0)
+    # the public wrappers route here
+    torch.testing.assert_close(dnabla.averaged_dd_solder(R, mesh, frames), out, atol=0, rtol=0)
+
+
+def test_tet_dd_with_half_rot_from_params():
+    mesh = io.box(3)
+    w = 0.4 * torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    R = so3.exp(w)
+    out = fast.tet_dd_solder(R, mesh, half_rot=fast.half_exp(w))
+    torch.testing.assert_close(out, _generic_dd(R, mesh), atol=1e-13, rtol=0)
+
+
+@pytest.mark.parametrize("with_frames", [False, True])
+def test_tet_dd_fused_backward_matches_autograd(with_frames):
+    dtype = torch.float64
+    mesh, R = _setup(dtype, scale=0.8, seed=2)
+    frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(8),
+                                 dtype=dtype) if with_frames else None
+    w = so3.log(R).requires_grad_()
+    Gout = torch.randn(mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(9), dtype=dtype)
+    (g_fast,) = torch.autograd.grad((fast.tet_dd_solder(so3.exp(w), mesh, frames=frames) * Gout).sum(), w)
+    (g_ref,) = torch.autograd.grad((_generic_dd(so3.exp(w), mesh, frames) * Gout).sum(), w)
+    torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)
+
+
+def test_tet_dd_fused_gradcheck():
+    mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=4)
+    k = fast.tet_kernel(mesh)
+    Rr = R.clone().requires_grad_()
+    th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64,
+                     requires_grad=True)
+    fused = lambda A, t: fast._TetDDFn.apply(A, t, k.rot_index, k.theta_index)  # noqa: E731
+
+    def plain(A, t):
+        both = torch.stack((A, A.transpose(-1, -2)), 1).reshape(-1, 3, 3)
+        return fast.tet_dd_from_rotations(both[k.rot_index], t.reshape(-1, 3)[k.theta_index])
+
+    torch.testing.assert_close(fused(Rr, th), plain(Rr, th), atol=1e-14, rtol=0)
+    assert gradcheck(fused, (Rr, th))
+    assert gradcheck(plain, (Rr, th))
+
+
+def test_exp_matches_numpy_rodrigues_per_element():
+    """Per-element reference written with numpy, one rotation at a time."""
+    w = _rotvecs(50, torch.float64, seed=11)
+    out = fast.exp_rotvec(w).numpy()
+    for i, wi in enumerate(w.numpy()):
+        t = np.linalg.norm(wi)
+        K = np.array([[0, -wi[2], wi[1]], [wi[2], 0, -wi[0]], [-wi[1], wi[0], 0]])
+        A = np.sinc(t / np.pi)
+        B = 0.5 if t < 1e-8 else (1 - np.cos(t)) / t**2
+        np.testing.assert_allclose(out[i], np.eye(3) + A * K + B * K @ K, atol=1e-14)

@@ -1,0 +1,483 @@
+"""Fused kernels: closed-form SO(3) maps and the per-tet curvature / averaged ``d∇d∇θ`` (issue 6).
+
+The generic operators of :mod:`torchconn.so3` and :mod:`torchconn.dnabla` are written for
+clarity (dense ``(..., 3, 3)`` matrix algebra, dense simplex tables, tuple machinery). This
+module computes the *same values* (to round-off) with
+
+* elementwise code on unbound components: ``exp``, ``log`` and ``sqrt`` of 3x3 rotations never
+  form ``(..., 3, 3)`` products (``K @ K``) or gather columns; every entry is written out;
+* a hand-written backward for :func:`exp_rotvec` (the hot map of a ``ConnectionField``) that
+  keeps only ``omega`` for the backward pass;
+* a per-tet closed form of ``𝔡∇ Alt 𝔡∇ Alt θ̃`` (the end-of-Ch. 5 tetrahedron formula,
+  :func:`torchconn.dnabla.wedge_curvature_solder_tet`) regrouped as three rounds of batched
+  matrix-vector products on the 6 edge rotations of each tet, with ``θ̃`` formed once per
+  *edge* (both directions), never per tet;
+* gather tables built once per mesh (:class:`TetKernel`).
+
+All functions take any float dtype and device; constants follow the input. :mod:`torchconn.so3`
+routes ``exp``, ``log`` and ``sqrt`` here, and :func:`torchconn.dnabla.averaged_dd_solder` /
+:func:`torchconn.dnabla.wedge_solder` route through :func:`tet_dd_solder`.
+"""
+from __future__ import annotations
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from .tolerances import get_eps
+
+__all__ = [
+    "exp_rotvec",
+    "exp_rotvec_autograd",
+    "log_rotmat",
+    "sqrt_rotmat",
+    "half_exp",
+    "edge_solder_sqrt",
+    "TetKernel",
+    "tet_kernel",
+    "tet_dd_solder",
+    "tet_dd_from_rotations",
+]
+
+
+# ----------------------------------------------------------------------------- exp
+
+def _exp_coeffs(t2: torch.Tensor, with_derivatives: bool):
+    """``A = sin t / t``, ``B = (1 - cos t)/t²`` and (optionally) ``dA/d(t²)``, ``dB/d(t²)``.
+
+    Taylor series below the dtype's ``small_angle`` threshold (``t² < eps²``); the trigonometric
+    branch gets ``t² = 1`` there (safe-where: finite values and gradients in the unused branch).
+    ``dA/d(t²) = (t cos t - sin t) / (2 t³)``, ``dB/d(t²) = (t sin t - 2 (1 - cos t)) / (2 t⁴)``.
+    """
+    eps = get_eps("small_angle", t2.dtype)
+    small = t2 < eps * eps
+    ts2 = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(ts2)
+    s, c = torch.sin(t), torch.cos(t)
+    A = torch.where(small, 1.0 - t2 * (1.0 / 6.0 - t2 / 120.0), s / t)
+    omc = 1.0 - c
+    B = torch.where(small, 0.5 - t2 * (1.0 / 24.0 - t2 / 720.0), omc / ts2)
+    if not with_derivatives:
+        return A, B
+    dA = torch.where(small, -1.0 / 6.0 + t2 * (1.0 / 60.0 - t2 / 1680.0), (t * c - s) / (2.0 * ts2 * t))
+    dB = torch.where(small, -1.0 / 24.0 + t2 * (1.0 / 360.0 - t2 / 13440.0),
+                     (t * s - 2.0 * omc) / (2.0 * ts2 * ts2))
+    return A, B, dA, dB
+
+
+def _rodrigues(x, y, z, A, B) -> torch.Tensor:
+    """``I + A K + B K²`` with ``K = hat(x, y, z)``, entries written out: ``(...) -> (..., 3, 3)``.
+
+    ``K² = w wᵀ - |w|² I``, so the diagonal is ``1 - B (|w|² - w_i²)`` and the off-diagonal
+    entries are ``B w_i w_j ∓ A w_k``.
+    """
+    Bx, By, Bz = B * x, B * y, B * z
+    Ax, Ay, Az = A * x, A * y, A * z
+    bxy, bxz, byz = Bx * y, Bx * z, By * z
+    xx, yy, zz = x * x, y * y, z * z
+    r = torch.stack((
+        1.0 - B * (yy + zz), bxy - Az, bxz + Ay,
+        bxy + Az, 1.0 - B * (xx + zz), byz - Ax,
+        bxz - Ay, byz + Ax, 1.0 - B * (xx + yy),
+    ), -1)
+    return r.unflatten(-1, (3, 3))
+
+
+class _ExpFn(torch.autograd.Function):
+    """Rodrigues' formula with a closed-form backward (``omega`` is the only saved tensor).
+
+    With ``G = ∂L/∂R`` (3x3), ``g = vee-like (G21 - G12, G02 - G20, G10 - G01)``, ``S = G + Gᵀ``:
+    ``∂L/∂ω = A g + B (S ω - 2 tr(G) ω) + 2 A'(ω·g) ω + 2 B'(ωᵀ G ω - |ω|² tr G) ω``
+    (``A' = dA/d(t²)``, ``B' = dB/d(t²)``), from ``∂R/∂ω_k = A E_k + B (E_k K + K E_k) + ...``
+    with ``E_k K + K E_k = ω e_kᵀ + e_k ωᵀ - 2 ω_k I``. The backward is made of differentiable
+    torch ops, so double backward works.
+    """
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(omega):
+        x, y, z = omega.unbind(-1)
+        A, B = _exp_coeffs(x * x + y * y + z * z, False)
+        return _rodrigues(x, y, z, A, B)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(inputs[0])
+
+    @staticmethod
+    def backward(ctx, G):
+        (omega,) = ctx.saved_tensors
+        x, y, z = omega.unbind(-1)
+        t2 = x * x + y * y + z * z
+        A, B, dA, dB = _exp_coeffs(t2, True)
+        g00, g01, g02, g10, g11, g12, g20, g21, g22 = G.flatten(-2).unbind(-1)
+        gx, gy, gz = g21 - g12, g02 - g20, g10 - g01
+        tr = g00 + g11 + g22
+        s01, s02, s12 = g01 + g10, g02 + g20, g12 + g21
+        Sx = 2.0 * g00 * x + s01 * y + s02 * z
+        Sy = s01 * x + 2.0 * g11 * y + s12 * z
+        Sz = s02 * x + s12 * y + 2.0 * g22 * z
+        wGw = 0.5 * (x * Sx + y * Sy + z * Sz)
+        wg = x * gx + y * gy + z * gz
+        radial = 2.0 * dA * wg + 2.0 * dB * (wGw - t2 * tr) - 2.0 * B * tr
+        return torch.stack((A * gx + B * Sx + radial * x,
+                            A * gy + B * Sy + radial * y,
+                            A * gz + B * Sz + radial * z), -1)
+
+
+def exp_rotvec(omega: torch.Tensor) -> torch.Tensor:
+    """Rodrigues ``exp(hat(ω))``: ``omega (..., 3) -> (..., 3, 3)``, closed-form backward.
+
+    Same value as :func:`exp_rotvec_autograd` (and :func:`torchconn.so3.exp`) to round-off;
+    finite value and gradient at ``ω = 0`` (Taylor branch, ``small_angle`` registry threshold).
+    """
+    if omega.dim() < 1 or omega.shape[-1] != 3:
+        raise ValueError(f"exp_rotvec expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
+    return _ExpFn.apply(omega)
+
+
+def exp_rotvec_autograd(omega: torch.Tensor) -> torch.Tensor:
+    """The same closed form as :func:`exp_rotvec` differentiated by plain autograd (reference)."""
+    x, y, z = omega.unbind(-1)
+    A, B = _exp_coeffs(x * x + y * y + z * z, False)
+    return _rodrigues(x, y, z, A, B)
+
+
+def half_exp(omega: torch.Tensor) -> torch.Tensor:
+    """``√R = exp(ω/2)`` for ``R = exp(ω)``: ``omega (..., 3) -> (..., 3, 3)`` (no logarithm).
+
+    The half transport of a connection given by skew parameters (``ConnectionField``); it is
+    the principal root whenever ``|ω| < π`` (CONVENTIONS §1: ``√R_ij = exp(½ ∫ω)``).
+    """
+    return exp_rotvec(0.5 * omega)
+
+
+# ----------------------------------------------------------------------------- log
+
+def log_rotmat(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of ``R (..., 3, 3)`` -> ``(..., 3)``, ``|ω| ∈ [0, π]``; the branches of
+    :func:`torchconn.so3.log` evaluated entrywise.
+
+    With ``v = vee(R) = sin(t) n`` and ``c = (tr R - 1)/2``: ``ω = atan2(|v|, c)/|v| · v``
+    (Taylor ``asin(s)/s`` for tiny ``|v|`` and ``c > 0``); for ``c < 0`` the axis is the column
+    of ``sym(R) - c I = (1 - c) n nᵀ`` with the largest diagonal entry, signed so that
+    ``n·v ≥ 0``, and ``t = atan2(n·v, c)``. Every branch is computed on all entries with a
+    harmless input where it is unused (safe-where), so gradients are finite at 0 and at π.
+    """
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"log expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.flatten(-2).unbind(-1)
+    eps_small = get_eps("small_angle", R.dtype)
+    vx, vy, vz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    c = 0.5 * (r00 + r11 + r22 - 1.0)
+    s2 = vx * vx + vy * vy + vz * vz
+    small = (s2 < eps_small * eps_small) & (c > 0)
+    obtuse = c < 0
+    generic = ~(small | obtuse)
+    one = torch.ones_like(c)
+    s_g = torch.sqrt(torch.where(generic, s2, one))
+    c_g = torch.where(generic, c, torch.zeros_like(c))
+    s2_s = torch.where(small, s2, torch.zeros_like(s2))
+    fac = torch.where(small, 1.0 + s2_s * (1.0 / 6.0 + s2_s * (3.0 / 40.0 + s2_s * (5.0 / 112.0))),
+                      torch.atan2(s_g, c_g) / s_g)
+    # obtuse branch on a rotation by pi about x where unused (diag (1, -1, -1), v = 0, c = -1)
+    cp = torch.where(obtuse, c, -one)
+    d0 = torch.where(obtuse, r00, one) - cp
+    d1 = torch.where(obtuse, r11, -one) - cp
+    d2 = torch.where(obtuse, r22, -one) - cp
+    o01 = torch.where(obtuse, 0.5 * (r01 + r10), torch.zeros_like(c))
+    o02 = torch.where(obtuse, 0.5 * (r02 + r20), torch.zeros_like(c))
+    o12 = torch.where(obtuse, 0.5 * (r12 + r21), torch.zeros_like(c))
+    pick0 = (d0 >= d1) & (d0 >= d2)
+    pick1 = ~pick0 & (d1 >= d2)
+    # column k of sym(R) - c I; largest diagonal => |column| >= (1 - c)/sqrt(3) > 0
+    nx = torch.where(pick0, d0, torch.where(pick1, o01, o02))
+    ny = torch.where(pick0, o01, torch.where(pick1, d1, o12))
+    nz = torch.where(pick0, o02, torch.where(pick1, o12, d2))
+    inv = torch.rsqrt(nx * nx + ny * ny + nz * nz)
+    vpx, vpy, vpz = (torch.where(obtuse, v, torch.zeros_like(v)) for v in (vx, vy, vz))
+    nv = (nx * vpx + ny * vpy + nz * vpz) * inv
+    sgn = torch.where(nv < 0, -one, one)
+    nv = nv * sgn
+    tp = torch.atan2(nv, cp) * inv * sgn
+    return torch.stack((torch.where(obtuse, tp * nx, fac * vx),
+                        torch.where(obtuse, tp * ny, fac * vy),
+                        torch.where(obtuse, tp * nz, fac * vz)), -1)
+
+
+# ----------------------------------------------------------------------------- sqrt
+
+def sqrt_rotmat(R: torch.Tensor) -> torch.Tensor:
+    """Principal square root of ``R (..., 3, 3)`` -> ``(..., 3, 3)``, equal to ``exp(log(R)/2)``.
+
+    Quaternion half-angle identity: with ``s = sqrt(1 + tr R) = 2 cos(t/2)``,
+    ``√R = ((1 + s) I + R + (R - Rᵀ)/s) / (2 + s)`` (from ``q_½ ∝ (1 + w, u)`` for the unit
+    quaternion ``(w, u)`` of ``R``). It is used where ``c = (tr R - 1)/2 > -1/2`` (angle below
+    120°, ``s > 1``: no cancellation); the remaining entries go through
+    ``exp_rotvec(log_rotmat(R)/2)`` (on CPU on that subset only, gathered with ``nonzero``; on
+    other devices on every entry with safe-where, so there is no device sync), so at angle
+    exactly π the branch follows :func:`log_rotmat`.
+    """
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"sqrt expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    shape = R.shape
+    Rf = R.reshape(-1, 3, 3)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = Rf.flatten(-2).unbind(-1)
+    tr = r00 + r11 + r22
+    ok = tr > 0.0  # c > -1/2
+    s = torch.sqrt(torch.where(ok, 1.0 + tr, torch.full_like(tr, 4.0)))
+    inv_s = 1.0 / s
+    den = 1.0 / (2.0 + s)
+    diag = 1.0 + s
+    out = torch.stack((
+        diag + r00, r01 + (r01 - r10) * inv_s, r02 + (r02 - r20) * inv_s,
+        r10 + (r10 - r01) * inv_s, diag + r11, r12 + (r12 - r21) * inv_s,
+        r20 + (r20 - r02) * inv_s, r21 + (r21 - r12) * inv_s, diag + r22,
+    ), -1) * den[:, None]
+    out = out.unflatten(-1, (3, 3))
+    if Rf.device.type == "cpu":
+        # CPU: the fallback only on the (usually few) obtuse entries; nonzero does not sync here
+        bad = torch.nonzero(~ok).squeeze(-1)
+        if bad.numel():
+            out = out.index_copy(0, bad, exp_rotvec(0.5 * log_rotmat(Rf.index_select(0, bad))))
+    else:
+        # other devices: fallback on every entry (harmless input where unused), no device sync
+        eye = torch.eye(3, dtype=R.dtype, device=R.device)
+        alt = exp_rotvec(0.5 * log_rotmat(torch.where(ok[:, None, None], eye, Rf)))
+        out = torch.where(ok[:, None, None], out, alt)
+    return out.reshape(shape)
+
+
+# ----------------------------------------------------------------------------- tets
+
+def _matvec(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``M v`` for ``M (..., 3, 3)``, ``v (..., 3)`` (batched matmul: on CPU the fastest way to
+    apply many 3x3 matrices, several times faster than a broadcast multiply and a sum)."""
+    return (M @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _matTvec(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``Mᵀ v`` for ``M (..., 3, 3)``, ``v (..., 3)`` (no transposed copy)."""
+    return (M.transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1)
+
+
+class TetKernel:
+    """Gather tables of a :class:`~torchconn.mesh.TetMesh` for the fused tet kernels (built once).
+
+    Attributes (long, on the mesh device):
+        rot_index ``(T, 6)``: index into ``torch.stack((R, Rᵀ), 1).reshape(2E, 3, 3)`` giving the
+            oriented ``R_{x_i x_j}`` of local pair ``p`` (``pair_list(4)`` order), i.e.
+            ``2 e + (sign < 0)``.
+        theta_index ``(T, 7)``: index into ``stack((θ̃_ij, θ̃_ji), 1).reshape(2E, 3)`` of the
+            seven directed edges the formula reads, ``ba, ca, da, cb, db, dc, cd`` (local labels
+            ``a, b, c, d = 0..3``).
+    """
+
+    # local pairs 01 02 03 12 13 23 and the directed edges (x, y) read as θ̃_xy
+    _DIRECTED = ((1, 0), (2, 0), (3, 0), (2, 1), (3, 1), (3, 2), (2, 3))
+
+    def __init__(self, mesh):
+        te = mesh.tet_edges
+        neg = (mesh.tet_edge_signs < 0).long()
+        self.rot_index = 2 * te + neg
+        pair = {(0, 1): 0, (0, 2): 1, (0, 3): 2, (1, 2): 3, (1, 3): 4, (2, 3): 5}
+        cols = []
+        for x, y in self._DIRECTED:
+            p = pair[(min(x, y), max(x, y))]
+            # the tet traverses local pair p as stored when sign > 0; directed (x, y) with x > y
+            # runs against the local order, so against the stored edge iff sign > 0
+            against = neg[:, p] if x < y else 1 - neg[:, p]
+            cols.append(2 * te[:, p] + against)
+        self.theta_index = torch.stack(cols, 1)
+        self.n_edges = int(mesh.edges.shape[0])
+        self.mesh_id = id(mesh)
+
+    def to(self, device) -> "TetKernel":
+        self.rot_index = self.rot_index.to(device)
+        self.theta_index = self.theta_index.to(device)
+        return self
+
+
+def tet_kernel(mesh) -> TetKernel:
+    """The :class:`TetKernel` of ``mesh``, cached on the mesh object (topology never changes)."""
+    k = getattr(mesh, "_fast_tet_kernel", None)
+    if k is None or k.mesh_id != id(mesh) or k.rot_index.shape[0] != mesh.tets.shape[0]:
+        k = TetKernel(mesh)
+        try:
+            mesh._fast_tet_kernel = k
+        except AttributeError:  # objects with __slots__: no cache
+            pass
+    return k
+
+
+def edge_solder_sqrt(half_rot: torch.Tensor, edge_vec: torch.Tensor) -> torch.Tensor:
+    """Half-transported solder form of both directions of every edge: ``(E, 2, 3)``.
+
+    ``[e, 0] = θ̃_ij = √R_ij (v_j - v_i)`` and ``[e, 1] = θ̃_ji = √R_ji (v_i - v_j) =
+    -√R_ijᵀ (v_j - v_i)`` for ``edges[e] = (i, j)`` (report Sec. 3.3, CONVENTIONS §1).
+
+    Args:
+        half_rot: ``(E, 3, 3)`` ``√R_ij``; edge_vec: ``(E, 3)`` ``v_j - v_i``.
+    """
+    return torch.stack((_matvec(half_rot, edge_vec), -_matTvec(half_rot, edge_vec)), 1)
+
+
+def _outer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a bᵀ`` for ``a, b (..., 3)`` -> ``(..., 3, 3)``."""
+    return a.unsqueeze(-1) @ b.unsqueeze(-2)
+
+
+def _tet_dd_forward(rot: torch.Tensor, theta: torch.Tensor):
+    """The regrouped formula of :func:`tet_dd_from_rotations`; returns the output and the
+    intermediates ``y_c, y_d, x_b, x_c, x_d`` that the backward needs."""
+    Rbc, Rbd, Rcd = rot[:, 3], rot[:, 4], rot[:, 5]
+    t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = theta.unbind(1)
+    # round 1 (R_yx = R_xyᵀ: transposed products, no copies)
+    p_cd = Rcd.unsqueeze(1) @ torch.stack((t_db, t_da), 1).unsqueeze(-1)  # R_cd θ̃_db, R_cd θ̃_da
+    p_dc = Rcd.transpose(-1, -2).unsqueeze(1) @ torch.stack((t_cb, t_ca), 1).unsqueeze(-1)  # R_dc θ̃_cb, R_dc θ̃_ca
+    p_ba = torch.stack((Rbc, Rbd), 1).transpose(-1, -2) @ t_ba[:, None, :, None]  # R_cb θ̃_ba, R_db θ̃_ba
+    p_cd, p_dc, p_ba = p_cd.squeeze(-1), p_dc.squeeze(-1), p_ba.squeeze(-1)
+    sixth = 1.0 / 6.0
+    y_c = (p_cd[:, 0] - t_ca) * sixth - t_cb / 3.0 + 0.5 * t_cd
+    y_d = (t_da - p_dc[:, 0]) * sixth + t_db / 3.0 - 0.5 * t_dc
+    x_c = (p_ba[:, 0] - p_cd[:, 1]) * sixth + 0.5 * (t_cb - t_cd)
+    x_d = (p_dc[:, 1] - p_ba[:, 1]) * sixth - 0.5 * (t_db - t_dc)
+    # round 2: X_b = R_bc y_c + R_bd y_d
+    y = torch.stack((y_c, y_d), 1)
+    x_b = (rot[:, 3:5] @ y.unsqueeze(-1)).squeeze(-1).sum(1)
+    # round 3: R_ab X_b + R_ac X_c + R_ad X_d
+    x = torch.stack((x_b, x_c, x_d), 1)
+    out = (rot[:, 0:3] @ x.unsqueeze(-1)).squeeze(-1).sum(1)
+    return out, y, x
+
+
+def _tet_dd_backward(rot: torch.Tensor, theta: torch.Tensor, y: torch.Tensor, x: torch.Tensor,
+                     g: torch.Tensor):
+    """Reverse mode of :func:`_tet_dd_forward`: ``(∂L/∂rot (T, 6, 3, 3), ∂L/∂theta (T, 7, 3))``."""
+    Rcd = rot[:, 5]
+    t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = theta.unbind(1)
+    # round 3
+    g_rot_a = _outer(g.unsqueeze(1), x)  # (T, 3, 3, 3): d/dR_ab, R_ac, R_ad
+    gx = (rot[:, 0:3].transpose(-1, -2) @ g[:, None, :, None]).squeeze(-1)  # (T, 3, 3)
+    gx_b, gx_c, gx_d = gx.unbind(1)
+    # round 2
+    g_rot_b = _outer(gx_b.unsqueeze(1), y)  # d/dR_bc, R_bd
+    gy = (rot[:, 3:5].transpose(-1, -2) @ gx_b[:, None, :, None]).squeeze(-1)
+    gy_c, gy_d = gy.unbind(1)
+    sixth = 1.0 / 6.0
+    gp_cd0, gp_dc0 = gy_c * sixth, -gy_d * sixth
+    gp_cb, gp_cd1 = gx_c * sixth, -gx_c * sixth
+    gp_dc1, gp_db = gx_d * sixth, -gx_d * sixth
+    # round 1: R_cd (θ̃_db, θ̃_da), R_cdᵀ (θ̃_cb, θ̃_ca), R_bcᵀ θ̃_ba, R_bdᵀ θ̃_ba
+    g_cd = (_outer(gp_cd0, t_db) + _outer(gp_cd1, t_da) + _outer(t_cb, gp_dc0) + _outer(t_ca, gp_dc1))
+    g_bc_bd = _outer(t_ba.unsqueeze(1), torch.stack((gp_cb, gp_db), 1))
+    a = (Rcd.transpose(-1, -2).unsqueeze(1) @ torch.stack((gp_cd0, gp_cd1), 1).unsqueeze(-1)).squeeze(-1)
+    b = (Rcd.unsqueeze(1) @ torch.stack((gp_dc0, gp_dc1), 1).unsqueeze(-1)).squeeze(-1)
+    c = (rot[:, 3:5] @ torch.stack((gp_cb, gp_db), 1).unsqueeze(-1)).squeeze(-1).sum(1)
+    g_rot = torch.cat((g_rot_a, g_rot_b + g_bc_bd, g_cd.unsqueeze(1)), 1)
+    g_theta = torch.stack((
+        c,                                                # θ̃_ba
+        b[:, 1] - gy_c * sixth,                           # θ̃_ca
+        a[:, 1] + gy_d * sixth,                           # θ̃_da
+        b[:, 0] - gy_c / 3.0 + 0.5 * gx_c,                # θ̃_cb
+        a[:, 0] + gy_d / 3.0 - 0.5 * gx_d,                # θ̃_db
+        -0.5 * gy_d + 0.5 * gx_d,                         # θ̃_dc
+        0.5 * gy_c - 0.5 * gx_c,                          # θ̃_cd
+    ), 1)
+    return g_rot, g_theta
+
+
+class _TetDDFn(torch.autograd.Function):
+    """Gather + closed form + scatter in one node: ``(edge_rot (E,3,3), edge_theta (E,2,3)) -> (T,3)``.
+
+    The backward is the hand-written reverse of :func:`_tet_dd_forward` followed by
+    ``index_add_`` of the per-tet gradients onto the edges (no autograd graph of ~60 nodes, no
+    ``(T, 6, 3, 3)`` gathered copy kept for the backward beyond the forward's own). First
+    order only (``once_differentiable``: a double backward raises instead of returning zeros).
+    """
+
+    @staticmethod
+    def forward(ctx, edge_rot, edge_theta, rot_index, theta_index):
+        E = edge_rot.shape[0]
+        both = torch.stack((edge_rot, edge_rot.transpose(-1, -2)), 1).reshape(2 * E, 3, 3)
+        rot = both[rot_index]
+        theta = edge_theta.reshape(2 * E, 3)[theta_index]
+        out, y, x = _tet_dd_forward(rot, theta)
+        ctx.save_for_backward(rot, theta, y, x, rot_index, theta_index)
+        ctx.n_edges = E
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        rot, theta, y, x, rot_index, theta_index = ctx.saved_tensors
+        E = ctx.n_edges
+        g_rot, g_theta = _tet_dd_backward(rot, theta, y, x, g)
+        g_edge_rot = g_edge_theta = None
+        if ctx.needs_input_grad[0]:
+            gb = g_rot.new_zeros(2 * E, 3, 3).index_add_(0, rot_index.reshape(-1), g_rot.reshape(-1, 3, 3))
+            gb = gb.reshape(E, 2, 3, 3)
+            g_edge_rot = gb[:, 0] + gb[:, 1].transpose(-1, -2)
+        if ctx.needs_input_grad[1]:
+            g_edge_theta = g_theta.new_zeros(2 * E, 3).index_add_(0, theta_index.reshape(-1),
+                                                                  g_theta.reshape(-1, 3)).reshape(E, 2, 3)
+        return g_edge_rot, g_edge_theta, None, None
+
+
+def tet_dd_from_rotations(rot: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Closed-form ``𝔡∇ Alt 𝔡∇ Alt θ̃`` at ``[abcd]`` from per-tet gathered data: ``(T, 3)``.
+
+    Args:
+        rot: ``(T, 6, 3, 3)`` oriented ``R_ab, R_ac, R_ad, R_bc, R_bd, R_cd`` (pair_list(4)).
+        theta: ``(T, 7, 3)`` ``θ̃_ba, θ̃_ca, θ̃_da, θ̃_cb, θ̃_db, θ̃_dc, θ̃_cd``.
+
+    The end-of-Ch. 5 formula (:func:`torchconn.dnabla.wedge_curvature_solder_tet`) regrouped by
+    its leading transport, ``R_ab X_b + R_ac X_c + R_ad X_d`` with (fibers of ``b, c, d``)::
+
+        X_b = R_bc (-θ̃_ca/6 + R_cd θ̃_db/6 - θ̃_cb/3 + θ̃_cd/2)
+            + R_bd (-R_dc θ̃_cb/6 + θ̃_da/6 + θ̃_db/3 - θ̃_dc/2)
+        X_c = (R_cb θ̃_ba - R_cd θ̃_da)/6 + θ̃_cb/2 - θ̃_cd/2
+        X_d = (R_dc θ̃_ca - R_db θ̃_ba)/6 - (θ̃_db - θ̃_dc)/2
+
+    Three rounds of batched matrix-vector products (6, then 2, then 3 per tet) instead of the
+    8 matrix-matrix products and 16 matrix-vector products of the printed formula.
+    Differentiated by plain autograd (the mesh-level :func:`tet_dd_solder` uses a fused
+    hand-written backward instead).
+    """
+    return _tet_dd_forward(rot, theta)[0]
+
+
+def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = None,
+                  frames: torch.Tensor | None = None) -> torch.Tensor:
+    """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet of ``mesh``: ``(T, 3)`` at ``tets[t,0]``.
+
+    Same value (to round-off) as :func:`torchconn.dnabla.averaged_dd_solder` with the same
+    arguments, without the dense ``(T, 4, 4, 3, 3)`` tables.
+
+    Args:
+        edge_rot: ``(E, 3, 3)`` ``R_ij`` of the canonical edges (read in ``frames`` if given).
+        mesh: :class:`~torchconn.mesh.TetMesh`.
+        half_rot: ``(E, 3, 3)`` ``√R_ij`` (in the vertex frames when ``frames`` is given);
+            default :func:`sqrt_rotmat` (of ``F_i R_ij F_jᵀ`` with frames). For a connection
+            given by skew parameters ``ω`` pass ``half_exp(ω)``: no logarithm is needed.
+        frames: ``(V, 3, 3)`` or ``None`` (conventions of :func:`torchconn.dnabla.tet_solder_sqrt`:
+            ``θ̃'_ij = F_iᵀ √R^amb_ij (v_j - v_i)``).
+    """
+    k = tet_kernel(mesh)
+    dev, dt = edge_rot.device, edge_rot.dtype
+    if k.rot_index.device != dev:
+        k.to(dev)
+    e = mesh.edges.to(dev)
+    verts = mesh.vertices.to(device=dev, dtype=dt)
+    vec = verts[e[:, 1]] - verts[e[:, 0]]  # (E, 3) v_j - v_i
+    if frames is None:
+        H = sqrt_rotmat(edge_rot) if half_rot is None else half_rot
+        theta = edge_solder_sqrt(H, vec)
+    else:
+        Fv = frames.to(device=dev, dtype=dt)
+        Fi, Fj = Fv[e[:, 0]], Fv[e[:, 1]]
+        H = sqrt_rotmat(Fi @ edge_rot @ Fj.transpose(-1, -2)) if half_rot is None \
+            else Fi @ half_rot @ Fj.transpose(-1, -2)
+        amb = edge_solder_sqrt(H, vec)  # (E, 2, 3) ambient
+        theta = torch.stack((_matTvec(Fi, amb[:, 0]), _matTvec(Fj, amb[:, 1])), 1)
+    return _TetDDFn.apply(edge_rot, theta, k.rot_index, k.theta_index)
