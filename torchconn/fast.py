@@ -36,6 +36,10 @@ __all__ = [
     "tet_kernel",
     "tet_dd_solder",
     "tet_dd_from_rotations",
+    "is_tet_mesh",
+    "face_curvature_tet",
+    "edge_solder_frames",
+    "face_torsion_tet",
 ]
 
 
@@ -481,3 +485,83 @@ def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = 
         amb = edge_solder_sqrt(H, vec)  # (E, 2, 3) ambient
         theta = torch.stack((_matTvec(Fi, amb[:, 0]), _matTvec(Fj, amb[:, 1])), 1)
     return _TetDDFn.apply(edge_rot, theta, k.rot_index, k.theta_index)
+
+
+# ----------------------------------------------------------------------------- faces
+
+def is_tet_mesh(cells) -> bool:
+    """A ``TetMesh``-like object: sorted faces ``[a<b<c]`` with ``face_edges`` (not a CellComplex)."""
+    return (not hasattr(cells, "face_groups") and hasattr(cells, "faces") and hasattr(cells, "face_edges")
+            and torch.is_tensor(cells.faces) and cells.faces.ndim == 2 and cells.faces.shape[1] == 3)
+
+
+def _face_rots(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
+    """``(F, 3, n, n)`` = ``R_ab, R_bc, R_ac`` of every sorted face ``[a<b<c]``.
+
+    All three are canonical edges (``a<b<c``), so no transposes: ``face_edges`` lists
+    ``bc, ac, ab``. ``index_select`` (backward: ``index_add_``) rather than advanced indexing,
+    whose backward is an accumulating ``index_put_``.
+    """
+    fe = mesh.face_edges.to(edge_rot.device)[:, [2, 0, 1]]
+    F, n = fe.shape[0], edge_rot.shape[-1]
+    return edge_rot.index_select(0, fe.reshape(-1)).reshape(F, 3, n, n)
+
+
+def face_curvature_tet(edge_rot: torch.Tensor, mesh, cut: int = -1, kind: str = "two_prong") -> torch.Tensor:
+    """Curvature of every sorted face ``[a<b<c]`` of a tet mesh: ``(F, n, n)`` (Sec. 3.2, (3.2.1)).
+
+    Same values as :func:`torchconn.curvature.face_curvature` on a ``TetMesh`` (loop
+    ``a -> b -> c``, evaluation ``a``), written out for the triangle:
+
+    * cut ``c`` (``-1`` or ``2``): ``R_ab R_bc - R_ac``;
+    * cut ``b`` (``1`` or ``-2``): ``R_ab - R_ac R_bcᵀ``;
+    * holonomy (``kind="holonomy"``, or cut ``0`` / ``-3``): ``R_ab R_bc R_acᵀ - I``.
+    """
+    F3 = _face_rots(edge_rot, mesh)
+    Rab, Rbc, Rac = F3.unbind(1)
+    c = cut % 3 if kind == "two_prong" else 0
+    if c == 2:
+        return torch.baddbmm(-Rac, Rab, Rbc) if edge_rot.dim() == 3 else Rab @ Rbc - Rac
+    if c == 1:
+        return Rab - Rac @ Rbc.transpose(-1, -2)
+    n = edge_rot.shape[-1]
+    eye = torch.eye(n, dtype=edge_rot.dtype, device=edge_rot.device)
+    return (Rab @ Rbc) @ Rac.transpose(-1, -2) - eye
+
+
+def edge_solder_frames(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
+                       frames: torch.Tensor | None = None) -> torch.Tensor:
+    """Solder form of each canonical edge ``(i, j)`` in the fiber of ``i``: ``(E, 3)``.
+
+    ``kind="sqrt"``: ``θ̃_ij = √R_ij (v_j - v_i)`` (report Def. 3.2); ``"naive"``: ``v_j - v_i``.
+    With ``frames (V, 3, 3)`` the conventions of :func:`torchconn.torsion.face_torsion`: the
+    root is taken of the ambient ``F_i R_ij F_jᵀ`` and the value is expressed in ``F_i``,
+    ``θ̃'_ij = F_iᵀ √(F_i R_ij F_jᵀ) (v_j - v_i)``.
+    """
+    dev, dt = edge_rot.device, edge_rot.dtype
+    e = mesh.edges.to(dev)
+    verts = mesh.vertices.to(device=dev, dtype=dt)
+    vec = verts.index_select(0, e[:, 1]) - verts.index_select(0, e[:, 0])
+    if frames is None:
+        return _matvec(sqrt_rotmat(edge_rot), vec) if kind == "sqrt" else vec
+    Fi, Fj = frames.index_select(0, e[:, 0]), frames.index_select(0, e[:, 1])
+    if kind == "sqrt":
+        vec = _matvec(sqrt_rotmat(Fi @ edge_rot @ Fj.transpose(-1, -2)), vec)
+    return _matTvec(Fi, vec)
+
+
+def face_torsion_tet(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
+                     frames: torch.Tensor | None = None) -> torch.Tensor:
+    """Torsion of every sorted face ``[a<b<c]`` with cut ``c``: ``(F, 3)`` in the fiber of ``a``.
+
+    ``Θ = θ̃_ab + R_ab θ̃_bc - θ̃_ac`` (Def. 3.2: prongs ``a -> b -> c`` and ``a -> c``), with the
+    per-edge solder form of :func:`edge_solder_frames` formed once per *edge*. Equals
+    :func:`torchconn.torsion.face_torsion` with ``cut=-1`` (with frames, ``F_aᵀ Θ^amb =
+    F_aᵀ θ̃^amb_ab + R_ab F_bᵀ θ̃^amb_bc - F_aᵀ θ̃^amb_ac`` since ``R^amb_ab = F_a R_ab F_bᵀ``).
+    """
+    th = edge_solder_frames(edge_rot, mesh, kind, frames)
+    fe = mesh.face_edges.to(edge_rot.device)
+    F = fe.shape[0]
+    t = th.index_select(0, fe[:, [2, 0, 1]].reshape(-1)).reshape(F, 3, 3)  # θ̃_ab, θ̃_bc, θ̃_ac
+    Rab = edge_rot.index_select(0, fe[:, 2])
+    return t[:, 0] - t[:, 2] + _matvec(Rab, t[:, 1])
