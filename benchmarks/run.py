@@ -1,0 +1,502 @@
+"""Benchmark suite of issue 6: fused kernels against eager references, side by side.
+
+    python -m benchmarks.run [--quick] [--output-dir DIR] [--threads N] [--repeats R]
+
+Prints a markdown table and writes ``DIR/benchmark.json``: a list of
+``{name, size, dtype, seconds, reference_seconds, ratio, peak_mb, ...}`` (``ratio`` =
+reference / fast; extra keys: ``reference``, ``max_abs_diff``, ``unit``, ``note``).
+
+Cases
+-----
+1. ``so3.exp`` / ``so3.log`` / ``so3.sqrt`` forward+backward on 10⁶ rotations (10⁵ with
+   ``--quick``), float32: the closed forms of :mod:`torchconn.fast` against
+   ``torch.linalg.matrix_exp(hat(ω))`` (exp), the previous matrix-based ``so3.log`` kept below
+   (``_ref_log``; there is no matrix-log route in torch), ``exp(log(R)/2)`` through those
+   references (sqrt), and ``roma`` when it is installed (extra rows). ``max_abs_diff`` is the
+   largest entry difference of the forward values.
+2. Curvature + averaged ``d∇d∇θ̃`` (and torsion alone) on box meshes of ~10k, 100k, 1M tets
+   (``io.box(n)``, ``6 n³`` tets; ``--quick`` stops at 100k), float32 and float64, from a
+   ``ConnectionField``-like parameter tensor (``so3.exp`` of skew params), loss
+   ``Σ‖Ω_f‖² + Σ‖d∇d∇θ̃_t‖²``, backward to the params. Reference: the generic path (dense
+   per-tet tables ``dnabla.tet_transports`` / ``tet_solder_sqrt`` / ``averaged_dd_tet``, loop
+   curvature ``orient`` + ``curvature.two_prong``, matrix-route ``exp`` / ``sqrt``).
+3. The frame-field loss (:class:`torchconn.losses.FrameFieldLoss`, every term weight 1) at the
+   same sizes, forward+backward to connection params and per-vertex frame params, against an
+   eager composition of the same terms kept here (:func:`_ref_frame_loss`, generic curvature
+   and torsion). Reported as "not measured" if ``torchconn.losses`` lacks ``FrameFieldLoss``.
+4. End to end (not with ``--quick``): ``python -m training.train_frames`` on
+   ``../shared/data/78322_gear.2.mesh`` (one subprocess run, wall time) and mouette's Ray et al.
+   2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed.
+
+Timing: each figure is the median of ``--repeats`` runs after one warm-up run; fast and
+reference are measured alternately in the same process (``ratio`` is taken side by side). At
+≥ 1M tets the reference is run once after its warm-up (it takes tens of seconds; noted in the
+row). ``--threads`` sets ``torch.set_num_threads`` (default: torch's default). On a shared
+machine, OpenMP threads of a loaded 2-core box can be ~10× slower per op than one thread;
+record the thread count with the figures.
+
+Peak memory (``peak_mb``): a sampler thread reads the resident set size (``/proc/self/statm``)
+every millisecond during one extra fast run; the figure is the peak minus the RSS just before
+the run. For that run glibc is told to mmap every block of 64 KB or more (``mallopt``), so
+that freed tensors leave the RSS and it follows the live tensors (see :func:`_peak_mb`). It is
+the extra memory of the fast path, inputs and parameters excluded (autograd graph, outputs and
+gradients included). ``resource.getrusage``'s ``ru_maxrss`` is a process-lifetime high-water
+mark and cannot isolate one case.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+from torchconn import curvature, dnabla, fast, io, so3
+from torchconn import torsion as _torsion
+from torchconn.transport import orient
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+GEAR = DATA / "78322_gear.2.mesh"
+
+
+# ----------------------------------------------------------------------------- measurement
+
+class _RSSPeak:
+    """Peak resident set size (bytes) above the value at entry, sampled every ``dt`` seconds."""
+
+    def __init__(self, dt: float = 1e-3):
+        self.dt, self.peak, self._stop = dt, 0, threading.Event()
+        self._page = os.sysconf("SC_PAGE_SIZE")
+
+    def _rss(self) -> int:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * self._page
+
+    def _loop(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._rss() - self.base)
+            time.sleep(self.dt)
+
+    def __enter__(self):
+        self.base = self._rss()
+        self._t = threading.Thread(target=self._loop, daemon=True)
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, self._rss() - self.base)
+
+
+def _libc():
+    try:
+        import ctypes
+
+        lib = ctypes.CDLL("libc.so.6")
+        lib.mallopt, lib.malloc_trim  # noqa: B018 (glibc only)
+        return lib
+    except (OSError, AttributeError):
+        return None
+
+
+_M_MMAP_THRESHOLD = -3
+
+
+def _peak_mb(fn) -> float:
+    """Extra resident memory of one ``fn()`` call (MB); NaN where it cannot be measured.
+
+    glibc keeps freed heap blocks resident and raises its mmap threshold dynamically (up to
+    32 MB), so after a warm-up the RSS would not grow at all. For this one run every block of
+    64 KB or more is mmapped (``mallopt(M_MMAP_THRESHOLD, 64 KB)``, after ``malloc_trim``), so
+    RSS follows the live tensors; the threshold is set back to 32 MB (the top of glibc's
+    dynamic range, where it sits after the warm-ups) for the following timings.
+    """
+    lib = _libc()
+    if lib is None or not Path("/proc/self/statm").exists():
+        return float("nan")
+    lib.mallopt(_M_MMAP_THRESHOLD, 64 * 1024)
+    lib.malloc_trim(0)
+    try:
+        with _RSSPeak() as p:
+            fn()
+        return p.peak / 2**20
+    finally:
+        lib.mallopt(_M_MMAP_THRESHOLD, 32 * 2**20)
+
+
+def _side_by_side(fast_fn, ref_fn, repeats: int, ref_repeats: int | None = None):
+    """Medians of alternated runs after one warm-up each: ``(fast_s, ref_s)``."""
+    ref_repeats = repeats if ref_repeats is None else ref_repeats
+    fast_fn()
+    if ref_fn is not None:
+        ref_fn()
+    tf, tr = [], []
+    for i in range(max(repeats, ref_repeats)):
+        if i < repeats:
+            t0 = time.perf_counter()
+            fast_fn()
+            tf.append(time.perf_counter() - t0)
+        if ref_fn is not None and i < ref_repeats:
+            t0 = time.perf_counter()
+            ref_fn()
+            tr.append(time.perf_counter() - t0)
+    return statistics.median(tf), (statistics.median(tr) if tr else None)
+
+
+def _row(name, size, dtype, seconds, ref_seconds, peak_mb, **extra):
+    ratio = (ref_seconds / seconds) if (ref_seconds is not None and seconds) else None
+    row = {"name": name, "size": size, "dtype": dtype, "seconds": seconds,
+           "reference_seconds": ref_seconds, "ratio": ratio, "peak_mb": peak_mb}
+    row.update(extra)
+    return row
+
+
+# ----------------------------------------------------------------------------- references
+# Eager, generic compositions (the code paths before torchconn.fast): kept here so that the
+# ratios stay measurable after the library routes through the fused kernels.
+
+def _ref_exp_matrix(w: torch.Tensor) -> torch.Tensor:
+    """``matrix_exp(hat(ω))`` (the route the issue compares against)."""
+    return torch.linalg.matrix_exp(so3.hat(w))
+
+
+def _ref_exp_rodrigues(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues with dense ``K`` and ``K @ K`` (the previous ``so3.exp``)."""
+    K = so3.hat(w)
+    t2 = (w * w).sum(-1)
+    eps = 1e-2 if w.dtype == torch.float32 else 1e-4
+    small = t2 < eps * eps
+    ts2 = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(ts2)
+    A = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
+    B = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / ts2)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def _ref_log(R: torch.Tensor) -> torch.Tensor:
+    """The previous matrix-based ``so3.log`` (vee, diagonal, column gather by argmax)."""
+    dtype, device = R.dtype, R.device
+    eps_small = 1e-2 if dtype == torch.float32 else 1e-4
+    v = so3.vee(R)
+    c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    s2 = (v * v).sum(-1)
+    small = (s2 < eps_small * eps_small) & (c > 0)
+    obtuse = c < 0
+    generic = ~(small | obtuse)
+    s_g = torch.sqrt(torch.where(generic, s2, torch.ones_like(s2)))
+    c_g = torch.where(generic, c, torch.zeros_like(c))
+    fac_g = torch.atan2(s_g, c_g) / s_g
+    s2_s = torch.where(small, s2, torch.zeros_like(s2))
+    fac_s = 1.0 + s2_s * (1.0 / 6.0 + s2_s * (3.0 / 40.0 + s2_s * (5.0 / 112.0)))
+    omega_main = torch.where(small, fac_s, fac_g)[..., None] * v
+    R_pi = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype, device=device))
+    Rp = torch.where(obtuse[..., None, None], R, R_pi)
+    vp = so3.vee(Rp)
+    cp = 0.5 * (Rp.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    eye = torch.eye(3, dtype=dtype, device=device)
+    Bp = 0.5 * (Rp + Rp.transpose(-1, -2)) - cp[..., None, None] * eye
+    k = Bp.diagonal(dim1=-2, dim2=-1).argmax(-1)
+    col = torch.gather(Bp, -1, k[..., None, None].expand(*k.shape, 3, 1)).squeeze(-1)
+    n = col / torch.linalg.vector_norm(col, dim=-1, keepdim=True)
+    sign = torch.where((n * vp).sum(-1) < 0, -torch.ones_like(cp), torch.ones_like(cp))
+    n = n * sign[..., None]
+    omega_pi = torch.atan2((n * vp).sum(-1), cp)[..., None] * n
+    return torch.where(obtuse[..., None], omega_pi, omega_main)
+
+
+def _ref_sqrt(R: torch.Tensor) -> torch.Tensor:
+    return _ref_exp_rodrigues(0.5 * _ref_log(R))
+
+
+def _ref_face_curvature(R, mesh, kind="two_prong"):
+    """Generic loop curvature (``face_loops`` + ``orient`` + ``two_prong`` / ``holonomy``)."""
+    _, groups = curvature.face_loops(mesh)
+    _, le, ls, _ = groups[0]
+    L = orient(R, le, ls)
+    return curvature.holonomy(L) if kind == "holonomy" else curvature.two_prong(L, -1)
+
+
+def _ref_face_torsion(R, mesh, frames=None):
+    """Generic √R torsion (loop gather, ``torsion.two_prong``), frames as in ``face_torsion``."""
+    V = mesh.vertices.to(R.dtype)
+    if frames is not None:
+        e = mesh.edges
+        R = frames[e[:, 0]] @ R @ frames[e[:, 1]].transpose(-1, -2)
+    H = _ref_sqrt(R)
+    _, groups = curvature.face_loops(mesh)
+    _, le, ls, loops = groups[0]
+    L = orient(R, le, ls)
+    pts = V[loops]
+    d = torch.roll(pts, shifts=-1, dims=-2) - pts
+    Hf = orient(H, le, ls)
+    fwd = (Hf @ d[..., None]).squeeze(-1)
+    bwd = (Hf.transpose(-1, -2) @ (-d)[..., None]).squeeze(-1)
+    val = _torsion.two_prong(L, fwd, bwd, -1)
+    if frames is not None:
+        val = (frames[loops[:, 0]].transpose(-1, -2) @ val[..., None]).squeeze(-1)
+    return val
+
+
+def _ref_dd(R, mesh):
+    """Generic dense ``𝔡∇ Alt 𝔡∇ Alt θ̃`` (``(T, 4, 4, 3, 3)`` tables, tuple machinery)."""
+    T = dnabla.tet_transports(R, mesh)
+    pts = mesh.vertices.to(R.dtype)[mesh.tets]
+    th = dnabla.solder_form_sqrt(dnabla.tet_transports(_ref_sqrt(R), mesh), pts)
+    return dnabla.averaged_dd_tet(T, th)
+
+
+# ----------------------------------------------------------------------------- cases
+
+def bench_so3(n: int, repeats: int, rows: list) -> None:
+    g = torch.Generator().manual_seed(0)
+    w = (torch.randn(n, 3, generator=g) * 1.0).requires_grad_()
+    R = so3.exp(w.detach()).requires_grad_()
+    try:
+        import roma
+    except ImportError:
+        roma = None
+
+    def fb(f, x):
+        def run():
+            x.grad = None
+            f(x).sum().backward()
+        return run
+
+    cases = [
+        ("so3.exp", so3.exp, w, _ref_exp_matrix, "matrix_exp(hat(w))"),
+        ("so3.log", so3.log, R, _ref_log, "previous matrix-based so3.log"),
+        ("so3.sqrt", so3.sqrt, R, _ref_sqrt, "exp(log(R)/2), previous so3 exp/log"),
+    ]
+    if roma is not None:
+        cases += [("so3.exp_vs_roma", so3.exp, w, roma.rotvec_to_rotmat, f"roma {roma.__version__} rotvec_to_rotmat"),
+                  ("so3.log_vs_roma", so3.log, R, roma.rotmat_to_rotvec, f"roma {roma.__version__} rotmat_to_rotvec")]
+    for name, f, x, ref, ref_name in cases:
+        t, tr = _side_by_side(fb(f, x), fb(ref, x), repeats)
+        with torch.no_grad():
+            a, b = f(x), ref(x)
+            if name.startswith("so3.log"):  # angle-pi sign ambiguity: compare through exp
+                diff = float((so3.exp(a) - so3.exp(b)).abs().max())
+            else:
+                diff = float((a - b).abs().max())
+        rows.append(_row(name, n, "float32", t, tr, _peak_mb(fb(f, x)), reference=ref_name,
+                         max_abs_diff=diff, unit="rotations"))
+    if roma is None:
+        rows.append(_row("so3.exp_vs_roma", n, "float32", None, None, None, note="roma not installed"))
+
+
+def _box(tets: int, dtype):
+    n = max(1, round((tets / 6) ** (1 / 3)))
+    return io.box(n).to(dtype=dtype)
+
+
+def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
+    mesh = _box(tets, dtype)
+    T = int(mesh.tets.shape[0])
+    g = torch.Generator().manual_seed(1)
+    w = (0.3 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
+    dname = str(dtype).replace("torch.", "")
+    big = T >= 500_000
+    ref_rep = 1 if big else repeats
+
+    def fast_cd():
+        w.grad = None
+        R = so3.exp(w)
+        (curvature.face_curvature(R, mesh).square().sum()
+         + dnabla.averaged_dd_solder(R, mesh, half_rot=fast.half_exp(w)).square().sum()).backward()
+
+    def fast_cd_sqrt():
+        w.grad = None
+        R = so3.exp(w)
+        (curvature.face_curvature(R, mesh).square().sum()
+         + dnabla.averaged_dd_solder(R, mesh).square().sum()).backward()
+
+    def ref_cd():
+        w.grad = None
+        R = _ref_exp_matrix(w)
+        (_ref_face_curvature(R, mesh).square().sum() + _ref_dd(R, mesh).square().sum()).backward()
+
+    def fast_tor():
+        w.grad = None
+        _torsion.face_torsion(so3.exp(w), mesh).square().sum().backward()
+
+    def ref_tor():
+        w.grad = None
+        _ref_face_torsion(_ref_exp_matrix(w), mesh).square().sum().backward()
+
+    with torch.no_grad():
+        R = so3.exp(w)
+        d_cd = max(float((curvature.face_curvature(R, mesh) - _ref_face_curvature(R, mesh)).abs().max()),
+                   float((dnabla.averaged_dd_solder(R, mesh) - _ref_dd(R, mesh)).abs().max()))
+        d_tor = float((_torsion.face_torsion(R, mesh) - _ref_face_torsion(R, mesh)).abs().max())
+    ref_name = "generic dense dnabla + loop curvature, matrix_exp"
+    note = "reference: 1 run after warm-up" if big else ""
+    t, tr = _side_by_side(fast_cd, ref_cd, repeats, ref_rep)
+    rows.append(_row("curvature+averaged_dnabla", T, dname, t, tr, _peak_mb(fast_cd), reference=ref_name,
+                     max_abs_diff=d_cd, unit="tets", note=("√R = exp(ω/2) from params; " + note).strip("; ")))
+    t2, _ = _side_by_side(fast_cd_sqrt, None, repeats)
+    rows.append(_row("curvature+averaged_dnabla(sqrt)", T, dname, t2, tr, _peak_mb(fast_cd_sqrt),
+                     reference=ref_name, unit="tets", note=("√R = so3.sqrt(R); " + note).strip("; ")))
+    t3, tr3 = _side_by_side(fast_tor, ref_tor, repeats, ref_rep)
+    rows.append(_row("torsion(sqrt)", T, dname, t3, tr3, _peak_mb(fast_tor), reference="generic loop torsion",
+                     max_abs_diff=d_tor, unit="tets", note=note))
+
+
+def _ref_frame_loss(loss, edge_rot, frames):
+    """Eager composition of the terms of ``FrameFieldLoss`` (generic curvature and torsion)."""
+    from torchconn import losses as L
+
+    mesh, w = loss.mesh, loss.weights
+    out = {}
+    if w["smooth"]:
+        out["smooth"] = L.smoothness_loss(edge_rot, loss.smooth_power, loss.smooth_eps)
+    unrel = None
+    if w["tie"] or w["torsion"]:
+        out["tie"], unrel = L.tie_loss(edge_rot, frames, mesh.edges, loss.smooth_power, loss.smooth_eps)
+    if w["flat"]:
+        hol = _ref_face_curvature(edge_rot, mesh, kind="holonomy")
+        out["flat"] = L.symmetric_flatness_loss(hol + torch.eye(3, dtype=hol.dtype))
+    if w["torsion"]:
+        tor = _ref_face_torsion(edge_rot, mesh, frames)
+        ok = unrel[mesh.face_edges].all(-1)
+        per = (tor ** 2).sum(-1) / loss.face_area.to(tor.dtype)
+        out["torsion"] = per[ok].mean() if bool(ok.any()) else per.sum() * 0.0
+    if w["align"]:
+        out["align"] = L.normal_alignment_loss(frames[loss.align_vertices], loss.align_normals.to(frames.dtype))
+    if w["feature"]:
+        out["feature"] = L.normal_alignment_loss(frames[loss.feature_vertices_rep],
+                                                 loss.feature_normals.to(frames.dtype))
+    return sum(w[k] * v for k, v in out.items() if w[k])
+
+
+def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
+    dname = str(dtype).replace("torch.", "")
+    try:
+        from torchconn.losses import TERMS, FrameFieldLoss
+    except ImportError as exc:
+        rows.append(_row("frame_field_loss", tets, dname, None, None, None, note=f"not measured: {exc}"))
+        return
+    mesh = _box(tets, dtype)
+    T = int(mesh.tets.shape[0])
+    loss = FrameFieldLoss(mesh, {k: 1.0 for k in TERMS})
+    g = torch.Generator().manual_seed(2)
+    w = (0.2 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
+    phi = (0.2 * torch.randn(mesh.vertices.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
+    big = T >= 500_000
+
+    def fast_fn():
+        w.grad = phi.grad = None
+        loss(so3.exp(w), so3.exp(phi))["total"].backward()
+
+    def ref_fn():
+        w.grad = phi.grad = None
+        _ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)).backward()
+
+    with torch.no_grad():
+        a = float(loss(so3.exp(w), so3.exp(phi))["total"])
+        b = float(_ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)))
+    t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
+    rows.append(_row("frame_field_loss", T, dname, t, tr, _peak_mb(fast_fn), unit="tets",
+                     reference="eager composition of the same terms (generic curvature/torsion, matrix_exp)",
+                     max_abs_diff=abs(a - b), note="all six terms, weight 1; fwd+bwd to edge and vertex params"))
+
+
+def bench_end_to_end(rows: list, threads: int) -> None:
+    if not GEAR.exists():
+        rows.append(_row("train_frames(gear)", None, "float32", None, None, None, note=f"not measured: {GEAR} missing"))
+        return
+    if (ROOT / "training" / "train_frames.py").exists():
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [sys.executable, "-m", "training.train_frames", f"mesh={GEAR}", f"output_dir={tmp}",
+                   f"num_threads={threads}"]
+            t0 = time.perf_counter()
+            res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+            dt = time.perf_counter() - t0
+        note = "one run, wall time incl. startup, SH init, metrics, plots" if res.returncode == 0 else \
+            f"failed (rc {res.returncode}): {res.stderr.strip().splitlines()[-1:] }"
+        rows.append(_row("train_frames(gear)", GEAR.name, "default", dt if res.returncode == 0 else None,
+                         None, None, note=note, command=" ".join(cmd[1:])))
+    else:
+        rows.append(_row("train_frames(gear)", GEAR.name, "default", None, None, None,
+                         note="not measured: training/train_frames.py missing"))
+    try:
+        import mouette as M
+    except ImportError:
+        rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", None, None, None, note="mouette not installed"))
+        return
+    m = M.mesh.load(str(GEAR))
+    t0 = time.perf_counter()
+    ff = M.framefield.VolumeFrameField(m, "vertices")
+    ff.run()
+    dt = time.perf_counter() - t0
+    rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", dt, None, None,
+                     note=f"VolumeFrameField(mesh, 'vertices').run(), one run, mouette {getattr(M, '__version__', '?')}"))
+
+
+# ----------------------------------------------------------------------------- report
+
+def _fmt(x, spec):
+    return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+
+def table(rows: list) -> str:
+    lines = ["| case | size | dtype | fast (s) | reference (s) | ratio | peak (MB) | max abs diff | note |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        size = r["size"] if not isinstance(r["size"], int) else f"{r['size']:,} {r.get('unit', '')}".strip()
+        lines.append(f"| {r['name']} | {size} | {r['dtype']} | {_fmt(r['seconds'], '.4f')} | "
+                     f"{_fmt(r['reference_seconds'], '.4f')} | {_fmt(r['ratio'], '.1f')}"
+                     f"{'×' if r['ratio'] else ''} | {_fmt(r['peak_mb'], '.0f')} | "
+                     f"{_fmt(r.get('max_abs_diff'), '.1e')} | {r.get('note', '') or r.get('reference', '')} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> list:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="sizes <= 100k tets, 10^5 rotations, whole run < 2 min")
+    ap.add_argument("--output-dir", type=Path, default=Path("."))
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 5, quick 3)")
+    ap.add_argument("--only", nargs="+", default=None, choices=["so3", "operators", "loss", "end_to_end"])
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    threads = torch.get_num_threads()
+    repeats = args.repeats or (3 if args.quick else 5)
+    sizes = [10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000]
+    only = set(args.only or ["so3", "operators", "loss"] + ([] if args.quick else ["end_to_end"]))
+    print(f"torch {torch.__version__}, {threads} threads, repeats {repeats}, quick={args.quick}", flush=True)
+    rows: list = []
+    t_start = time.perf_counter()
+    if "so3" in only:
+        bench_so3(10**5 if args.quick else 10**6, repeats, rows)
+    for dtype in (torch.float32, torch.float64):
+        for n in sizes:
+            if "operators" in only:
+                bench_operators(n, dtype, repeats, rows)
+            if "loss" in only:
+                bench_loss(n, dtype, repeats, rows)
+            print(f"  done {n} tets {dtype} ({time.perf_counter() - t_start:.0f} s)", flush=True)
+    if "end_to_end" in only:
+        bench_end_to_end(rows, threads)
+    for r in rows:
+        r["threads"] = threads
+    print(table(rows))
+    print(f"total {time.perf_counter() - t_start:.1f} s")
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    (args.output_dir / "benchmark.json").write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
