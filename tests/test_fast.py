@@ -197,7 +197,7 @@ def test_tet_dd_fused_gradcheck():
     Rr = R.clone().requires_grad_()
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64,
                      requires_grad=True)
-    fused = lambda A, t: fast._TetDDFn.apply(A, t, k.rot_index, k.theta_index)  # noqa: E731
+    fused = lambda A, t: fast._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)  # noqa: E731
 
     def plain(A, t):
         both = torch.stack((A, A.transpose(-1, -2)), 1).reshape(-1, 3, 3)
