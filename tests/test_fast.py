@@ -218,3 +218,66 @@ def test_exp_matches_numpy_rodrigues_per_element():
         A = np.sinc(t / np.pi)
         B = 0.5 if t < 1e-8 else (1 - np.cos(t)) / t**2
         np.testing.assert_allclose(out[i], np.eye(3) + A * K + B * K @ K, atol=1e-14)
+
+
+# ---------------------------------------------------------------- faces
+
+
+def _generic_face_curvature(R, mesh, cut, kind):
+    from torchconn import curvature
+
+    _, groups = curvature.face_loops(mesh)
+    _, le, ls, _ = groups[0]
+    L = orient(R, le, ls)
+    return curvature.holonomy(L) if kind == "holonomy" else curvature.two_prong(L, cut)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("cut,kind", [(-1, "two_prong"), (2, "two_prong"), (1, "two_prong"), (-2, "two_prong"),
+                                      (0, "two_prong"), (-1, "holonomy")])
+def test_face_curvature_matches_generic_values_and_gradients(dtype, cut, kind):
+    mesh, R = _setup(dtype, scale=0.8, seed=5)
+    w = so3.log(R).requires_grad_()
+    out = fast.face_curvature_tet(so3.exp(w), mesh, cut, kind)
+    ref = _generic_face_curvature(so3.exp(w), mesh, cut, kind)
+    torch.testing.assert_close(out, ref, atol=5 * TOL[dtype], rtol=0)
+    G = torch.randn(out.shape, generator=torch.Generator().manual_seed(6), dtype=dtype)
+    (g_fast,) = torch.autograd.grad((out * G).sum(), w)
+    (g_ref,) = torch.autograd.grad((ref * G).sum(), w)
+    torch.testing.assert_close(g_fast, g_ref, atol=50 * TOL[dtype], rtol=0)
+
+
+@pytest.mark.parametrize("kind", [0, 1, 2])
+def test_face_curvature_fused_gradcheck(kind):
+    mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=6)
+    idx = fast._face_index(mesh, R.device)
+    assert gradcheck(lambda A: fast._FaceCurvatureFn.apply(A, idx, kind), (R.clone().requires_grad_(),))
+
+
+def test_face_curvature_general_rank_uses_matmul_path():
+    from torchconn import son
+
+    mesh = io.box(2)
+    R = son.random_rotation(mesh.edges.shape[0], n=4, generator=torch.Generator().manual_seed(1),
+                            dtype=torch.float64)
+    torch.testing.assert_close(fast.face_curvature_tet(R, mesh), _generic_face_curvature(R, mesh, -1, "two_prong"))
+
+
+@pytest.mark.parametrize("kind", ["sqrt", "naive"])
+@pytest.mark.parametrize("with_frames", [False, True])
+def test_face_torsion_matches_generic_loop(kind, with_frames):
+    from torchconn import torsion
+
+    dtype = torch.float64
+    mesh, R = _setup(dtype, scale=0.8, seed=7)
+    frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(3),
+                                 dtype=dtype) if with_frames else None
+    w = so3.log(R).requires_grad_()
+    out = fast.face_torsion_tet(so3.exp(w), mesh, kind, frames)
+    # generic loop path: a cut given as a tensor is not routed to the fast kernel
+    ref = torsion.face_torsion(so3.exp(w), mesh, kind=kind, cut=torch.tensor(-1), frames=frames)
+    torch.testing.assert_close(out, ref, atol=1e-13, rtol=0)
+    G = torch.randn(out.shape, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    (g1,) = torch.autograd.grad((out * G).sum(), w)
+    (g2,) = torch.autograd.grad((ref * G).sum(), w)
+    torch.testing.assert_close(g1, g2, atol=1e-12, rtol=0)

@@ -605,6 +605,79 @@ def _face_rots(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
     return edge_rot.index_select(0, fe.reshape(-1)).reshape(F, 3, n, n)
 
 
+def _mm(A, B):
+    """``A B`` on unbound row-major components (9 tensors each)."""
+    return tuple(torch.addcmul(torch.addcmul(A[3 * i] * B[j], A[3 * i + 1], B[3 + j]), A[3 * i + 2], B[6 + j])
+                 for i in range(3) for j in range(3))
+
+
+def _tr(A):
+    """Transpose of unbound row-major components (a relabeling, no arithmetic)."""
+    return tuple(A[3 * j + i] for i in range(3) for j in range(3))
+
+
+def _face_formula(kind: int, ab, bc, ac):
+    """Curvature of ``[a<b<c]`` on components: kind 2 (cut c), 1 (cut b), 0 (holonomy, no ``- I``)."""
+    if kind == 2:
+        return tuple(x - y for x, y in zip(_mm(ab, bc), ac))
+    if kind == 1:
+        return tuple(x - y for x, y in zip(ab, _mm(ac, _tr(bc))))
+    return _mm(_mm(ab, bc), _tr(ac))
+
+
+class _FaceCurvatureFn(torch.autograd.Function):
+    """Gather + written-out 3x3 products + scatter for the face curvature, component-major.
+
+    Forward ``(edge_rot (E, 3, 3), face_index (3, F)) -> (F, 3, 3)``; the three rows of
+    ``face_index`` are the canonical edges ``ab, bc, ac`` of each sorted face. Backward
+    (hand-written, first order): with ``G = ∂L/∂H``,
+
+    * cut c, ``H = R_ab R_bc - R_ac``: ``G R_bcᵀ``, ``R_abᵀ G``, ``-G``;
+    * cut b, ``H = R_ab - R_ac R_bcᵀ``: ``G``, ``-Gᵀ R_ac``, ``-G R_bc``;
+    * holonomy, ``H = P R_acᵀ - I`` with ``P = R_ab R_bc``: ``(G R_ac) R_bcᵀ``,
+      ``R_abᵀ (G R_ac)``, ``Gᵀ P``;
+
+    scattered onto the edges with ``index_add_`` (the gradients of ``R_ab, R_bc, R_ac``).
+    """
+
+    @staticmethod
+    def forward(ctx, edge_rot, face_index, kind):
+        E, F = edge_rot.shape[0], face_index.shape[1]
+        table = edge_rot.reshape(E, 9).t().contiguous()  # (9, E)
+        flat = face_index.reshape(-1)
+        g = torch.stack([table[q].index_select(0, flat) for q in range(9)], 0).reshape(9, 3, F)
+        ab, bc, ac = (tuple(g[q, k] for q in range(9)) for k in range(3))
+        H = _face_formula(kind, ab, bc, ac)
+        if kind == 0:
+            H = tuple(h - 1.0 if q in (0, 4, 8) else h for q, h in enumerate(H))
+        ctx.save_for_backward(g, face_index)
+        ctx.kind, ctx.n_edges = kind, E
+        return torch.stack(H, -1).reshape(F, 3, 3)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        g, face_index = ctx.saved_tensors
+        kind, E = ctx.kind, ctx.n_edges
+        F = face_index.shape[1]
+        ab, bc, ac = (tuple(g[q, k] for q in range(9)) for k in range(3))
+        Gt = grad.reshape(F, 9).t().contiguous()
+        G = tuple(Gt[q] for q in range(9))
+        if kind == 2:
+            gab, gbc, gac = _mm(G, _tr(bc)), _mm(_tr(ab), G), tuple(-x for x in G)
+        elif kind == 1:
+            gab, gbc, gac = G, tuple(-x for x in _mm(_tr(G), ac)), tuple(-x for x in _mm(G, bc))
+        else:
+            GR = _mm(G, ac)
+            gab, gbc, gac = _mm(GR, _tr(bc)), _mm(_tr(ab), GR), _mm(_tr(G), _mm(ab, bc))
+        vals = torch.stack([torch.stack((gab[q], gbc[q], gac[q]), 0) for q in range(9)], 0).reshape(9, -1)
+        flat = face_index.reshape(-1)
+        gtab = vals.new_zeros(9, E)
+        for q in range(9):
+            gtab[q].index_add_(0, flat, vals[q])
+        return gtab.t().reshape(E, 3, 3), None, None
+
+
 def face_curvature_tet(edge_rot: torch.Tensor, mesh, cut: int = -1, kind: str = "two_prong") -> torch.Tensor:
     """Curvature of every sorted face ``[a<b<c]`` of a tet mesh: ``(F, n, n)`` (Sec. 3.2, (3.2.1)).
 
@@ -614,17 +687,34 @@ def face_curvature_tet(edge_rot: torch.Tensor, mesh, cut: int = -1, kind: str = 
     * cut ``c`` (``-1`` or ``2``): ``R_ab R_bc - R_ac``;
     * cut ``b`` (``1`` or ``-2``): ``R_ab - R_ac R_bcᵀ``;
     * holonomy (``kind="holonomy"``, or cut ``0`` / ``-3``): ``R_ab R_bc R_acᵀ - I``.
+
+    For ``n = 3`` the fused component-major kernel ``_FaceCurvatureFn`` (hand-written
+    backward); other ranks use batched matrix products.
     """
+    c = cut % 3 if kind == "two_prong" else 0
+    if edge_rot.shape[-1] == 3 and edge_rot.dim() == 3:
+        return _FaceCurvatureFn.apply(edge_rot, _face_index(mesh, edge_rot.device), c)
     F3 = _face_rots(edge_rot, mesh)
     Rab, Rbc, Rac = F3.unbind(1)
-    c = cut % 3 if kind == "two_prong" else 0
     if c == 2:
-        return torch.baddbmm(-Rac, Rab, Rbc) if edge_rot.dim() == 3 else Rab @ Rbc - Rac
+        return Rab @ Rbc - Rac
     if c == 1:
         return Rab - Rac @ Rbc.transpose(-1, -2)
     n = edge_rot.shape[-1]
     eye = torch.eye(n, dtype=edge_rot.dtype, device=edge_rot.device)
     return (Rab @ Rbc) @ Rac.transpose(-1, -2) - eye
+
+
+def _face_index(mesh, device) -> torch.Tensor:
+    """``(3, F)`` canonical edges ``ab, bc, ac`` of the sorted faces (cached on the mesh)."""
+    idx = getattr(mesh, "_fast_face_index", None)
+    if idx is None or idx.shape[1] != mesh.faces.shape[0]:
+        idx = mesh.face_edges[:, [2, 0, 1]].t().contiguous()
+        try:
+            mesh._fast_face_index = idx
+        except AttributeError:
+            pass
+    return idx.to(device)
 
 
 def edge_solder_frames(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
