@@ -33,7 +33,9 @@ reference are measured alternately in the same process (``ratio`` is taken side 
 ≥ 1M tets the reference is run once after its warm-up (it takes tens of seconds; noted in the
 row). ``--threads`` sets ``torch.set_num_threads`` (default: torch's default). On a shared
 machine, OpenMP threads of a loaded 2-core box can be ~10× slower per op than one thread;
-record the thread count with the figures.
+record the thread count with the figures. ``--malloc resident`` (default) keeps freed memory in
+the process (:func:`keep_memory_resident`); without it, page faults of re-mmapped large
+temporaries make the time per tet at 1M ~1.8x that at 100k. Both are recorded in the JSON.
 
 Peak memory (``peak_mb``): a sampler thread reads the resident set size (``/proc/self/statm``)
 every millisecond during one extra fast run; the figure is the peak minus the RSS just before
@@ -110,6 +112,27 @@ def _libc():
 
 
 _M_MMAP_THRESHOLD = -3
+_M_TRIM_THRESHOLD = -1
+
+
+_RESIDENT = {"on": False}
+
+
+def keep_memory_resident() -> bool:
+    """Ask glibc to keep freed memory in the process (``mallopt``): no mmap below 1 GB, no trim.
+
+    By default glibc serves blocks above its dynamic mmap threshold (at most 32 MB) with fresh
+    ``mmap`` calls and unmaps them on free, so every large temporary of an eager step costs page
+    faults and kernel zeroing again; at 1M tets that is ~40% of the step. Equivalent to the
+    environment variables ``MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647``.
+    Returns False where glibc is not available.
+    """
+    lib = _libc()
+    if lib is None:
+        return False
+    ok = lib.mallopt(_M_MMAP_THRESHOLD, 2**30) == 1 and lib.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1
+    _RESIDENT["on"] = ok
+    return ok
 
 
 def _peak_mb(fn) -> float:
@@ -118,8 +141,9 @@ def _peak_mb(fn) -> float:
     glibc keeps freed heap blocks resident and raises its mmap threshold dynamically (up to
     32 MB), so after a warm-up the RSS would not grow at all. For this one run every block of
     64 KB or more is mmapped (``mallopt(M_MMAP_THRESHOLD, 64 KB)``, after ``malloc_trim``), so
-    RSS follows the live tensors; the threshold is set back to 32 MB (the top of glibc's
-    dynamic range, where it sits after the warm-ups) for the following timings.
+    RSS follows the live tensors; the threshold is set back afterwards (1 GB with
+    :func:`keep_memory_resident`, else 32 MB, the top of glibc's dynamic range, where it sits
+    after the warm-ups) for the following timings.
     """
     lib = _libc()
     if lib is None or not Path("/proc/self/statm").exists():
@@ -131,7 +155,7 @@ def _peak_mb(fn) -> float:
             fn()
         return p.peak / 2**20
     finally:
-        lib.mallopt(_M_MMAP_THRESHOLD, 32 * 2**20)
+        lib.mallopt(_M_MMAP_THRESHOLD, 2**30 if _RESIDENT["on"] else 32 * 2**20)
 
 
 def _side_by_side(fast_fn, ref_fn, repeats: int, ref_repeats: int | None = None):
@@ -467,15 +491,20 @@ def main(argv=None) -> list:
     ap.add_argument("--output-dir", type=Path, default=Path("."))
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per figure (default 5, quick 3)")
+    ap.add_argument("--malloc", choices=["resident", "default"], default="resident",
+                    help="resident: keep freed memory in the process (glibc mallopt, see keep_memory_resident); "
+                         "default: glibc's defaults")
     ap.add_argument("--only", nargs="+", default=None, choices=["so3", "operators", "loss", "end_to_end"])
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     threads = torch.get_num_threads()
+    malloc = "resident" if args.malloc == "resident" and keep_memory_resident() else "default"
     repeats = args.repeats or (3 if args.quick else 5)
     sizes = [10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000]
     only = set(args.only or ["so3", "operators", "loss"] + ([] if args.quick else ["end_to_end"]))
-    print(f"torch {torch.__version__}, {threads} threads, repeats {repeats}, quick={args.quick}", flush=True)
+    print(f"torch {torch.__version__}, {threads} threads, repeats {repeats}, quick={args.quick}, "
+          f"malloc={malloc}", flush=True)
     rows: list = []
     t_start = time.perf_counter()
     if "so3" in only:
@@ -491,6 +520,7 @@ def main(argv=None) -> list:
         bench_end_to_end(rows, threads)
     for r in rows:
         r["threads"] = threads
+        r["malloc"] = malloc
     print(table(rows))
     print(f"total {time.perf_counter() - t_start:.1f} s")
     args.output_dir.mkdir(parents=True, exist_ok=True)

@@ -158,20 +158,17 @@ def half_exp(omega: torch.Tensor) -> torch.Tensor:
 
 # ----------------------------------------------------------------------------- log
 
-def log_rotmat(R: torch.Tensor) -> torch.Tensor:
-    """Rotation vector of ``R (..., 3, 3)`` -> ``(..., 3)``, ``|ω| ∈ [0, π]``; the branches of
-    :func:`torchconn.so3.log` evaluated entrywise.
+def _log_parts(r, eps_small):
+    """All branches of the log on unbound components ``r`` (9 tensors): ``(ω, intermediates)``.
 
-    With ``v = vee(R) = sin(t) n`` and ``c = (tr R - 1)/2``: ``ω = atan2(|v|, c)/|v| · v``
+    With ``v = vee(R) = sin(t) n`` and ``c = (tr R - 1)/2``: ``ω = f v``, ``f = atan2(|v|, c)/|v|``
     (Taylor ``asin(s)/s`` for tiny ``|v|`` and ``c > 0``); for ``c < 0`` the axis is the column
-    of ``sym(R) - c I = (1 - c) n nᵀ`` with the largest diagonal entry, signed so that
-    ``n·v ≥ 0``, and ``t = atan2(n·v, c)``. Every branch is computed on all entries with a
-    harmless input where it is unused (safe-where), so gradients are finite at 0 and at π.
+    ``u`` of ``sym(R) - c I = (1 - c) n nᵀ`` with the largest diagonal entry, ``n = σ u/|u|``
+    signed so that ``n·v ≥ 0``, and ``ω = atan2(n·v, c) n``. Every branch is evaluated on all
+    entries with a harmless input where it is unused (safe-where): finite values and gradients
+    at 0 and at π.
     """
-    if R.dim() < 2 or R.shape[-2:] != (3, 3):
-        raise ValueError(f"log expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.flatten(-2).unbind(-1)
-    eps_small = get_eps("small_angle", R.dtype)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
     vx, vy, vz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
     c = 0.5 * (r00 + r11 + r22 - 1.0)
     s2 = vx * vx + vy * vy + vz * vz
@@ -195,18 +192,33 @@ def log_rotmat(R: torch.Tensor) -> torch.Tensor:
     pick0 = (d0 >= d1) & (d0 >= d2)
     pick1 = ~pick0 & (d1 >= d2)
     # column k of sym(R) - c I; largest diagonal => |column| >= (1 - c)/sqrt(3) > 0
-    nx = torch.where(pick0, d0, torch.where(pick1, o01, o02))
-    ny = torch.where(pick0, o01, torch.where(pick1, d1, o12))
-    nz = torch.where(pick0, o02, torch.where(pick1, o12, d2))
-    inv = torch.rsqrt(nx * nx + ny * ny + nz * nz)
-    vpx, vpy, vpz = (torch.where(obtuse, v, torch.zeros_like(v)) for v in (vx, vy, vz))
-    nv = (nx * vpx + ny * vpy + nz * vpz) * inv
-    sgn = torch.where(nv < 0, -one, one)
-    nv = nv * sgn
-    tp = torch.atan2(nv, cp) * inv * sgn
-    return torch.stack((torch.where(obtuse, tp * nx, fac * vx),
-                        torch.where(obtuse, tp * ny, fac * vy),
-                        torch.where(obtuse, tp * nz, fac * vz)), -1)
+    ux = torch.where(pick0, d0, torch.where(pick1, o01, o02))
+    uy = torch.where(pick0, o01, torch.where(pick1, d1, o12))
+    uz = torch.where(pick0, o02, torch.where(pick1, o12, d2))
+    inv = torch.rsqrt(ux * ux + uy * uy + uz * uz)
+    vpx, vpy, vpz = (torch.where(obtuse, x, torch.zeros_like(x)) for x in (vx, vy, vz))
+    uv = (ux * vpx + uy * vpy + uz * vpz) * inv  # û·v
+    sgn = torch.where(uv < 0, -one, one)
+    nv = uv * sgn  # n·v >= 0
+    tp = torch.atan2(nv, cp)
+    k = tp * inv * sgn  # ω = k u on the obtuse branch
+    w = (torch.where(obtuse, k * ux, fac * vx), torch.where(obtuse, k * uy, fac * vy),
+         torch.where(obtuse, k * uz, fac * vz))
+    return w, dict(v=(vx, vy, vz), c=c, obtuse=obtuse)
+
+
+def log_rotmat(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of ``R (..., 3, 3)`` -> ``(..., 3)``, ``|ω| ∈ [0, π]`` (:func:`torchconn.so3.log`).
+
+    The branches of :func:`_log_parts` evaluated entrywise on unbound components, differentiated
+    by plain autograd. (A hand-written backward was measured slower here: it has to recompute
+    every branch, whereas autograd keeps the intermediates.) Not validated (see
+    :func:`torchconn.so3.check_rotation`).
+    """
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"log expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    w, _ = _log_parts(R.flatten(-2).unbind(-1), get_eps("small_angle", R.dtype))
+    return torch.stack(w, -1)
 
 
 # ----------------------------------------------------------------------------- sqrt
