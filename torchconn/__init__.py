@@ -13,6 +13,7 @@ from . import (
     dnabla,
     frames,
     io,
+    losses,
     mesh,
     modules,
     octahedral,
@@ -35,7 +36,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     # submodules
-    "bianchi", "chains", "connection", "curvature", "dnabla", "frames", "io", "mesh", "modules",
+    "bianchi", "chains", "connection", "curvature", "dnabla", "frames", "io", "losses", "mesh", "modules",
     "octahedral", "smooth", "so3", "son", "tolerances", "torsion", "transport",
     # meshes
     "TetMesh", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",

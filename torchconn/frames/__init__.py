@@ -7,6 +7,7 @@
 >>> frame_metrics(frames, mesh)["n_singular_faces"]
 0
 """
+from . import propagate
 from .metrics import METRIC_KEYS, axis_alignment_angle, feature_edges, feature_vertices, frame_metrics
 from .sh import (
     boundary_constraint,
@@ -20,6 +21,7 @@ from .sh import (
 )
 
 __all__ = [
+    "propagate",
     "METRIC_KEYS",
     "axis_alignment_angle",
     "feature_edges",
