@@ -26,7 +26,9 @@ Cases
    and torsion). Reported as "not measured" if ``torchconn.losses`` lacks ``FrameFieldLoss``.
 4. End to end (not with ``--quick``): ``python -m training.train_frames`` on
    ``../shared/data/78322_gear.2.mesh`` (one subprocess run, wall time) and mouette's Ray et al.
-   2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed.
+   2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed (in a
+   subprocess, ``--mouette-timeout`` seconds; a run that does not finish is reported as such).
+   ``benchmark.json`` is rewritten after every case, so partial results survive an interrupt.
 
 Timing: each figure is the median of ``--repeats`` runs after one warm-up run; fast and
 reference are measured alternately in the same process (``ratio`` is taken side by side). At
@@ -435,7 +437,7 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
                      max_abs_diff=abs(a - b), note="all six terms, weight 1; fwd+bwd to edge and vertex params"))
 
 
-def bench_end_to_end(rows: list, threads: int) -> None:
+def bench_end_to_end(rows: list, threads: int, mouette_timeout: float = 600.0) -> None:
     if not GEAR.exists():
         rows.append(_row("train_frames(gear)", None, "float32", None, None, None, note=f"not measured: {GEAR} missing"))
         return
@@ -458,13 +460,20 @@ def bench_end_to_end(rows: list, threads: int) -> None:
     except ImportError:
         rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", None, None, None, note="mouette not installed"))
         return
-    m = M.mesh.load(str(GEAR))
-    t0 = time.perf_counter()
-    ff = M.framefield.VolumeFrameField(m, "vertices")
-    ff.run()
-    dt = time.perf_counter() - t0
-    rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", dt, None, None,
-                     note=f"VolumeFrameField(mesh, 'vertices').run(), one run, mouette {getattr(M, '__version__', '?')}"))
+    # in a subprocess with a time limit: its OSQP boundary solve can run for many minutes
+    code = ("import sys, time, mouette as M; m = M.mesh.load(sys.argv[1]); t0 = time.perf_counter(); "
+            "ff = M.framefield.VolumeFrameField(m, 'vertices'); ff.run(); print(time.perf_counter() - t0)")
+    ver = getattr(M, "__version__", "?")
+    try:
+        res = subprocess.run([sys.executable, "-c", code, str(GEAR)], capture_output=True, text=True,
+                             timeout=mouette_timeout)
+        ok = res.returncode == 0
+        dt = float(res.stdout.strip().splitlines()[-1]) if ok else None
+        note = (f"VolumeFrameField(mesh, 'vertices').run(), one run, mouette {ver}" if ok
+                else f"failed (rc {res.returncode}): {res.stderr.strip().splitlines()[-1:]}")
+    except subprocess.TimeoutExpired:
+        dt, note = None, f"not finished within {mouette_timeout:.0f} s (mouette {ver}; OSQP setup of its vertex solve)"
+    rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", dt, None, None, note=note))
 
 
 # ----------------------------------------------------------------------------- report
@@ -494,6 +503,7 @@ def main(argv=None) -> list:
     ap.add_argument("--malloc", choices=["resident", "default"], default="resident",
                     help="resident: keep freed memory in the process (glibc mallopt, see keep_memory_resident); "
                          "default: glibc's defaults")
+    ap.add_argument("--mouette-timeout", type=float, default=600.0, help="seconds for the mouette run")
     ap.add_argument("--only", nargs="+", default=None, choices=["so3", "operators", "loss", "end_to_end"])
     args = ap.parse_args(argv)
     if args.threads:
@@ -509,23 +519,30 @@ def main(argv=None) -> list:
     t_start = time.perf_counter()
     if "so3" in only:
         bench_so3(10**5 if args.quick else 10**6, repeats, rows)
+        _save(rows, threads, malloc, args.output_dir)
     for dtype in (torch.float32, torch.float64):
         for n in sizes:
             if "operators" in only:
                 bench_operators(n, dtype, repeats, rows)
             if "loss" in only:
                 bench_loss(n, dtype, repeats, rows)
+            _save(rows, threads, malloc, args.output_dir)  # partial results survive an interruption
             print(f"  done {n} tets {dtype} ({time.perf_counter() - t_start:.0f} s)", flush=True)
     if "end_to_end" in only:
-        bench_end_to_end(rows, threads)
+        bench_end_to_end(rows, threads, args.mouette_timeout)
+        _save(rows, threads, malloc, args.output_dir)
+    _save(rows, threads, malloc, args.output_dir)
+    print(table(rows))
+    print(f"total {time.perf_counter() - t_start:.1f} s")
+    return rows
+
+
+def _save(rows: list, threads: int, malloc: str, out_dir: Path) -> None:
     for r in rows:
         r["threads"] = threads
         r["malloc"] = malloc
-    print(table(rows))
-    print(f"total {time.perf_counter() - t_start:.1f} s")
-    args.output_dir.mkdir(parents=True, exist_ok=True)
-    (args.output_dir / "benchmark.json").write_text(json.dumps(rows, indent=1))
-    return rows
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "benchmark.json").write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
