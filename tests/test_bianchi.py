@@ -100,7 +100,6 @@ def test_bianchi_on_small_shared_mesh(gen):
     assert res["differential"] < 1e-12 and res["algebraic"] < 1e-12 * float(mesh.vertices.abs().max() + 1)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", TET_MESHES[1:])
 def test_bianchi_on_large_shared_meshes(name, gen):
     mesh = io.load_tet_mesh(data_path(name))

@@ -45,7 +45,7 @@ def test_shared_tet_meshes(name):
     assert m.euler_characteristic() == chi // 2
 
 
-@pytest.mark.parametrize("name", ["sphere_r0.17.mesh", pytest.param("dinosaur.msh", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("name", ["sphere_r0.17.mesh", "dinosaur.msh"])
 def test_libigl_fallback(name, monkeypatch):
     path = data_path(name)
     ref = load_tet_mesh(path)

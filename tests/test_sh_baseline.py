@@ -197,7 +197,6 @@ def test_sh_frame_field_bad_input():
         sh.sh_frame_field(io.box(2), boundary_weight=0.0)
 
 
-@pytest.mark.slow
 def test_gear_runs_and_aligns():
     m = io.load_tet_mesh(data_path("78322_gear.2.mesh"))
     F = sh.sh_frame_field(m)

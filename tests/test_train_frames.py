@@ -199,7 +199,6 @@ def test_propagate_formulation_and_lbfgs(tmp_path):
     assert m["formulation"] == "propagate" and np.isfinite(m["final"]["smoothness_mean_deg"])
 
 
-@pytest.mark.slow
 def test_hydra_multirun(tmp_path):
     sweep = tmp_path / "sweep"
     r = _run_cli(["-m", "mesh=cylinder", "edge_length=0.6", "steps=1", "sh.n_smooth_iters=2",
