@@ -12,6 +12,7 @@ from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_t
 from torchconn.losses import (
     TERMS,
     FrameFieldLoss,
+    axis_angle_loss,
     normal_alignment_loss,
     smoothness_loss,
     symmetric_flatness_loss,
@@ -78,6 +79,34 @@ def test_normal_alignment_values(gen):
     assert float(normal_alignment_loss(F[:0], n[:0, :, 0])) == 0.0
 
 
+def test_axis_angle_loss_is_the_alignment_metric_angle(gen):
+    """The angle form tracks frames.metrics.axis_alignment_angle (the fixed metric) within eps."""
+    from torchconn.frames.metrics import axis_alignment_angle
+
+    F = _random_frames(64, gen)
+    n = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen, dtype=D), dim=-1)
+    ref = axis_alignment_angle(F, n).mean()
+    assert abs(float(axis_angle_loss(F, n, eps=1e-9)) - float(ref)) < 1e-7
+    assert abs(float(axis_angle_loss(F, n, eps=1e-3)) - float(ref)) < 1e-3
+    assert abs(float(axis_angle_loss(F, F[:, :, 1]))) < 1e-12  # aligned (either sign): 0
+    assert abs(float(axis_angle_loss(F, -F[:, :, 2]))) < 1e-12
+    assert float(axis_angle_loss(F[:0], n[:0])) == 0.0
+    with pytest.raises(ValueError, match="eps"):
+        axis_angle_loss(F, n, eps=0.0)
+
+
+def test_axis_angle_loss_gradient_finite_at_alignment(gen):
+    """Smoothed by eps: finite gradients at exact alignment, bounded by the angle's own (1 rad/rad)."""
+    F0 = _random_frames(16, gen)
+    n = F0[:, :, 0].clone()
+    w = torch.zeros(16, 3, dtype=D, requires_grad=True)
+    axis_angle_loss(so3.exp(w) @ F0, n).backward()
+    assert torch.isfinite(w.grad).all() and float(w.grad.abs().max()) < 1e-9  # a minimum: zero gradient
+    w2 = (1e-2 * torch.randn(16, 3, generator=gen, dtype=D)).requires_grad_(True)
+    (axis_angle_loss(so3.exp(w2) @ F0, n) * 16).backward()
+    assert torch.isfinite(w2.grad).all() and float(w2.grad.norm(dim=-1).max()) <= 1.0 + 1e-9
+
+
 # ----------------------------------------------------------------------------- FrameFieldLoss
 def test_frame_field_loss_terms_and_total(box, gen):
     from training.train_frames import matched_connection
@@ -98,12 +127,16 @@ def test_frame_field_loss_rejects_bad_weights(box):
         FrameFieldLoss(box, {"smoth": 1.0})
     with pytest.raises(ValueError, match="tie"):
         FrameFieldLoss(box, {"tie": -1.0})
+    with pytest.raises(ValueError, match="align_kind"):
+        FrameFieldLoss(box, {"align": 1.0}, align_kind="cubic")
+    with pytest.raises(ValueError, match="align_eps"):
+        FrameFieldLoss(box, {"align": 1.0}, align_kind="angle", align_eps=0.0)
 
 
-@pytest.mark.parametrize("power", [2.0, 1.0])
-def test_frame_field_loss_gradcheck(gen, power):
+@pytest.mark.parametrize("power,align_kind", [(2.0, "quartic"), (1.0, "quartic"), (1.0, "angle")])
+def test_frame_field_loss_gradcheck(gen, power, align_kind):
     cube = tio.box(n=1)
-    lf = FrameFieldLoss(cube, {k: 1.0 for k in TERMS}, smooth_power=power)
+    lf = FrameFieldLoss(cube, {k: 1.0 for k in TERMS}, smooth_power=power, align_kind=align_kind)
     p = (0.3 * torch.randn(cube.n_edges, 3, generator=gen, dtype=D)).requires_grad_(True)
     w = (0.3 * torch.randn(cube.n_vertices, 3, generator=gen, dtype=D)).requires_grad_(True)
     F0 = _random_frames(cube.n_vertices, gen)
@@ -112,9 +145,10 @@ def test_frame_field_loss_gradcheck(gen, power):
                                     eps=1e-7, atol=1e-5, fast_mode=True)
 
 
-def test_boundary_terms_vanish_for_aligned_box_frames(box):
+@pytest.mark.parametrize("align_kind", ["quartic", "angle"])
+def test_boundary_terms_vanish_for_aligned_box_frames(box, align_kind):
     """Identity frames on a box are aligned with every face: align and feature terms are 0."""
-    lf = FrameFieldLoss(box, {"align": 1.0, "feature": 1.0, "smooth": 1.0, "flat": 1.0})
+    lf = FrameFieldLoss(box, {"align": 1.0, "feature": 1.0, "smooth": 1.0, "flat": 1.0}, align_kind=align_kind)
     F = torch.eye(3, dtype=D).expand(box.n_vertices, 3, 3)
     R = torch.eye(3, dtype=D).expand(box.n_edges, 3, 3)
     out = lf(R, F)

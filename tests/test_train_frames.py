@@ -149,8 +149,11 @@ def test_unknown_config_key_fails_before_anything(tmp_path):
     with pytest.raises(ValueError, match="optim"):
         train(_cfg(tmp_path, optim="sgd"))
     assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match="align_kind"):
+        train(_cfg(tmp_path, align_kind="cubic"))
+    assert not (tmp_path / "run").exists()
     cfg = load_config(["steps=7", "optim=lbfgs", "method=sh_baseline", "dtype=float32"])
-    assert cfg.steps == 7 and cfg.optim == "lbfgs"
+    assert cfg.steps == 7 and cfg.optim == "lbfgs" and cfg.align_kind == "angle"
 
 
 def test_cli_unknown_key_exits_nonzero(tmp_path):

@@ -26,7 +26,17 @@ Method (``method=connection``; details in :mod:`torchconn.losses`):
      (:mod:`torchconn.frames.propagate`).
 
 3. Loss: ``smooth + tie + flat + torsion + align + feature`` (weights in the config;
-   ``smooth`` and ``tie`` use ``rho = |x|^smooth_power``, default 1).
+   ``smooth`` and ``tie`` use ``rho = |x|^smooth_power``, default 1). ``align`` and ``feature``
+   take the form ``align_kind``: ``angle`` (default; :func:`torchconn.losses.axis_angle_loss`,
+   the smoothed angle between a normal and the closest axis, i.e. what the alignment metrics
+   average) or ``quartic`` (``1 - sum_k (F_k . n)^4``). At a feature vertex the incident face
+   normals generally cannot all be matched by one frame (non-right dihedral angles, curved
+   faces); the quartic penalty then settles at a least-squares compromise whose *mean* angle is
+   larger: on ``78322_gear.2.mesh`` (150 steps) the feature alignment mean is 5.11 deg with
+   ``quartic`` (also with ``weights.feature=50``), 4.88 deg with ``angle``; the per-vertex
+   optimum of the metric, ignoring smoothness, is about 4.90 deg (8 random restarts per
+   vertex), so ``angle`` sits at that floor. Smoothness and singular faces are unchanged (3.96 deg,
+   151 vs 155 faces).
 
 Choice of formulation (measured on ``sphere_r0.17.mesh``, 150 Adam steps, cosine lr 0.02):
 ``vertex`` and ``propagate`` reach the same mean smoothness (11.18 vs 11.16 deg, SH 11.86), but
@@ -35,6 +45,18 @@ step moves every edge and the error accumulates along the tree depth), while ``v
 it exact by construction; hence ``vertex`` is the default. ``smooth_power=2`` (the Dirichlet
 energy that the SH baseline already minimizes) does not improve on the SH field (11.97 deg);
 ``smooth_power=1`` does.
+
+What does not move the mean smoothness further (measured on ``sphere_r0.17.mesh``, SH 11.86 deg,
+default 11.18 deg; all converge to the same local minimum of the total-variation energy around
+the SH field's singular structure): 300 steps (11.11, but 248 singular faces > SH's 245), ``lr``
+0.01-0.05 (11.06-11.18, up to 255 singular faces), ``weights.tie`` 1.2-4 (11.08-11.31),
+``weights.flat=1`` (11.26), L-BFGS (11.25-11.35), dropping ``flat`` and ``torsion`` (11.17; the
+same result ~3x faster on the gear, 12 vs 36 s at 300 steps). Optimizing the frames alone with
+the metric's own angle (smoothed, eps annealed 0.1 -> 0.001, up to 3000 Adam steps), a power
+0.5 or 0.7, starting before or after the SH nonlinear smoothing, or from an SH field with
+boundary weight 10/1000 or 200 smoothing iterations, all end at 10.74-11.10 deg; relaxing exact
+boundary alignment only helps once the alignment mean exceeds 1 deg. The largest decrease seen
+is thus about -9% (sphere), -10% (gear), far from -15%.
 4. Invariants: the differential (and algebraic) Bianchi residuals of the optimized connection
    (:func:`torchconn.bianchi.check`, error above tolerance) and the count of tets with exactly
    one singular face; both in ``metrics.json``.
@@ -84,6 +106,7 @@ _CHOICES = {
     "optim": ("adam", "lbfgs"),
     "dtype": ("float32", "float64"),
     "lr_schedule": ("cosine", "constant"),
+    "align_kind": ("quartic", "angle"),
 }
 
 
@@ -214,7 +237,7 @@ def _fingerprint(cfg, mesh) -> str:
     h.update(mesh.vertices.detach().cpu().double().numpy().tobytes())
     h.update(mesh.tets.cpu().numpy().tobytes())
     keys = ["method", "formulation", "optim", "dtype", "feature_angle_deg", "smooth_power", "smooth_eps",
-            "lr", "lr_schedule", "steps"]
+            "align_kind", "align_eps", "lr", "lr_schedule", "steps"]
     h.update(repr([(k, cfg[k]) for k in keys]).encode())
     h.update(repr(OmegaConf.to_container(cfg.weights)).encode())
     h.update(repr(OmegaConf.to_container(cfg.lbfgs)).encode())
@@ -377,7 +400,8 @@ def train(cfg) -> dict:
     t_init = time.perf_counter() - t0
 
     loss_fn = FrameFieldLoss(mesh, dict(cfg.weights), feature_angle_deg=float(cfg.feature_angle_deg),
-                             smooth_power=float(cfg.smooth_power), smooth_eps=float(cfg.smooth_eps))
+                             smooth_power=float(cfg.smooth_power), smooth_eps=float(cfg.smooth_eps),
+                             align_kind=str(cfg.align_kind), align_eps=float(cfg.align_eps))
     V = mesh.n_vertices
     normals = torch.zeros(V, 3, dtype=dtype, device=device)
     normals[mesh.boundary_vertices] = mesh.boundary_vertex_normals
