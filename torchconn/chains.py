@@ -320,12 +320,16 @@ def patch(cx: Any, seed_face: int, n_faces: int) -> torch.Tensor:
         raise ValueError(f"seed face {seed_face} out of range [0, {faces.n_faces})")
     if n_faces < 1:
         raise ValueError(f"n_faces must be >= 1, got {n_faces}")
-    owner: dict[tuple[int, int], list[int]] = {}
-    for f in range(faces.n_faces):
-        lp = faces.loops[f]
-        m = len(lp)
-        for k in range(m):
-            owner.setdefault((lp[k], lp[(k + 1) % m]), []).append(f)
+    # directed loop edges (u -> v) of every face as sorted integer keys u*V + v (built once, vectorized)
+    V = int(cx.vertices.shape[0])
+    keys, owners = [], []
+    for g in cx.face_groups.values():
+        lp = g.loops.cpu().numpy()
+        keys.append((lp * V + np.roll(lp, -1, axis=1)).reshape(-1))
+        owners.append(np.repeat(g.face_ids.cpu().numpy(), lp.shape[1]))
+    keys, owners = np.concatenate(keys), np.concatenate(owners)
+    order = np.argsort(keys, kind="stable")
+    keys, owners = keys[order], owners[order]
     seed = int(seed_face)
     region = _Region(faces.loops[seed])
     out = [seed]
@@ -333,10 +337,11 @@ def patch(cx: Any, seed_face: int, n_faces: int) -> torch.Tensor:
     dq = deque()
 
     def push(f: int) -> None:
-        lp = faces.loops[f]
-        m = len(lp)
-        for k in range(m):
-            for g in owner.get((lp[(k + 1) % m], lp[k]), ()):
+        lp = np.asarray(faces.loops[f])
+        rev = np.roll(lp, -1) * V + lp  # the neighbours traverse our edges backwards
+        lo, hi = np.searchsorted(keys, rev, "left"), np.searchsorted(keys, rev, "right")
+        for a, b in zip(lo.tolist(), hi.tolist()):
+            for g in owners[a:b].tolist():
                 if g not in done:
                     dq.append(g)
 
