@@ -209,3 +209,16 @@ def test_hydra_multirun(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     for job in ("0", "1"):
         assert (sweep / job / "metrics.json").is_file()
+
+
+def test_compare_frames_table():
+    """benchmarks.compare_frames renders the relative smoothness change and failed runs."""
+    from benchmarks.compare_frames import COLUMNS, table
+
+    base = {k: 1.0 for k in COLUMNS} | {"smoothness_mean_deg": 4.0, "feature_alignment_mean_deg": float("nan")}
+    res = {"gear": {"sh_baseline": {"metrics": base, "wall_s": 1.0},
+                    "connection": {"metrics": base | {"smoothness_mean_deg": 3.6}, "wall_s": 2.0},
+                    "mouette": {"error": "did not finish within 300 s"}}}
+    lines = table(res).splitlines()
+    assert len(lines) == 5 and "-10.0%" in lines[3] and "did not finish" in lines[4]
+    assert "| – |" in lines[2]  # nan shown as a dash

@@ -35,8 +35,12 @@ Method (``method=connection``; details in :mod:`torchconn.losses`):
    larger: on ``78322_gear.2.mesh`` (150 steps) the feature alignment mean is 5.11 deg with
    ``quartic`` (also with ``weights.feature=50``), 4.88 deg with ``angle``; the per-vertex
    optimum of the metric, ignoring smoothness, is about 4.90 deg (8 random restarts per
-   vertex), so ``angle`` sits at that floor. Smoothness and singular faces are unchanged (3.96 deg,
-   151 vs 155 faces).
+   vertex), so ``angle`` sits at that floor. Smoothness is unchanged (3.96 deg; 151 vs 155
+   singular faces). ``weights.feature`` (angle form) trades the feature fit against smoothness
+   and singular faces; default 1 (gear: 3.92 deg, feature mean 4.93 deg, 151 singular faces;
+   with 2: 3.96, 4.89, 151; with 10: 3.96, 4.88, 151). On the tetrahedralized ``bunny.obj``
+   (edge length 0.08), whose faceted surface makes 496 spurious feature vertices, weights 1/2/3/10
+   give 1634/1658/1667/1701 singular faces (SH 1654) and smoothness 7.47/7.51/7.53/7.57 deg.
 
 Choice of formulation (measured on ``sphere_r0.17.mesh``, 150 Adam steps, cosine lr 0.02):
 ``vertex`` and ``propagate`` reach the same mean smoothness (11.18 vs 11.16 deg, SH 11.86), but
