@@ -144,7 +144,7 @@ class WaveConnection(SmoothConnection):
 
     Closed forms, derived by hand from ``Ω(e_b, e_c) = ∂_b ω_c - ∂_c ω_b + [ω_b, ω_c]`` and
     ``Θ(e_b, e_c) = ω_b e_c - ω_c e_b`` (conventions of :mod:`torchconn.smooth`), and checked
-    against the forward-mode numerical forms of the base class in ``tests/test_convergence.py``:
+    against the autograd (reverse-mode) numerical forms of the base class in ``tests/test_convergence.py``:
 
     * ``Ω = (-cos y J3 + sin y e^{z/2} J2) dx∧dy + (-½ e^{z/2} J1 + cos x e^{z/2} J3) dy∧dz
       + (sin x J2 + cos x sin y J1) dz∧dx``
