@@ -281,3 +281,63 @@ def test_face_torsion_matches_generic_loop(kind, with_frames):
     (g1,) = torch.autograd.grad((out * G).sum(), w)
     (g2,) = torch.autograd.grad((ref * G).sum(), w)
     torch.testing.assert_close(g1, g2, atol=1e-12, rtol=0)
+
+
+def test_face_curvature_grad_in_output_layout_gradcheck():
+    """The output is a (F, 3, 3) view of a component-major (9, F) array; elementwise consumers
+    keep that layout in the incoming gradient (no transposed copy in backward): same gradient."""
+    mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=8)
+    idx = fast._face_index(mesh, R.device)
+    assert gradcheck(lambda A: fast._FaceCurvatureFn.apply(A, idx, 0).square(), (R.clone().requires_grad_(),))
+    A = R.clone().requires_grad_()
+    out = fast._FaceCurvatureFn.apply(A, idx, 0)
+    (g_fast,) = torch.autograd.grad(out.square().sum(), A)
+    (g_ref,) = torch.autograd.grad(_generic_face_curvature(A, mesh, 0, "holonomy").square().sum(), A)
+    torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)
+
+
+def test_face_torsion_with_shared_edge_frames_is_identical():
+    dtype = torch.float64
+    mesh, R = _setup(dtype, scale=0.8, seed=9)
+    frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(5), dtype=dtype)
+    w = so3.log(R).requires_grad_()
+    f = so3.log(frames).requires_grad_()
+    a = fast.face_torsion_tet(so3.exp(w), mesh, "sqrt", so3.exp(f))
+    Rw = so3.exp(w)
+    b = fast.face_torsion_tet(Rw, mesh, "sqrt", edge_frame_rot=fast.edge_frames(Rw, mesh, so3.exp(f)))
+    assert torch.equal(a, b)
+    G = torch.randn(a.shape, generator=torch.Generator().manual_seed(6), dtype=dtype)
+    ga = torch.autograd.grad((a * G).sum(), (w, f))
+    gb = torch.autograd.grad((b * G).sum(), (w, f))
+    for x, y in zip(ga, gb):
+        torch.testing.assert_close(x, y, atol=1e-13, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_frame_field_loss_shared_path_matches_term_by_term_composition(dtype):
+    """FrameFieldLoss (edge gathers and F_i R_ij shared by tie and torsion, fused kernels)
+    against the terms composed from the public single-term functions and the generic loop
+    torsion: same values and gradients."""
+    from torchconn import curvature, losses, torsion
+
+    mesh = io.box(2).to(dtype=dtype)
+    g = torch.Generator().manual_seed(10)
+    w = (0.3 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
+    p = (0.3 * torch.randn(mesh.vertices.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
+    lf = losses.FrameFieldLoss(mesh, {k: 1.0 for k in losses.TERMS})
+    out = lf(so3.exp(w), so3.exp(p))
+    R, F = so3.exp(w), so3.exp(p)
+    tie, unrel = losses.tie_loss(R, F, mesh.edges)
+    hol = curvature.face_curvature(R, mesh, kind="holonomy") + torch.eye(3, dtype=dtype)
+    tor = torsion.face_torsion(R, mesh, kind="sqrt", cut=torch.tensor(-1), frames=F)  # generic loop
+    ok = unrel[mesh.face_edges].all(-1)
+    ref = {"smooth": losses.smoothness_loss(R), "tie": tie, "flat": losses.symmetric_flatness_loss(hol),
+           "torsion": ((tor ** 2).sum(-1) / lf.face_area)[ok].mean()}
+    tol = 5 * TOL[dtype]
+    for k, v in ref.items():
+        torch.testing.assert_close(out[k], v, atol=tol, rtol=tol)
+    total_ref = sum(ref.values()) + out["align"] + out["feature"]
+    g1 = torch.autograd.grad(out["total"], (w, p), retain_graph=True)
+    g2 = torch.autograd.grad(total_ref, (w, p))
+    for x, y in zip(g1, g2):
+        torch.testing.assert_close(x, y, atol=100 * TOL[dtype], rtol=100 * TOL[dtype])

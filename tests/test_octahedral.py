@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -151,3 +152,42 @@ def test_singular_faces_and_tets():
     one = octahedral.tets_with_one_singular_face(mask, tet_faces)
     counts = [int(mask[tf].sum()) for tf in tet_faces]
     assert one.tolist() == [c == 1 for c in counts]
+
+
+def _match_einsum_reference(Fi, Fj):
+    """The previous implementation: 24 scores by einsum against the group, argmax."""
+    G = octahedral.group(Fi.dtype)
+    scores = torch.einsum("gab,...ab->...g", G, Fi.transpose(-1, -2) @ Fj)
+    idx = scores.argmax(-1)
+    return idx, G[idx]
+
+
+def test_match_ties_go_to_the_lowest_index():
+    s = math.sqrt(0.5)
+    D = torch.float64
+    Rz45 = torch.tensor([[s, -s, 0.0], [s, s, 0.0], [0.0, 0.0, 1.0]], dtype=D)  # halfway between two elements
+    cases = torch.stack([torch.eye(3, dtype=D), Rz45, Rz45.T, torch.zeros(3, 3, dtype=D),
+                         torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=D)])
+    eye = torch.eye(3, dtype=D).expand_as(cases)
+    idx, g = octahedral.match(eye, cases)
+    for n in range(cases.shape[0]):
+        assert int(idx[n]) == _match_naive(eye[n], cases[n])
+    ref_idx, ref_g = _match_einsum_reference(eye, cases)
+    assert torch.equal(idx, ref_idx) and torch.equal(g, ref_g)
+    assert int(idx[3]) == 0  # all 24 scores tie at M = 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_match_agrees_with_einsum_reference_broadcast_and_empty(gen, dtype):
+    Fi = so3.random_rotation(20, generator=gen, dtype=dtype).reshape(4, 5, 3, 3)[:, :1]  # (4, 1, 3, 3)
+    Fj = so3.random_rotation(5, generator=gen, dtype=dtype)  # (5, 3, 3)
+    idx, g = octahedral.match(Fi, Fj)
+    ref_idx, ref_g = _match_einsum_reference(Fi, Fj)
+    assert idx.shape == (4, 5) and g.shape == (4, 5, 3, 3) and g.dtype == dtype
+    assert torch.equal(idx, ref_idx) and torch.equal(g, ref_g)
+    R = so3.random_rotation(64, generator=gen, dtype=dtype)
+    ci, cg = octahedral.closest_element(R)
+    mi, mg = octahedral.match(torch.eye(3, dtype=dtype).expand_as(R), R)
+    assert torch.equal(ci, mi) and torch.equal(cg, mg)
+    e_idx, e_g = octahedral.match(torch.zeros(0, 3, 3, dtype=dtype), torch.zeros(0, 3, 3, dtype=dtype))
+    assert e_idx.shape == (0,) and e_g.shape == (0, 3, 3)

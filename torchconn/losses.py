@@ -51,6 +51,7 @@ from typing import Mapping
 
 import torch
 
+from . import fast as _fast
 from . import octahedral
 
 __all__ = [
@@ -104,12 +105,17 @@ def tie_loss(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor, 
         ``(loss, unrelabeled (E,) bool)``: the loss and where the best ``h`` is the identity.
         ``h`` is chosen by :func:`octahedral.match` without gradient (a piecewise-constant choice).
     """
-    Fi = frames[edges[:, 0]] @ edge_rot  # frame at i transported to j
-    Fj = frames[edges[:, 1]]
+    Fi = frames.index_select(0, edges[:, 0]) @ edge_rot  # frame at i transported to j
+    Fj = frames.index_select(0, edges[:, 1])
+    return _tie_from(Fi, Fj, power, eps)
+
+
+def _tie_from(FiR: torch.Tensor, Fj: torch.Tensor, power: float, eps: float
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`tie_loss` from the per-edge ``F_i R_ij (E, 3, 3)`` and ``F_j (E, 3, 3)``."""
     with torch.no_grad():
-        idx, _ = octahedral.match(Fj, Fi)  # F_j h ~ F_i R_ij
-    G = octahedral.group(frames.dtype, frames.device)
-    d = _rho(((Fi - Fj @ G[idx]) ** 2).sum((-2, -1)), power, eps)
+        idx, g = octahedral.match(Fj, FiR)  # F_j h ~ F_i R_ij
+    d = _rho(((FiR - Fj @ g) ** 2).sum((-2, -1)), power, eps)
     return d.mean(), idx == 0
 
 
@@ -120,9 +126,8 @@ def symmetric_flatness_loss(face_hol: torch.Tensor) -> torch.Tensor:
     is that of the active branch).
     """
     with torch.no_grad():
-        idx, _ = octahedral.closest_element(face_hol)
-    G = octahedral.group(face_hol.dtype, face_hol.device)
-    return ((face_hol - G[idx]) ** 2).sum((-2, -1)).mean()
+        _, g = octahedral.closest_element(face_hol)
+    return ((face_hol - g) ** 2).sum((-2, -1)).mean()
 
 
 def normal_alignment_loss(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
@@ -222,18 +227,28 @@ class FrameFieldLoss:
         out: dict[str, torch.Tensor] = {}
         if w["smooth"]:
             out["smooth"] = smoothness_loss(edge_rot, self.smooth_power, self.smooth_eps)
-        unrel = None
+        unrel = shared = None
         if w["tie"] or w["torsion"]:
-            out["tie"], unrel = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
+            if _fast.is_tet_mesh(mesh) and edge_rot.dim() == 3 and edge_rot.shape[-1] == 3:
+                # F_i, F_i R_ij, F_j gathered/formed once for the tie and torsion terms
+                shared = _fast.edge_frames(edge_rot, mesh, frames)
+                out["tie"], unrel = _tie_from(shared[1], shared[2], self.smooth_power, self.smooth_eps)
+            else:
+                out["tie"], unrel = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
         if w["flat"]:
             hol = curvature.face_curvature(edge_rot, mesh, kind="holonomy")
             eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
             out["flat"] = symmetric_flatness_loss(hol + eye)
         if w["torsion"]:
-            tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
+            if shared is not None:  # == torsion.face_torsion(edge_rot, mesh, "sqrt", frames=frames)
+                tor = _fast.face_torsion_tet(edge_rot, mesh, "sqrt", edge_frame_rot=shared)  # (F, 3)
+            else:
+                tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
             face_ok = unrel[mesh.face_edges].all(-1)
             per = (tor**2).sum(-1) / self.face_area
-            out["torsion"] = per[face_ok].mean() if bool(face_ok.any()) else per.sum() * 0.0
+            n_ok = int(face_ok.sum())
+            # mean over face_ok without a boolean-mask gather (and its index_put backward)
+            out["torsion"] = torch.where(face_ok, per, 0.0).sum() / n_ok if n_ok else per.sum() * 0.0
         if w["align"]:
             out["align"] = self._align(frames[self.align_vertices], self.align_normals.to(frames.dtype))
         if w["feature"]:

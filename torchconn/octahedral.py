@@ -84,12 +84,24 @@ def match(F_i: torch.Tensor, F_j: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     """
     _check_mats("F_i", F_i)
     _check_mats("F_j", F_j)
-    G = group(F_i.dtype, F_i.device)
-    M = F_i.transpose(-1, -2) @ F_j  # (..., 3, 3)
-    # tr(g^T M) = sum_ab g_ab M_ab; a loop-free contraction against the 24 group elements
-    scores = torch.einsum("gab,...ab->...g", G, M)
-    idx = scores.argmax(-1)
-    return idx, G[idx]
+    return _best_element(F_i.transpose(-1, -2) @ F_j)
+
+
+def _best_element(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``argmax_{g in O} tr(g^T M)`` for ``M (..., 3, 3)``: ``(index (...), g (..., 3, 3))``.
+
+    ``tr(g^T M) = sum_ab g_ab M_ab``: one ``(N, 9) x (9, 24)`` product against the flattened
+    group (a single GEMM; on CPU it is cheaper than 24 signed 3-entry sums of strided columns or
+    an index-table gather, measured at 10^6 edges), then ``max`` over the 24 scores, which
+    returns the first maximal index (lowest index on ties, like ``argmax``, and faster than it on
+    CPU). The element is a row ``index_select`` from the flattened ``(24, 9)`` group table.
+    """
+    G = group(M.dtype, M.device)
+    batch = M.shape[:-2]
+    scores = M.reshape(-1, 9) @ G.reshape(24, 9).t()  # (N, 24)
+    idx = scores.max(-1).indices
+    g = G.reshape(24, 9).index_select(0, idx).reshape(*batch, 3, 3)
+    return idx.reshape(batch), g
 
 
 def closest_element(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,8 +110,7 @@ def closest_element(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     Returns ``(index (...), g (..., 3, 3))``; equals ``match(I, R)``.
     """
     _check_mats("R", R)
-    eye = torch.eye(3, dtype=R.dtype, device=R.device).expand_as(R)
-    return match(eye, R)
+    return _best_element(R)  # match(I, R): I^T R = R, no product needed
 
 
 def _check_frames(frames: torch.Tensor) -> None:
