@@ -24,6 +24,9 @@ Cases
    same sizes, forward+backward to connection params and per-vertex frame params, against an
    eager composition of the same terms kept here (:func:`_ref_frame_loss`, generic curvature
    and torsion). Reported as "not measured" if ``torchconn.losses`` lacks ``FrameFieldLoss``.
+   The reference calls the library's single-term functions (``tie_loss``,
+   ``symmetric_flatness_loss``, hence ``octahedral.match``), so speed-ups there lower both
+   columns; the ratio measures the fused curvature/torsion and the sharing between terms.
 4. End to end (not with ``--quick``): ``python -m training.train_frames`` on
    ``../shared/data/78322_gear.2.mesh`` (one subprocess run, wall time) and mouette's Ray et al.
    2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed (in a
