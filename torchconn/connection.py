@@ -46,6 +46,16 @@ def _as_edges(edges: Any, device=None) -> torch.Tensor:
     return edges.to(torch.long)
 
 
+def _raise_on_rows(edges: torch.Tensor, bad_mask: torch.Tensor, what: str) -> None:
+    """Raise ``ValueError`` naming the first offending edge indices and rows where ``bad_mask``."""
+    if bool(bad_mask.any()):
+        bad = torch.nonzero(bad_mask).flatten()
+        raise ValueError(
+            f"{what} at edge indices {_list_some(bad[:_MAX_LISTED].tolist(), bad.numel())} "
+            f"(rows {edges[bad[:_MAX_LISTED]].tolist()})"
+        )
+
+
 def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Validate canonical edges; return ``(sorted_keys, perm)`` of keys ``i*V + j``.
 
@@ -57,22 +67,8 @@ def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, to
     if V < 0:
         raise ValueError(f"n_vertices must be >= 0, got {n_vertices}")
     i, j = edges[:, 0], edges[:, 1]
-    out = (i < 0) | (j < 0) | (i >= V) | (j >= V)
-    if bool(out.any()):
-        bad = torch.nonzero(out).flatten()
-        raise ValueError(
-            f"edges: vertex indices out of range [0, {V}) at edge indices "
-            f"{_list_some(bad[:_MAX_LISTED].tolist(), bad.numel())} "
-            f"(rows {edges[bad[:_MAX_LISTED]].tolist()})"
-        )
-    nc = i >= j
-    if bool(nc.any()):
-        bad = torch.nonzero(nc).flatten()
-        raise ValueError(
-            f"edges must be canonical (edges[e,0] < edges[e,1]); violated at edge indices "
-            f"{_list_some(bad[:_MAX_LISTED].tolist(), bad.numel())} "
-            f"(rows {edges[bad[:_MAX_LISTED]].tolist()})"
-        )
+    _raise_on_rows(edges, (i < 0) | (j < 0) | (i >= V) | (j >= V), f"edges: vertex indices out of range [0, {V})")
+    _raise_on_rows(edges, i >= j, "edges must be canonical (edges[e,0] < edges[e,1]); violated")
     keys = i * V + j
     sorted_keys, perm = torch.sort(keys, stable=True)
     if E > 1:

@@ -60,6 +60,17 @@ def _read_tets_igl(path: Path):
     return V, T
 
 
+def _checked_path(path, suffixes, kind: str) -> tuple[Path, str]:
+    """``(Path, lower-case suffix)``; MeshError for an unsupported suffix, FileNotFoundError if absent."""
+    path = Path(path)
+    suf = path.suffix.lower()
+    if suf not in suffixes:
+        raise MeshError(f"unsupported {kind} suffix {suf!r} of {path}; supported: {', '.join(suffixes)}")
+    if not path.exists():
+        raise FileNotFoundError(f"no such {kind} file: {path}")
+    return path, suf
+
+
 def load_tet_mesh(path, **kwargs) -> TetMesh:
     """Load a tetrahedral mesh file into a :class:`TetMesh`.
 
@@ -76,12 +87,7 @@ def load_tet_mesh(path, **kwargs) -> TetMesh:
         MeshError: unsupported suffix, unreadable file, or no tetrahedra (the message names the
             file); any validation error of :class:`TetMesh`.
     """
-    path = Path(path)
-    suf = path.suffix.lower()
-    if suf not in TET_SUFFIXES:
-        raise MeshError(f"unsupported tet-mesh suffix {suf!r} of {path}; supported: {', '.join(TET_SUFFIXES)}")
-    if not path.exists():
-        raise FileNotFoundError(f"no such mesh file: {path}")
+    path, suf = _checked_path(path, TET_SUFFIXES, "tet-mesh")
     try:
         V, T = _read_tets_meshio(path)
     except Exception as err_meshio:  # noqa: BLE001 - any reader failure goes to the fallback
@@ -109,12 +115,7 @@ def load_surface(path) -> tuple[np.ndarray, np.ndarray]:
     """
     import pymeshlab
 
-    path = Path(path)
-    suf = path.suffix.lower()
-    if suf not in SURFACE_SUFFIXES:
-        raise MeshError(f"unsupported surface suffix {suf!r} of {path}; supported: {', '.join(SURFACE_SUFFIXES)}")
-    if not path.exists():
-        raise FileNotFoundError(f"no such surface file: {path}")
+    path, suf = _checked_path(path, SURFACE_SUFFIXES, "surface")
     ms = pymeshlab.MeshSet()
     try:
         ms.load_new_mesh(str(path))
@@ -154,10 +155,7 @@ def load_polygon_surface(path, **kwargs) -> CellComplex:
     in the order of meshio's cell blocks. ``kwargs`` go to :class:`CellComplex`
     (``dtype``, ``device``).
     """
-    path = Path(path)
-    suf = path.suffix.lower()
-    if suf not in SURFACE_SUFFIXES:
-        raise MeshError(f"unsupported surface suffix {suf!r} of {path}; supported: {', '.join(SURFACE_SUFFIXES)}")
+    path, suf = _checked_path(path, SURFACE_SUFFIXES, "surface")
     if suf == ".obj":
         V, faces = _parse_obj_polygons(path)
     else:
