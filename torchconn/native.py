@@ -1,0 +1,143 @@
+"""Compiled CPU kernels (issue 6): C sources in ``torchconn/csrc`` built once with the system C compiler.
+
+The fused torch kernels of :mod:`torchconn.fast` are limited by what eager torch can express:
+every 3x3 product over a million edges is a separate pass over memory. The hottest loops (the
+frame-field loss, the SO(3) maps) are therefore also written as plain C loops over elements,
+OpenMP-parallel, computing values *and* their gradients in one sweep. They are compiled on
+first use with ``cc -O3 -fopenmp -march=native`` (no torch headers, no Python headers: the
+shared library takes raw pointers and is loaded with :mod:`ctypes`), cached under
+``$TORCHCONN_CACHE`` (default ``~/.cache/torchconn``) by a hash of the source, the compiler
+command and the CPU, and written atomically (compiled to a temporary name, then renamed), so
+concurrent processes never load a half-written library.
+
+Every caller keeps the torch path as the reference and the fallback: :func:`library` returns
+``None`` (after one :class:`RuntimeWarning` naming the reason) when
+
+* ``TORCHCONN_NATIVE=0`` is set in the environment,
+* no C compiler is found (``$CC``, ``cc``, ``gcc``, ``clang``), or the build fails,
+
+and the callers use native kernels only for contiguous CPU float32/float64 tensors. The
+tests check every native kernel against the torch path (values and float64 gradients).
+
+Threads: each call passes ``torch.get_num_threads()`` to OpenMP's ``num_threads`` clause, so
+``torch.set_num_threads`` governs both.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["library", "available", "enabled", "ptr", "CSRC"]
+
+#: Folder of the C sources.
+CSRC = Path(__file__).resolve().parent / "csrc"
+_FLAGS = ["-O3", "-fopenmp", "-march=native", "-fPIC", "-shared", "-std=c99", "-fno-math-errno"]
+_LOCK = threading.Lock()
+_LIBS: dict[str, ctypes.CDLL | None] = {}
+_WARNED: set[str] = set()
+
+
+def enabled() -> bool:
+    """``False`` when ``TORCHCONN_NATIVE`` is ``0``/``false``/``off`` (the torch paths are used)."""
+    return os.environ.get("TORCHCONN_NATIVE", "1").strip().lower() not in ("0", "false", "off", "no")
+
+
+def _compiler() -> str | None:
+    for cand in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if cand and shutil.which(cand):
+            return shutil.which(cand)
+    return None
+
+
+def _cpu_key() -> str:
+    """CPU model + flags (``-march=native`` code must not run on another CPU sharing the cache)."""
+    info = platform.machine() + platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [ln for ln in f if ln.startswith(("model name", "flags"))]
+        info += "".join(sorted(set(lines)))
+    except OSError:
+        pass
+    return info
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHCONN_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "torchconn"
+
+
+def _warn_once(name: str, msg: str) -> None:
+    if name not in _WARNED:
+        _WARNED.add(name)
+        warnings.warn(f"torchconn.native: {msg}; using the torch kernels", RuntimeWarning, stacklevel=3)
+
+
+def _build(name: str) -> ctypes.CDLL | None:
+    src = CSRC / f"{name}.c"
+    cc = _compiler()
+    if cc is None:
+        _warn_once(name, "no C compiler found ($CC, cc, gcc, clang)")
+        return None
+    code = src.read_bytes()
+    key = hashlib.sha256(code + cc.encode() + " ".join(_FLAGS).encode() + _cpu_key().encode()).hexdigest()[:16]
+    out_dir = _cache_dir()
+    lib_path = out_dir / f"{name}-{key}.so"
+    if not lib_path.exists():
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
+            os.close(fd)
+            proc = subprocess.run([cc, *_FLAGS, str(src), "-o", tmp, "-lm"], capture_output=True, text=True)
+            if proc.returncode != 0:
+                os.unlink(tmp)
+                _warn_once(name, f"building {src.name} failed ({cc} exit {proc.returncode}): "
+                                 f"{proc.stderr.strip()[-500:]}")
+                return None
+            os.replace(tmp, lib_path)  # atomic: a concurrent build of the same key is identical
+        except OSError as exc:
+            _warn_once(name, f"cannot build {src.name} in {out_dir}: {exc}")
+            return None
+    try:
+        return ctypes.CDLL(str(lib_path))
+    except OSError as exc:
+        _warn_once(name, f"cannot load {lib_path}: {exc}")
+        return None
+
+
+def library(name: str) -> ctypes.CDLL | None:
+    """The compiled ``csrc/<name>.c`` (built on first use, cached), or ``None`` (see module doc)."""
+    if not enabled():
+        return None
+    with _LOCK:
+        if name not in _LIBS:
+            _LIBS[name] = _build(name)
+        return _LIBS[name]
+
+
+def available(name: str, *tensors: torch.Tensor) -> bool:
+    """Whether ``csrc/<name>.c`` can run on ``tensors``: all on the CPU, float32 or float64, one dtype."""
+    if not tensors:
+        return False
+    dt = tensors[0].dtype
+    if dt not in (torch.float32, torch.float64):
+        return False
+    if any(t.device.type != "cpu" or t.dtype != dt for t in tensors):
+        return False
+    return library(name) is not None
+
+
+def ptr(t: torch.Tensor) -> ctypes.c_void_p:
+    """Raw data pointer of a contiguous tensor (the caller keeps the tensor alive)."""
+    if not t.is_contiguous():
+        raise ValueError("native kernels need contiguous tensors")
+    return ctypes.c_void_p(t.data_ptr())
