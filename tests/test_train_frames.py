@@ -90,7 +90,7 @@ def test_sh_baseline_method(tmp_path):
 def test_resume_equals_uninterrupted(tmp_path, monkeypatch):
     full = train(_cfg(tmp_path, "full", steps=6, checkpoint_every=2))
     # simulate a crash during step 3 (the checkpoint of step 2 is on disk), then resume
-    real = losses.smoothness_loss
+    real = losses.FrameFieldLoss.__call__
     calls = {"n": 0}
 
     def crash(*a, **k):
@@ -99,10 +99,10 @@ def test_resume_equals_uninterrupted(tmp_path, monkeypatch):
             raise RuntimeError("simulated crash")
         return real(*a, **k)
 
-    monkeypatch.setattr(losses, "smoothness_loss", crash)
+    monkeypatch.setattr(losses.FrameFieldLoss, "__call__", crash)
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(_cfg(tmp_path, "part", steps=6, checkpoint_every=2))
-    monkeypatch.setattr(losses, "smoothness_loss", real)
+    monkeypatch.setattr(losses.FrameFieldLoss, "__call__", real)
     assert io_utils.load_checkpoint(tmp_path / "part" / "checkpoint.pt")["step"] == 2
     resumed = train(_cfg(tmp_path, "part", steps=6, checkpoint_every=2, resume=True))
     a = np.load(tmp_path / "full" / "frames.npz")["frames"]
@@ -121,15 +121,18 @@ def test_resume_rejects_other_configuration(tmp_path):
 
 
 def test_nan_stops_with_term_name_and_keeps_checkpoint(tmp_path, monkeypatch):
-    real = losses.smoothness_loss
+    real = losses.FrameFieldLoss.__call__
     calls = {"n": 0}
 
     def poisoned(*a, **k):
         calls["n"] += 1
-        val = real(*a, **k)
-        return val * float("nan") if calls["n"] > 5 else val  # steps 0..4 fine, NaN at step 5
+        out = real(*a, **k)
+        if calls["n"] > 5:  # steps 0..4 fine, NaN in the smooth term at step 5
+            out["smooth"] = out["smooth"] * float("nan")
+            out["total"] = out["total"] + out["smooth"]
+        return out
 
-    monkeypatch.setattr(losses, "smoothness_loss", poisoned)
+    monkeypatch.setattr(losses.FrameFieldLoss, "__call__", poisoned)
     with pytest.raises(NonFiniteLossError, match=r"'smooth'.*step 5"):
         train(_cfg(tmp_path, steps=10, checkpoint_every=2))
     ck = io_utils.load_checkpoint(tmp_path / "run" / "checkpoint.pt")

@@ -1,0 +1,167 @@
+"""The compiled frame-field loss kernel (csrc/frame_loss.c) against the torch path of FrameFieldLoss.
+
+Layers: values and gradients (through so3.exp parameters) equal the torch path to round-off on
+a small box and on a shared mesh, float32 and float64, every term alone and together, both
+``rho``; float64 gradcheck of the compiled path; any combination of the returned terms
+differentiates exactly (the backward re-runs the kernel with the incoming weights); results
+do not depend on the thread count beyond round-off and are deterministic for a fixed count;
+fallback and errors.
+"""
+import pytest
+import torch
+
+from torchconn import io, native, octahedral, so3
+from torchconn.losses import FrameFieldLoss, TERMS, _NATIVE_TERMS, _native_frame_loss
+from torchconn.tolerances import get_eps
+
+from conftest import data_path
+
+pytestmark = pytest.mark.skipif(native.library("frame_loss") is None,
+                                reason="no C compiler (or TORCHCONN_NATIVE=0): the compiled kernel cannot be built")
+
+ALL = {k: 1.0 for k in TERMS}
+
+
+def _params(mesh, dtype, seed=0, scale=0.15):
+    g = torch.Generator().manual_seed(seed)
+    w = scale * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=torch.float64)
+    phi = scale * torch.randn(mesh.n_vertices, 3, generator=g, dtype=torch.float64)
+    return w.to(dtype), phi.to(dtype)
+
+
+def _run(loss, w, phi, key="total"):
+    w = w.clone().requires_grad_()
+    phi = phi.clone().requires_grad_()
+    out = loss(so3.exp(w), so3.exp(phi))
+    out[key].backward()
+    grads = [torch.zeros_like(x) if x.grad is None else x.grad for x in (w, phi)]
+    return {k: float(v.detach()) for k, v in out.items()}, *grads
+
+
+def _compare(mesh, weights, dtype, power, key="total", seed=0):
+    kw = dict(smooth_power=power, align_kind="angle")
+    a = _run(FrameFieldLoss(mesh, weights, native=True, **kw), *_params(mesh, dtype, seed), key=key)
+    b = _run(FrameFieldLoss(mesh, weights, native=False, **kw), *_params(mesh, dtype, seed), key=key)
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    assert a[0].keys() == b[0].keys()
+    for k in a[0]:
+        assert abs(a[0][k] - b[0][k]) <= tol * max(1.0, abs(b[0][k])), (k, a[0][k], b[0][k])
+    scale = max(1.0, float(b[1].abs().max()), float(b[2].abs().max()))
+    assert float((a[1] - b[1]).abs().max()) <= tol * scale
+    assert float((a[2] - b[2]).abs().max()) <= tol * scale
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("power", [2.0, 1.0])
+def test_all_terms_match_torch_path(dtype, power):
+    _compare(io.box(3), ALL, dtype, power)
+
+
+@pytest.mark.parametrize("weights", [{"smooth": 1.0}, {"tie": 2.0}, {"flat": 0.5}, {"torsion": 1.0},
+                                     {"tie": 1.0, "torsion": 3.0}, {"smooth": 1.0, "align": 1.0}])
+def test_single_terms_match_torch_path(weights):
+    _compare(io.box(3), weights, torch.float64, 1.0)
+
+
+@pytest.mark.parametrize("key", ["tie", "flat", "torsion", "smooth"])
+def test_backward_of_one_term_is_exact(key):
+    """A backward of one returned term (weights not proportional to the loss weights) re-runs the kernel."""
+    _compare(io.box(3), {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01}, torch.float64, 1.0, key=key)
+
+
+def test_matches_torch_path_on_shared_mesh():
+    path = data_path("sphere_r0.17.mesh")
+    mesh = io.load_tet_mesh(path).to(dtype=torch.float64)
+    _compare(mesh, ALL, torch.float64, 1.0, seed=3)
+    _compare(mesh, ALL, torch.float64, 2.0, seed=4)
+
+
+def test_gradcheck_through_exp_params():
+    mesh = io.box(1)
+    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0}, smooth_power=1.0,
+                          native=True)
+    w, phi = _params(mesh, torch.float64, seed=5, scale=0.3)
+
+    def f(w, phi):
+        return loss(so3.exp(w), so3.exp(phi))["total"]
+
+    assert torch.autograd.gradcheck(f, (w.requires_grad_(), phi.requires_grad_()), eps=1e-6, atol=1e-7)
+
+
+def test_no_grad_values_and_torsion_mask():
+    mesh = io.box(2)
+    w, phi = _params(mesh, torch.float64, seed=1, scale=1.5)  # large: many relabeled edges
+    a = FrameFieldLoss(mesh, ALL, native=True)
+    b = FrameFieldLoss(mesh, ALL, native=False)
+    with torch.no_grad():
+        va, vb = a(so3.exp(w), so3.exp(phi)), b(so3.exp(w), so3.exp(phi))
+    for k in va:
+        assert abs(float(va[k]) - float(vb[k])) <= 1e-12 * max(1.0, abs(float(vb[k])))
+
+
+def test_no_unrelabeled_face_gives_zero_torsion():
+    """Every edge turns the frames by 90 degrees (matched h != I everywhere): no face is in the torsion mean."""
+    mesh = io.box(1).to(dtype=torch.float64)
+    E, V = mesh.edges.shape[0], mesh.n_vertices
+    z90 = so3.rot_z(torch.tensor(torch.pi / 2, dtype=torch.float64))
+    R = z90.expand(E, 3, 3).clone().requires_grad_()
+    Fr = torch.eye(3, dtype=torch.float64).expand(V, 3, 3).clone().requires_grad_()
+    out = FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0}, native=True)(R, Fr)
+    ref = FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0}, native=False)(R.detach(), Fr.detach())
+    assert float(out["torsion"].detach()) == float(ref["torsion"]) == 0.0
+    out["total"].backward()
+    assert torch.isfinite(R.grad).all() and torch.isfinite(Fr.grad).all()
+
+
+def test_thread_count_only_changes_round_off_and_is_deterministic():
+    mesh = io.box(4)
+    loss = FrameFieldLoss(mesh, ALL, smooth_power=1.0, native=True)
+    w, phi = _params(mesh, torch.float64, seed=2)
+    old = torch.get_num_threads()
+    try:
+        res = {}
+        for nt in (1, 2, 3, 2):
+            torch.set_num_threads(nt)
+            v, gw, gp = _run(loss, w, phi)
+            if nt in res:  # same thread count: bitwise identical
+                assert v == res[nt][0] and torch.equal(gw, res[nt][1]) and torch.equal(gp, res[nt][2])
+            res[nt] = (v, gw, gp)
+        for nt in (2, 3):
+            assert abs(res[nt][0]["total"] - res[1][0]["total"]) <= 1e-13
+            assert float((res[nt][1] - res[1][1]).abs().max()) <= 1e-15
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_fallback_and_errors(monkeypatch):
+    mesh = io.box(1)
+    w, phi = _params(mesh, torch.float64)
+    R, Fr = so3.exp(w), so3.exp(phi)
+    # float16 / wrong shapes: torch path (auto) or a clear error (native=True)
+    with pytest.raises(RuntimeError, match="compiled kernel cannot run"):
+        FrameFieldLoss(mesh, ALL, native=True)(R[:-1], Fr)
+    with pytest.raises(ValueError, match="native"):
+        FrameFieldLoss(mesh, ALL, native="yes")
+    # disabled by the environment: the auto mode falls back to the torch path, same values
+    auto = FrameFieldLoss(mesh, ALL)
+    v_native = float(auto(R, Fr)["total"])
+    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
+    assert not native.available("frame_loss", R, Fr)
+    assert abs(float(auto(R, Fr)["total"]) - v_native) <= 1e-12
+    with pytest.raises(RuntimeError, match="compiled kernel cannot run"):
+        FrameFieldLoss(mesh, ALL, native=True)(R, Fr)
+
+
+def test_group_table_order_is_checked():
+    mesh = io.box(1)
+    loss = FrameFieldLoss(mesh, ALL, native=True)
+    w, phi = _params(mesh, torch.float64)
+    buf = loss._native_buffers(torch.float64)
+    assert torch.equal(buf["group"], octahedral.group(torch.float64).reshape(24, 9))
+    buf["group"] = buf["group"].flip(0).contiguous()  # another order of the same group
+    with pytest.raises(RuntimeError, match="score table"):
+        _native_frame_loss(loss, so3.exp(w), so3.exp(phi), 1 | 2 | 4 | 8, [1.0] * 4)
+
+
+def test_terms_constant_lists_the_kernel_terms():
+    assert set(_NATIVE_TERMS) <= set(TERMS) and get_eps("identity", torch.float64) > 0

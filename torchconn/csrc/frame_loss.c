@@ -1,0 +1,374 @@
+/* Fused value-and-gradient kernel of the frame-field loss terms smooth, tie, flat, torsion
+ * (torchconn/losses.py, FrameFieldLoss; issue 6).
+ *
+ * One sweep over the edges, one over the faces, one more over the edges: every per-element
+ * 3x3 product is formed in registers, gradients are computed in the same sweep as the values
+ * (the terms are scalar means, so their gradients are known in the forward pass), and scatters
+ * go to per-thread buffers that are summed at the end (no atomics).
+ *
+ * Conventions (docs/architecture.md): R (E,3,3) maps coordinates at v_j to v_i for canonical
+ * edges (i<j); frames (V,3,3) have the axes as columns; faces [a<b<c] with canonical edges
+ * ab, bc, ac (fidx (F,3)); the octahedral group table (24,9) is torchconn.octahedral.group()
+ * (identity first), matched with "first maximal score" like octahedral._best_element.
+ *
+ * Terms (rho(d2) = d2 for power 2, else (d2 + eps^2)^(power/2) - eps^power):
+ *   smooth  = mean_e rho(|R_e - I|^2)
+ *   tie     = mean_e rho(|F_i R_e - F_j h_e|^2),  h_e = argmax_h tr(h^T F_j^T F_i R_e)
+ *   flat    = mean_f |H_f - g_f|^2,  H_f = R_ab R_bc R_ac^T,  g_f = argmax_g tr(g^T H_f)
+ *   torsion = sum_{ok f} |Th_f|^2 / area_f / n_ok,  Th_f = t_ab + R_ab t_bc - t_ac,
+ *             t_ij = F_i^T sqrt(F_i R_ij F_j^T) (v_j - v_i), ok = h = I on all three edges.
+ * sqrt of a rotation A with angle < pi: I + (A - A^T)/(4c) + (A + A^T - 2I)/(4(1+c)),
+ * c = cos(angle/2) = sqrt(1 + tr A)/2 (only evaluated on unrelabeled edges, angle < 63 deg).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <omp.h>
+
+#ifndef TC_BODY
+#define TC_BODY
+
+/* group table -> (perm, sign): g[perm[c]][c] = sign[c] */
+static void group_perm(const double* g, int perm[24][3], double sign[24][3]) {
+    for (int k = 0; k < 24; ++k)
+        for (int c = 0; c < 3; ++c)
+            for (int r = 0; r < 3; ++r) {
+                double v = g[9 * k + 3 * r + c];
+                if (v > 0.5 || v < -0.5) { perm[k][c] = r; sign[k][c] = v; }
+            }
+}
+
+#define T float
+#define SFX(n) n##_f32
+#include __FILE__
+#undef T
+#undef SFX
+#define T double
+#define SFX(n) n##_f64
+#include __FILE__
+#undef T
+#undef SFX
+
+#else /* ------------------------------------------------------------------ body, T = float | double */
+
+/* C = A B (row-major 3x3) */
+static inline void SFX(mm)(const T* A, const T* B, T* C) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+}
+/* C = A^T B */
+static inline void SFX(mtm)(const T* A, const T* B, T* C) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
+}
+/* C = A B^T */
+static inline void SFX(mmt)(const T* A, const T* B, T* C) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2];
+}
+
+/* argmax_k tr(g_k^T M), first index on ties: the 24 scores written out for the group order of
+ * torchconn.octahedral.group() (checked against the table passed in, see frame_loss) */
+static inline int SFX(best)(const T* M) {
+    int best = 0;
+    T bs = -INFINITY;
+#define X(k, expr) { T s_ = expr; int b_ = s_ > bs; best = b_ ? k : best; bs = b_ ? s_ : bs; }
+    X(0, + M[0] + M[4] + M[8]) X(1, + M[0] - M[4] - M[8]) X(2, - M[0] + M[4] - M[8])
+    X(3, - M[0] - M[4] + M[8]) X(4, + M[0] + M[7] - M[5]) X(5, + M[0] - M[7] + M[5])
+    X(6, - M[0] + M[7] + M[5]) X(7, - M[0] - M[7] - M[5]) X(8, + M[3] + M[1] - M[8])
+    X(9, + M[3] - M[1] + M[8]) X(10, - M[3] + M[1] + M[8]) X(11, - M[3] - M[1] - M[8])
+    X(12, + M[3] + M[7] + M[2]) X(13, + M[3] - M[7] - M[2]) X(14, - M[3] + M[7] - M[2])
+    X(15, - M[3] - M[7] + M[2]) X(16, + M[6] + M[1] + M[5]) X(17, + M[6] - M[1] - M[5])
+    X(18, - M[6] + M[1] - M[5]) X(19, - M[6] - M[1] + M[5]) X(20, + M[6] + M[4] - M[2])
+    X(21, + M[6] - M[4] + M[2]) X(22, - M[6] + M[4] + M[2]) X(23, - M[6] - M[4] - M[2])
+#undef X
+    return best;
+}
+
+static inline double SFX(rho)(double d2, double p, double eps) {
+    return p == 2.0 ? d2 : pow(d2 + eps * eps, 0.5 * p) - pow(eps, p);
+}
+static inline double SFX(drho)(double d2, double p, double eps) {
+    return p == 2.0 ? 1.0 : 0.5 * p * pow(d2 + eps * eps, 0.5 * p - 1.0);
+}
+
+/* S = sqrt(A) (see the header), c returned */
+static inline T SFX(sqrt_rot)(const T* A, T* S) {
+    T tr = A[0] + A[4] + A[8];
+    T c = (T)0.5 * sqrt(fmax(1.0 + (double)tr, 1e-30));
+    T a = (T)0.25 / c, b = (T)0.25 / ((T)1 + c);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            T an = A[3 * i + j] - A[3 * j + i], sy = A[3 * i + j] + A[3 * j + i] - (i == j ? (T)2 : (T)0);
+            S[3 * i + j] = (i == j ? (T)1 : (T)0) + a * an + b * sy;
+        }
+    return c;
+}
+
+/* gA from gS for S = sqrt(A) */
+static inline void SFX(sqrt_rot_back)(const T* A, T c, const T* gS, T* gA) {
+    T a = (T)0.25 / c, b = (T)0.25 / ((T)1 + c);
+    T da = -(T)0.25 / (c * c), db = -(T)0.25 / (((T)1 + c) * ((T)1 + c));
+    T dot_an = 0, dot_sy = 0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            T an = A[3 * i + j] - A[3 * j + i], sy = A[3 * i + j] + A[3 * j + i] - (i == j ? (T)2 : (T)0);
+            dot_an += gS[3 * i + j] * an;
+            dot_sy += gS[3 * i + j] * sy;
+        }
+    T gt = (da * dot_an + db * dot_sy) / ((T)8 * c);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            gA[3 * i + j] = a * (gS[3 * i + j] - gS[3 * j + i]) + b * (gS[3 * i + j] + gS[3 * j + i]) + (i == j ? gt : (T)0);
+}
+
+static void SFX(reduce_into)(T* out, T* const* priv, int nt, long n) {
+    if (nt <= 1) return;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (long k = 0; k < n; ++k) {
+        T s = out[k];
+        for (int t = 1; t < nt; ++t) s += priv[t][k];
+        out[k] = s;
+    }
+}
+
+/* flags: 1 smooth, 2 tie, 4 flat, 8 torsion, 16 gradients.
+ * sums (out, 5): smooth, tie, flat, torsion values; n_ok (faces in the torsion mean).
+ * With flag 16: gR (E,9) = sum_k wts[k] dterm_k/dR and gF (V,9) = sum_k wts[k] dterm_k/dframes
+ * (overwritten). work: (nt - 1) * (9E + 3E + 9V) per-thread scatter buffers (zeroed here);
+ * theta, gtheta (E,3) and unrel (E) are workspaces. Returns 0, or -2 when the group table is
+ * not torchconn.octahedral.group() (the written-out scores of best() assume its order). */
+int SFX(frame_loss)(long E, long V, long F, int nt,
+                     const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
+                     const T* vec, const T* area, const double* group, int flags, double power, double eps,
+                     const double* wts, double* sums, T* gR, T* gF, T* work,
+                     T* theta, T* gtheta, unsigned char* unrel) {
+    int perm[24][3];
+    double sign_d[24][3];
+    T sign[24][3];
+    group_perm(group, perm, sign_d);
+    for (int k = 0; k < 24; ++k) {
+        T gk[9];
+        for (int c = 0; c < 3; ++c) sign[k][c] = (T)sign_d[k][c];
+        for (int q = 0; q < 9; ++q) gk[q] = (T)group[9 * k + q];
+        if (SFX(best)(gk) != k) return -2;  /* the written-out scores do not match the group table */
+    }
+    const int do_s = flags & 1, do_t = flags & 2, do_f = flags & 4, do_q = flags & 8, grad = flags & 16;
+    const int match = do_t || do_q;
+    if (nt < 1) nt = 1;
+    if (nt > 64) nt = 64;
+    /* per-thread partial sums, added in thread order afterwards (deterministic for a given nt,
+     * unlike an OpenMP reduction clause) */
+    double part[64][4];
+    memset(part, 0, sizeof(part));
+    /* per-thread buffers: thread 0 writes the outputs, thread t > 0 its slice of work */
+    T* bR[64];
+    T* bTh[64];
+    T* bF[64];
+    bR[0] = gR; bTh[0] = gtheta; bF[0] = gF;
+    for (int t = 1; t < nt; ++t) {
+        T* base = work + (size_t)(t - 1) * (size_t)(12 * E + 9 * V);
+        bR[t] = base; bTh[t] = base + 9 * E; bF[t] = base + 12 * E;
+    }
+    const T ws = (T)(grad ? wts[0] * 2.0 / (double)(E > 0 ? E : 1) : 0);
+    const T wt = (T)(grad ? wts[1] * 2.0 / (double)(E > 0 ? E : 1) : 0);
+
+    /* ---- pass 1: edges (smooth, tie, match, solder form); gR rows written here */
+#pragma omp parallel num_threads(nt)
+    {
+        int tid = omp_get_thread_num();
+        double s_smooth = 0, s_tie = 0;
+        if (grad) {
+            if (tid > 0) memset(bR[tid], 0, sizeof(T) * (size_t)(12 * E + 9 * V));
+            else { memset(gF, 0, sizeof(T) * (size_t)(9 * V)); if (do_q) memset(gtheta, 0, sizeof(T) * (size_t)(3 * E)); }
+        }
+        T* gFb = bF[tid];
+#pragma omp barrier
+#pragma omp for schedule(static)
+        for (long e = 0; e < E; ++e) {
+            const T* Re = R + 9 * e;
+            T G[9];
+            for (int q = 0; q < 9; ++q) G[q] = 0;
+            if (do_s) {
+                T D[9], d2 = 0;
+                for (int q = 0; q < 9; ++q) { D[q] = Re[q] - ((q % 4) == 0 ? (T)1 : (T)0); d2 += D[q] * D[q]; }
+                s_smooth += SFX(rho)(d2, power, eps);
+                if (grad) {
+                    T k = ws * (T)SFX(drho)(d2, power, eps);
+                    for (int q = 0; q < 9; ++q) G[q] = k * D[q];
+                }
+            }
+            if (match) {
+                long i = edges[2 * e], j = edges[2 * e + 1];
+                const T *Fi = Fr + 9 * i, *Fj = Fr + 9 * j;
+                T FiR[9], M[9];
+                SFX(mm)(Fi, Re, FiR);
+                SFX(mtm)(Fj, FiR, M);
+                int h = SFX(best)(M);
+                unrel[e] = (unsigned char)(h == 0);
+                if (do_t) {
+                    T D[9], d2 = 0;
+                    for (int r = 0; r < 3; ++r)
+                        for (int c = 0; c < 3; ++c) {
+                            T v = FiR[3 * r + c] - sign[h][c] * Fj[3 * r + perm[h][c]];
+                            D[3 * r + c] = v;
+                            d2 += v * v;
+                        }
+                    s_tie += SFX(rho)(d2, power, eps);
+                    if (grad) {
+                        T k = wt * (T)SFX(drho)(d2, power, eps), t1[9];
+                        for (int q = 0; q < 9; ++q) D[q] *= k;  /* dL/d(F_i R) */
+                        SFX(mtm)(Fi, D, t1);                    /* F_i^T G -> R */
+                        for (int q = 0; q < 9; ++q) G[q] += t1[q];
+                        SFX(mmt)(D, Re, t1);                    /* G R^T -> F_i */
+                        T* bi = gFb + 9 * i;
+                        T* bj = gFb + 9 * j;
+                        for (int q = 0; q < 9; ++q) bi[q] += t1[q];
+                        /* -(G h^T)[r][k] = -G[r][c] sign[c] for perm[c] = k  -> F_j */
+                        for (int r = 0; r < 3; ++r)
+                            for (int c = 0; c < 3; ++c) bj[3 * r + perm[h][c]] -= D[3 * r + c] * sign[h][c];
+                    }
+                }
+                if (do_q) {
+                    T* th = theta + 3 * e;
+                    if (h == 0) {
+                        T A[9], S[9], u[3];
+                        SFX(mmt)(FiR, Fj, A);
+                        SFX(sqrt_rot)(A, S);
+                        const T* v = vec + 3 * e;
+                        for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
+                        for (int k = 0; k < 3; ++k) th[k] = Fi[k] * u[0] + Fi[3 + k] * u[1] + Fi[6 + k] * u[2];
+                    } else {
+                        th[0] = th[1] = th[2] = 0;
+                    }
+                }
+            }
+            if (grad) for (int q = 0; q < 9; ++q) gR[9 * e + q] = G[q];
+        }
+        part[tid][0] = s_smooth;
+        part[tid][1] = s_tie;
+    }
+
+    /* ---- pass 2: faces (flat, torsion) */
+    long n_ok = 0;
+    if (do_q) {
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+ : n_ok)
+        for (long f = 0; f < F; ++f)
+            n_ok += unrel[fidx[3 * f]] && unrel[fidx[3 * f + 1]] && unrel[fidx[3 * f + 2]];
+    }
+    sums[4] = (double)n_ok;
+    const int tor = do_q && n_ok > 0;
+    if (do_f || tor) {
+        const T kf = (T)(grad ? wts[2] * 2.0 / (double)F : 0);
+        const T kq = (T)(grad && n_ok ? wts[3] * 2.0 / (double)n_ok : 0);
+#pragma omp parallel num_threads(nt)
+        {
+            int tid = omp_get_thread_num();
+            double s_flat = 0, s_tor = 0;
+            T* gRb = bR[tid];
+            T* gTb = bTh[tid];
+#pragma omp for schedule(static)
+            for (long f = 0; f < F; ++f) {
+                long ab = fidx[3 * f], bc = fidx[3 * f + 1], ac = fidx[3 * f + 2];
+                const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
+                if (do_f) {
+                    T P[9], H[9], d2 = 0;
+                    SFX(mm)(Rab, Rbc, P);
+                    SFX(mmt)(P, Rac, H);
+                    int g = SFX(best)(H);
+                    for (int c = 0; c < 3; ++c) H[3 * perm[g][c] + c] -= sign[g][c];  /* H - g */
+                    for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
+                    s_flat += d2;
+                    if (grad) {
+                        T GR[9], t1[9];
+                        for (int q = 0; q < 9; ++q) H[q] *= kf;  /* G = dL/dH */
+                        SFX(mm)(H, Rac, GR);                     /* G R_ac */
+                        SFX(mmt)(GR, Rbc, t1);                   /* -> R_ab */
+                        for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
+                        SFX(mtm)(Rab, GR, t1);                   /* -> R_bc */
+                        for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
+                        SFX(mtm)(H, P, t1);                      /* G^T P -> R_ac */
+                        for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
+                    }
+                }
+                if (tor && unrel[ab] && unrel[bc] && unrel[ac]) {
+                    const T *tab = theta + 3 * ab, *tbc = theta + 3 * bc, *tac = theta + 3 * ac;
+                    T Th[3], n2 = 0;
+                    for (int r = 0; r < 3; ++r) {
+                        Th[r] = tab[r] + Rab[3 * r] * tbc[0] + Rab[3 * r + 1] * tbc[1] + Rab[3 * r + 2] * tbc[2] - tac[r];
+                        n2 += Th[r] * Th[r];
+                    }
+                    s_tor += n2 / area[f];
+                    if (grad) {
+                        T k = kq / area[f], gT[3];
+                        for (int r = 0; r < 3; ++r) gT[r] = k * Th[r];
+                        for (int r = 0; r < 3; ++r) {
+                            gTb[3 * ab + r] += gT[r];
+                            gTb[3 * ac + r] -= gT[r];
+                            gTb[3 * bc + r] += Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
+                            for (int c = 0; c < 3; ++c) gRb[9 * ab + 3 * r + c] += gT[r] * tbc[c];
+                        }
+                    }
+                }
+            }
+            part[tid][2] = s_flat;
+            part[tid][3] = s_tor;
+        }
+        if (grad) {
+            SFX(reduce_into)(gR, bR, nt, 9 * E);
+            if (tor) SFX(reduce_into)(gtheta, bTh, nt, 3 * E);
+        }
+    }
+
+    /* ---- pass 3: edges, backward of the solder form t_ij = F_i^T sqrt(F_i R F_j^T) v */
+    if (grad && tor) {
+#pragma omp parallel num_threads(nt)
+        {
+            int tid = omp_get_thread_num();
+            T* gFb = bF[tid];
+#pragma omp for schedule(static)
+            for (long e = 0; e < E; ++e) {
+                const T* gt = gtheta + 3 * e;
+                if (!unrel[e] || (gt[0] == 0 && gt[1] == 0 && gt[2] == 0)) continue;
+                long i = edges[2 * e], j = edges[2 * e + 1];
+                const T *Fi = Fr + 9 * i, *Fj = Fr + 9 * j, *Re = R + 9 * e, *v = vec + 3 * e;
+                T FiR[9], A[9], S[9], u[3], gu[3], gS[9], gA[9], gFiR[9], t1[9];
+                SFX(mm)(Fi, Re, FiR);
+                SFX(mmt)(FiR, Fj, A);
+                T c = SFX(sqrt_rot)(A, S);
+                for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
+                for (int r = 0; r < 3; ++r) gu[r] = Fi[3 * r] * gt[0] + Fi[3 * r + 1] * gt[1] + Fi[3 * r + 2] * gt[2];
+                for (int r = 0; r < 3; ++r)
+                    for (int q = 0; q < 3; ++q) gS[3 * r + q] = gu[r] * v[q];
+                SFX(sqrt_rot_back)(A, c, gS, gA);
+                SFX(mm)(gA, Fj, gFiR);                       /* dA = d(FiR) Fj^T */
+                T* bi = gFb + 9 * i;
+                T* bj = gFb + 9 * j;
+                SFX(mtm)(gA, FiR, t1);                       /* gF_j += gA^T FiR */
+                for (int q = 0; q < 9; ++q) bj[q] += t1[q];
+                SFX(mmt)(gFiR, Re, t1);                      /* gF_i += gFiR R^T + u gt^T */
+                for (int r = 0; r < 3; ++r)
+                    for (int q = 0; q < 3; ++q) bi[3 * r + q] += t1[3 * r + q] + u[r] * gt[q];
+                SFX(mtm)(Fi, gFiR, t1);                      /* gR += F_i^T gFiR (own row) */
+                for (int q = 0; q < 9; ++q) gR[9 * e + q] += t1[q];
+            }
+        }
+    }
+    if (grad) SFX(reduce_into)(gF, bF, nt, 9 * V);
+
+    double s_smooth = 0, s_tie = 0, s_flat = 0, s_tor = 0;
+    for (int t = 0; t < nt; ++t) {
+        s_smooth += part[t][0]; s_tie += part[t][1]; s_flat += part[t][2]; s_tor += part[t][3];
+    }
+    sums[0] = s_smooth / (double)(E > 0 ? E : 1);
+    sums[1] = s_tie / (double)(E > 0 ? E : 1);
+    sums[2] = s_flat / (double)(F > 0 ? F : 1);
+    sums[3] = n_ok ? s_tor / (double)n_ok : 0.0;
+    return 0;
+}
+
+#endif
