@@ -1,0 +1,74 @@
+"""torchconn.native: build once, cache, fall back with one clear warning."""
+import warnings
+
+import pytest
+import torch
+
+from torchconn import native
+
+
+@pytest.fixture
+def fresh(monkeypatch, tmp_path):
+    """An empty cache folder and no loaded libraries (restored afterwards)."""
+    monkeypatch.setenv("TORCHCONN_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(native, "_LIBS", {})
+    monkeypatch.setattr(native, "_WARNED", set())
+    return tmp_path / "cache"
+
+
+def test_builds_once_into_the_cache(fresh):
+    if native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    lib = native.library("frame_loss")
+    assert lib is not None and hasattr(lib, "frame_loss_f32") and hasattr(lib, "frame_loss_f64")
+    built = sorted(fresh.glob("frame_loss-*.so"))
+    assert len(built) == 1 and not list(fresh.glob("*.so.tmp*"))
+    mtime = built[0].stat().st_mtime_ns
+    native._LIBS.clear()  # a new process: loads the cached library, no rebuild
+    assert native.library("frame_loss") is not None
+    assert built[0].stat().st_mtime_ns == mtime and sorted(fresh.glob("frame_loss-*.so")) == built
+
+
+def test_failed_build_warns_once_and_falls_back(fresh, monkeypatch):
+    monkeypatch.setenv("CC", "false")  # a "compiler" that always fails
+    with pytest.warns(RuntimeWarning, match="building frame_loss.c failed"):
+        assert native.library("frame_loss") is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert native.library("frame_loss") is None  # cached decision, no second warning
+    x = torch.zeros(3, 3, dtype=torch.float64)
+    assert not native.available("frame_loss", x)
+
+
+def test_missing_compiler(fresh, monkeypatch):
+    monkeypatch.setattr(native, "_compiler", lambda: None)
+    with pytest.warns(RuntimeWarning, match="no C compiler"):
+        assert native.library("frame_loss") is None
+
+
+def test_unwritable_cache_falls_back(fresh, monkeypatch, tmp_path):
+    if native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("TORCHCONN_CACHE", str(blocker / "sub"))
+    with pytest.warns(RuntimeWarning, match="cannot build"):
+        assert native.library("frame_loss") is None
+
+
+def test_disabled_by_environment(fresh, monkeypatch):
+    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
+    assert not native.enabled() and native.library("frame_loss") is None
+
+
+def test_available_checks_device_and_dtype():
+    if native.library("frame_loss") is None:
+        pytest.skip("no C compiler on this machine")
+    f64, f32 = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float32)
+    assert native.available("frame_loss", f64, f64) and native.available("frame_loss", f32)
+    assert not native.available("frame_loss", f64, f32)  # mixed dtypes
+    assert not native.available("frame_loss", torch.zeros(2, dtype=torch.float16))
+    assert not native.available("frame_loss", torch.zeros(2, device="meta"))
+    assert not native.available("frame_loss")
+    with pytest.raises(ValueError, match="contiguous"):
+        native.ptr(torch.zeros(3, 3).t())
