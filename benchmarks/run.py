@@ -435,9 +435,24 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
         a = float(loss(so3.exp(w), so3.exp(phi))["total"])
         b = float(_ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)))
     t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
+    path = "compiled kernel csrc/frame_loss.c" if loss._use_native(so3.exp(w.detach()), so3.exp(phi.detach())) \
+        else "torch kernels (no compiled kernel)"
     rows.append(_row("frame_field_loss", T, dname, t, tr, _peak_mb(fast_fn), unit="tets",
                      reference="eager composition of the same terms (generic curvature/torsion, matrix_exp)",
-                     max_abs_diff=abs(a - b), note="all six terms, weight 1; fwd+bwd to edge and vertex params"))
+                     max_abs_diff=abs(a - b), note=f"all six terms, weight 1; fwd+bwd to edge and vertex params; {path}"))
+    # the torch-kernel path of the same loss (native=False: what runs without a C compiler / off the CPU)
+    torch_loss = FrameFieldLoss(mesh, {k: 1.0 for k in TERMS}, native=False)
+
+    def torch_fn():
+        w.grad = phi.grad = None
+        torch_loss(so3.exp(w), so3.exp(phi))["total"].backward()
+
+    with torch.no_grad():
+        c = float(torch_loss(so3.exp(w), so3.exp(phi))["total"])
+    t2, tr2 = _side_by_side(fast_fn, torch_fn, repeats)
+    rows.append(_row("frame_field_loss_vs_torch_path", T, dname, t2, tr2, None, unit="tets",
+                     reference="FrameFieldLoss(native=False): the fused torch kernels", max_abs_diff=abs(a - c),
+                     note="compiled kernel vs the torch path of the same class, side by side"))
 
 
 def bench_end_to_end(rows: list, threads: int, mouette_timeout: float = 600.0) -> None:
