@@ -1,0 +1,461 @@
+/* SO(3) maps exp / log / sqrt and their backward passes (issue 6; loaded by
+ * torchconn/native.py, routed from torchconn/fast.py).
+ *
+ * Every element kernel mirrors a torch reference of torchconn/fast.py operation by operation,
+ * in the same dtype and the same order of operations, so that the two paths agree to round-off
+ * and take the same branch decisions (compiled with -std=c99, hence -ffp-contract=off: no FMA
+ * contraction that the torch kernels would not do either):
+ *
+ *   exp  : fast._exp_coeffs + fast._rodrigues        backward: fast._ExpFn.backward
+ *   log  : fast._log_parts                            backward: the chain rule of the same
+ *          expressions (what torch autograd computes on them, including at exactly pi,
+ *          where the derivative of atan2 at (0, c = -1) is finite)
+ *   sqrt : fast.sqrt_rotmat (half-angle identity for tr R > 0, exp(log(R)/2) otherwise)
+ *
+ * Layout: contiguous row-major, omega (n, 3), matrices (n, 3, 3) = (n, 9).
+ * Exported symbols: so3_{exp,log,sqrt}_{fwd,bwd}_{f32,f64}
+ *   fwd(const T* in, T* out, long n, int nthreads, double eps)
+ *   bwd(const T* in, const T* grad_out, T* grad_in, long n, int nthreads, double eps)
+ * where eps is torchconn.tolerances.get_eps("small_angle", dtype) (the Taylor threshold is
+ * compared as |.|^2 < (T)(eps*eps), the same rounding as torch's tensor < python-float).
+ *
+ * Speed: as in torch, every branch is evaluated on every element and the result selected
+ * (no data-dependent jumps), and elements are processed in blocks of SO3_B, copied to
+ * component-major buffers, so that GCC vectorizes the element loop (#pragma omp simd). The
+ * trigonometric functions then need vector versions: with GCC on x86-64 glibc >= 2.35 they are
+ * declared `simd` below, which makes GCC call glibc's libmvec (pulled in by -lm; documented
+ * accuracy within 4 ulp, like the SLEEF kernels torch uses). Elsewhere the scalar libm calls
+ * are used (same results to round-off, slower). Unused branches get values that may be inf or
+ * NaN; they are discarded by the selects (no floating-point traps are enabled).
+ *
+ * The two dtypes are instantiated by including this file into itself with T = float, double
+ * (one file, so native.py's cache key, a hash of this source, covers all the code).
+ */
+#ifndef SO3_T
+
+#include <math.h>
+
+#if defined(__GNUC__) && !defined(__clang__)
+/* Keep every branch computed on every element: jump threading and sinking would move the
+ * trigonometric calls into the branch that uses them (a conditional call stops the
+ * vectorizer; the values are the same either way). */
+#pragma GCC optimize("no-thread-jumps", "no-tree-sink")
+#endif
+
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__)
+#if __GLIBC_PREREQ(2, 35)
+/* the vector variants glibc's <math.h> declares itself only under -ffast-math */
+#define SO3_VEC __attribute__((simd("notinbranch")))
+SO3_VEC float sinf(float);
+SO3_VEC float cosf(float);
+SO3_VEC float atan2f(float, float);
+SO3_VEC double sin(double);
+SO3_VEC double cos(double);
+SO3_VEC double atan2(double, double);
+/* cos behind a call GCC does not see into: sin(t) and cos(t) of one t would otherwise be
+ * merged into one scalar sincos() call, which has no vector version */
+SO3_VEC __attribute__((noinline)) static float so3_cosf(float x) { return cosf(x); }
+SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x); }
+#define SO3_COS_F so3_cosf
+#define SO3_COS_D so3_cos
+#endif
+#endif
+#ifndef SO3_COS_F
+#define SO3_COS_F cosf
+#define SO3_COS_D cos
+#endif
+
+#define SO3_CAT_(a, b) a##b
+#define SO3_CAT(a, b) SO3_CAT_(a, b)
+/* loops smaller than this run on the calling thread (no OpenMP team start-up) */
+#define SO3_PAR_MIN 4096L
+/* elements per block (component-major buffers of 3 x 9 x SO3_B values stay in L1) */
+#define SO3_B 128
+/* the nine statements S(0) ... S(8), written out: a loop inside the vectorized element loop
+ * would be control flow that stops GCC's vectorizer */
+#define SO3_EACH9(S) S(0) S(1) S(2) S(3) S(4) S(5) S(6) S(7) S(8)
+
+/* Blocked loop over n elements: rows of `a` (na components) and `b` (nb) are copied into
+ * component-major buffers, KERN(A, Bg, O, j, eps2) runs on element j of the block
+ * (vectorized), and the nout components of O are copied back into the rows of `out`. */
+#define SO3_LOOP(KERN, a, na, b, nb, out, nout)                                               \
+    do {                                                                                      \
+        const T eps2 = (T)(eps * eps);                                                        \
+        const long nblk = (n + SO3_B - 1) / SO3_B;                                            \
+        _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN)")    \
+        for (long blk = 0; blk < nblk; ++blk) {                                               \
+            T A_[9][SO3_B], B_[9][SO3_B], O_[9][SO3_B];                                       \
+            const long i0 = blk * SO3_B;                                                      \
+            const int m = (int)(n - i0 < SO3_B ? n - i0 : SO3_B);                             \
+            for (int j = 0; j < m; ++j)                                                       \
+                for (int k = 0; k < (na); ++k)                                                \
+                    A_[k][j] = (a)[(i0 + j) * (na) + k];                                      \
+            for (int j = 0; j < m; ++j)                                                       \
+                for (int k = 0; k < (nb); ++k)                                                \
+                    B_[k][j] = (b)[(i0 + j) * (nb) + k];                                      \
+            _Pragma("omp simd")                                                               \
+            for (int j = 0; j < m; ++j)                                                       \
+                KERN(A_, B_, O_, j, eps2);                                                    \
+            for (int j = 0; j < m; ++j)                                                       \
+                for (int k = 0; k < (nout); ++k)                                              \
+                    (out)[(i0 + j) * (nout) + k] = O_[k][j];                                  \
+        }                                                                                     \
+    } while (0)
+
+#define SO3_T float
+#define SO3_SUF _f32
+#define SO3_SIN sinf
+#define SO3_COS SO3_COS_F
+#define SO3_SQRT sqrtf
+#define SO3_ATAN2 atan2f
+#include "so3.c" /* this file, again (quoted includes resolve next to it) */
+#undef SO3_T
+#undef SO3_SUF
+#undef SO3_SIN
+#undef SO3_COS
+#undef SO3_SQRT
+#undef SO3_ATAN2
+
+#define SO3_T double
+#define SO3_SUF _f64
+#define SO3_SIN sin
+#define SO3_COS SO3_COS_D
+#define SO3_SQRT sqrt
+#define SO3_ATAN2 atan2
+#include "so3.c" /* this file, again (quoted includes resolve next to it) */
+
+#else /* ------------------------------------------------------------- one dtype */
+
+#define T SO3_T
+#define FN(name) SO3_CAT(name, SO3_SUF)
+#define K(x) ((T)(x))
+typedef T FN(blk_t)[SO3_B];
+
+/* ---------------------------------------------------------------- exp */
+
+/* A = sin t / t, B = (1 - cos t) / t^2 and, if der, dA/d(t^2), dB/d(t^2) (fast._exp_coeffs,
+ * whose trigonometric branch gets t^2 = 1 where the Taylor one is used; here t^2 = eps^2) */
+static inline void FN(exp_coeffs)(T t2, T eps2, int der, T *A, T *B, T *dA, T *dB)
+{
+    int small = t2 < eps2;
+    /* unused trigonometric branch at t^2 = eps^2 (not a constant: GCC would fold sin(1) and
+     * split the loop body into two paths, which stops vectorization) */
+    T ts2 = small ? eps2 : t2;
+    T t = SO3_SQRT(ts2), s = SO3_SIN(t), c = SO3_COS(t), omc = K(1.0) - c;
+    /* both branches computed, then selected (a conditional division would stop vectorization) */
+    T A_t = s / t, B_t = omc / ts2;
+    T A_s = K(1.0) - t2 * (K(1.0 / 6.0) - t2 / K(120.0));
+    T B_s = K(0.5) - t2 * (K(1.0 / 24.0) - t2 / K(720.0));
+    *A = small ? A_s : A_t;
+    *B = small ? B_s : B_t;
+    if (der) {
+        T dA_t = (t * c - s) / (K(2.0) * ts2 * t);
+        T dB_t = (t * s - K(2.0) * omc) / (K(2.0) * ts2 * ts2);
+        T dA_s = K(-1.0 / 6.0) + t2 * (K(1.0 / 60.0) - t2 / K(1680.0));
+        T dB_s = K(-1.0 / 24.0) + t2 * (K(1.0 / 360.0) - t2 / K(13440.0));
+        *dA = small ? dA_s : dA_t;
+        *dB = small ? dB_s : dB_t;
+    }
+}
+
+/* R = I + A K + B K^2, K = hat(x, y, z), entries written out (fast._rodrigues) */
+static inline void FN(exp1)(T x, T y, T z, T eps2, T *r)
+{
+    T A, B;
+    FN(exp_coeffs)(x * x + y * y + z * z, eps2, 0, &A, &B, 0, 0);
+    T Bx = B * x, By = B * y;
+    T Ax = A * x, Ay = A * y, Az = A * z;
+    T bxy = Bx * y, bxz = Bx * z, byz = By * z;
+    T xx = x * x, yy = y * y, zz = z * z;
+    r[0] = K(1.0) - B * (yy + zz); r[1] = bxy - Az;                r[2] = bxz + Ay;
+    r[3] = bxy + Az;                r[4] = K(1.0) - B * (xx + zz); r[5] = byz - Ax;
+    r[6] = bxz - Ay;                r[7] = byz + Ax;                r[8] = K(1.0) - B * (xx + yy);
+}
+
+/* dL/dw from G = dL/dR (fast._ExpFn.backward) */
+static inline void FN(exp_bwd1)(T x, T y, T z, const T *G, T eps2, T *gw)
+{
+    T t2 = x * x + y * y + z * z, A, B, dA, dB;
+    FN(exp_coeffs)(t2, eps2, 1, &A, &B, &dA, &dB);
+    T g00 = G[0], g01 = G[1], g02 = G[2], g10 = G[3], g11 = G[4], g12 = G[5], g20 = G[6],
+      g21 = G[7], g22 = G[8];
+    T gx = g21 - g12, gy = g02 - g20, gz = g10 - g01;
+    T tr = g00 + g11 + g22;
+    T s01 = g01 + g10, s02 = g02 + g20, s12 = g12 + g21;
+    T Sx = K(2.0) * g00 * x + s01 * y + s02 * z;
+    T Sy = s01 * x + K(2.0) * g11 * y + s12 * z;
+    T Sz = s02 * x + s12 * y + K(2.0) * g22 * z;
+    T wGw = K(0.5) * (x * Sx + y * Sy + z * Sz);
+    T wg = x * gx + y * gy + z * gz;
+    T radial = K(2.0) * dA * wg + K(2.0) * dB * (wGw - t2 * tr) - K(2.0) * B * tr;
+    gw[0] = A * gx + B * Sx + radial * x;
+    gw[1] = A * gy + B * Sy + radial * y;
+    gw[2] = A * gz + B * Sz + radial * z;
+}
+
+static inline void FN(exp_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    (void)Bg;
+    T r[9];
+    FN(exp1)(A[0][j], A[1][j], A[2][j], eps2, r);
+#define SO3_S(k) O[k][j] = r[k];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+}
+
+static inline void FN(exp_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    T G[9], gw[3];
+#define SO3_S(k) G[k] = Bg[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    FN(exp_bwd1)(A[0][j], A[1][j], A[2][j], G, eps2, gw);
+    O[0][j] = gw[0]; O[1][j] = gw[1]; O[2][j] = gw[2];
+}
+
+void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(exp_fwd_k), w, 3, w, 0, R, 9);
+}
+
+void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(exp_bwd_k), w, 3, gR, 9, gw, 3);
+}
+
+/* ---------------------------------------------------------------- log */
+
+/* The branches of fast._log_parts, all evaluated, one selected. v = vee(R) = sin(t) n,
+ * c = (tr R - 1)/2:
+ *   small   (|v|^2 < eps^2 and c > 0): w = (1 + s2 (1/6 + s2 (3/40 + s2 5/112))) v
+ *   obtuse  (c < 0): u = column of sym(R) - c I with the largest diagonal entry (the first
+ *           one on ties), sgn = sign(u.v) (+1 at 0), w = atan2(sgn u.v / |u|, c) sgn / |u| u
+ *   generic (otherwise): w = atan2(|v|, c) / |v| v
+ * A NaN entry fails every comparison and takes the generic branch, as in torch. Both atan2
+ * share one call (y = sgn u.v/|u| or |v|, x = c). */
+typedef struct {
+    T vx, vy, vz, c, s2;
+    int small, obtuse, p0, p1;  /* branch; pick of the column (p0: 0, p1: 1, else 2) */
+    T ux, uy, uz, uvr, inv, sgn, nv, s, a;  /* a = atan2(nv or s, c) */
+} FN(logp_t);
+
+static inline void FN(log_parts)(const T *r, T eps2, FN(logp_t) *q)
+{
+    T vx = K(0.5) * (r[7] - r[5]), vy = K(0.5) * (r[2] - r[6]), vz = K(0.5) * (r[3] - r[1]);
+    T c = K(0.5) * (r[0] + r[4] + r[8] - K(1.0));
+    T s2 = vx * vx + vy * vy + vz * vz;
+    int small = (s2 < eps2) & (c > K(0.0));
+    int obtuse = c < K(0.0);
+    T d0 = r[0] - c, d1 = r[4] - c, d2 = r[8] - c;
+    T o01 = K(0.5) * (r[1] + r[3]), o02 = K(0.5) * (r[2] + r[6]), o12 = K(0.5) * (r[5] + r[7]);
+    int p0 = (d0 >= d1) & (d0 >= d2);
+    int p1 = !p0 & (d1 >= d2);
+    T ux = p0 ? d0 : (p1 ? o01 : o02);
+    T uy = p0 ? o01 : (p1 ? d1 : o12);
+    T uz = p0 ? o02 : (p1 ? o12 : d2);
+    T uu = ux * ux + uy * uy + uz * uz;
+    T inv = K(1.0) / SO3_SQRT(uu);  /* inf where unused (uu = 0 at R = I): discarded */
+    T uvr = ux * vx + uy * vy + uz * vz;
+    T uv = uvr * inv;
+    T sgn = uv < K(0.0) ? K(-1.0) : K(1.0);
+    T nv = uv * sgn;
+    T s = SO3_SQRT(s2);
+    q->a = SO3_ATAN2(obtuse ? nv : s, c);
+    q->vx = vx; q->vy = vy; q->vz = vz; q->c = c; q->s2 = s2;
+    q->small = small; q->obtuse = obtuse; q->p0 = p0; q->p1 = p1;
+    q->ux = ux; q->uy = uy; q->uz = uz; q->uvr = uvr; q->inv = inv; q->sgn = sgn; q->nv = nv;
+    q->s = s;
+}
+
+static inline T FN(log_poly)(T s2)
+{
+    return K(1.0) + s2 * (K(1.0 / 6.0) + s2 * (K(3.0 / 40.0) + s2 * K(5.0 / 112.0)));
+}
+
+static inline void FN(log1)(const T *r, T eps2, T *w)
+{
+    FN(logp_t) q;
+    FN(log_parts)(r, eps2, &q);
+    T fac_g = q.a / q.s, fac_s = FN(log_poly)(q.s2);
+    T fac = q.small ? fac_s : fac_g;
+    T k = q.a * q.inv * q.sgn;  /* obtuse: w = k u */
+    w[0] = q.obtuse ? k * q.ux : fac * q.vx;
+    w[1] = q.obtuse ? k * q.uy : fac * q.vy;
+    w[2] = q.obtuse ? k * q.uz : fac * q.vz;
+}
+
+/* dL/dR from gw = dL/dw: reverse mode through the expressions of log1, the gradient of each
+ * intermediate as torch autograd forms it on fast._log_parts (sgn and the picks are
+ * constants; the gradient of atan2(y, x) is (x, -y) / (x^2 + y^2), finite at (0, -1), i.e. at
+ * angle exactly pi). */
+static inline void FN(log_bwd1)(const T *r, const T *gw, T eps2, T *gr)
+{
+    FN(logp_t) q;
+    FN(log_parts)(r, eps2, &q);
+    T vx = q.vx, vy = q.vy, vz = q.vz, c = q.c, s2 = q.s2;
+    T gwv = gw[0] * vx + gw[1] * vy + gw[2] * vz;
+    /* -- obtuse: w = k u, k = tp inv sgn, tp = atan2(nv, c), nv = uv sgn, uv = (u.v) inv */
+    T ux = q.ux, uy = q.uy, uz = q.uz, inv = q.inv, sgn = q.sgn, nv = q.nv, tp = q.a;
+    T k = tp * inv * sgn;
+    T gk = gw[0] * ux + gw[1] * uy + gw[2] * uz;
+    T gu0 = k * gw[0], gu1 = k * gw[1], gu2 = k * gw[2];
+    T gtp = gk * inv * sgn, ginv = gk * tp * sgn;
+    T den_o = nv * nv + c * c;
+    T gnv = gtp * c / den_o, gc_o = -gtp * nv / den_o;
+    T al = gnv * sgn * inv;  /* d/d(u.v) */
+    gu0 += al * vx; gu1 += al * vy; gu2 += al * vz;
+    T gvx_o = al * ux, gvy_o = al * uy, gvz_o = al * uz;
+    ginv += gnv * sgn * q.uvr;
+    T be = -ginv * inv * inv * inv;  /* inv = rsqrt(u.u) */
+    gu0 += be * ux; gu1 += be * uy; gu2 += be * uz;
+    /* u = column of sym(R) - c I: diagonal d_k = r_kk - c, off-diagonal o_kl = (r_kl + r_lk)/2 */
+    int p0 = q.p0, p1 = q.p1, p2 = !(p0 | p1), ob = q.obtuse;
+    T zero = K(0.0);
+    T gd0 = ob & p0 ? gu0 : zero, gd1 = ob & p1 ? gu1 : zero, gd2 = ob & p2 ? gu2 : zero;
+    T go01 = ob ? (p0 ? gu1 : (p1 ? gu0 : zero)) : zero;
+    T go02 = ob ? (p0 ? gu2 : (p2 ? gu0 : zero)) : zero;
+    T go12 = ob ? (p1 ? gu2 : (p2 ? gu1 : zero)) : zero;
+    gc_o = gc_o - (gd0 + gd1 + gd2);
+    /* -- small: w = poly(s2) v */
+    T fac_s = FN(log_poly)(s2);
+    T dfac = K(1.0 / 6.0) + s2 * (K(2.0 * 3.0 / 40.0) + s2 * K(3.0 * 5.0 / 112.0));
+    T g2_s = K(2.0) * gwv * dfac;  /* 2 dL/ds2: s2 = |v|^2 */
+    /* -- generic: w = f v, f = a / s, a = atan2(s, c), s = sqrt(s2) */
+    T s = q.s, a = q.a;
+    T fac_g = a / s;
+    T ga = gwv / s;
+    T den_g = s * s + c * c;
+    T gs = -gwv * a / (s * s) + ga * c / den_g;
+    T gc_g = -ga * s / den_g;
+    T g2_g = gs / s;  /* d|v|/dv = v / s */
+    /* -- select: w = fac v (small, generic) has dL/dv = fac gw + g2 v */
+    T fac = q.small ? fac_s : fac_g, g2 = q.small ? g2_s : g2_g;
+    T gvx = ob ? gvx_o : fac * gw[0] + g2 * vx;
+    T gvy = ob ? gvy_o : fac * gw[1] + g2 * vy;
+    T gvz = ob ? gvz_o : fac * gw[2] + g2 * vz;
+    T gc = ob ? gc_o : (q.small ? zero : gc_g);
+    /* c = (r00 + r11 + r22 - 1)/2, v = ((r21 - r12), (r02 - r20), (r10 - r01))/2 */
+    T hc = K(0.5) * gc;
+    gr[0] = gd0 + hc; gr[4] = gd1 + hc; gr[8] = gd2 + hc;
+    gr[1] = K(0.5) * go01 - K(0.5) * gvz; gr[3] = K(0.5) * go01 + K(0.5) * gvz;
+    gr[2] = K(0.5) * go02 + K(0.5) * gvy; gr[6] = K(0.5) * go02 - K(0.5) * gvy;
+    gr[5] = K(0.5) * go12 - K(0.5) * gvx; gr[7] = K(0.5) * go12 + K(0.5) * gvx;
+}
+
+static inline void FN(log_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    (void)Bg;
+    T r[9], w[3];
+#define SO3_S(k) r[k] = A[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    FN(log1)(r, eps2, w);
+    O[0][j] = w[0]; O[1][j] = w[1]; O[2][j] = w[2];
+}
+
+static inline void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    T r[9], gw[3] = {Bg[0][j], Bg[1][j], Bg[2][j]}, gr[9];
+#define SO3_S(k) r[k] = A[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    FN(log_bwd1)(r, gw, eps2, gr);
+#define SO3_S(k) O[k][j] = gr[k];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+}
+
+void FN(so3_log_fwd)(const T *R, T *w, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(log_fwd_k), R, 9, R, 0, w, 3);
+}
+
+void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(log_bwd_k), R, 9, gw, 3, gR, 9);
+}
+
+/* ---------------------------------------------------------------- sqrt */
+
+/* fast.sqrt_rotmat: for tr R > 0 (angle below 120 degrees), with s = sqrt(1 + tr R),
+ * sqrt(R) = ((1 + s) I + R + (R - R^T)/s) / (2 + s); otherwise exp(h), h = log(R)/2. */
+static inline void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    (void)Bg;
+    T r[9], w[3], e[9];
+#define SO3_S(k) r[k] = A[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T tr = r[0] + r[4] + r[8];
+    int ok = tr > K(0.0);
+    T s = SO3_SQRT(ok ? K(1.0) + tr : K(4.0));
+    T inv_s = K(1.0) / s, den = K(1.0) / (K(2.0) + s), diag = K(1.0) + s;
+    FN(log1)(r, eps2, w);
+    FN(exp1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], eps2, e);
+    O[0][j] = ok ? (diag + r[0]) * den : e[0];
+    O[1][j] = ok ? (r[1] + (r[1] - r[3]) * inv_s) * den : e[1];
+    O[2][j] = ok ? (r[2] + (r[2] - r[6]) * inv_s) * den : e[2];
+    O[3][j] = ok ? (r[3] + (r[3] - r[1]) * inv_s) * den : e[3];
+    O[4][j] = ok ? (diag + r[4]) * den : e[4];
+    O[5][j] = ok ? (r[5] + (r[5] - r[7]) * inv_s) * den : e[5];
+    O[6][j] = ok ? (r[6] + (r[6] - r[2]) * inv_s) * den : e[6];
+    O[7][j] = ok ? (r[7] + (r[7] - r[5]) * inv_s) * den : e[7];
+    O[8][j] = ok ? (diag + r[8]) * den : e[8];
+}
+
+static inline void FN(sqrt_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    T r[9], G[9], w[3], gh[3], ge[9];
+#define SO3_S(k) r[k] = A[k][j]; G[k] = Bg[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T tr = r[0] + r[4] + r[8];
+    int ok = tr > K(0.0);
+    /* tr R <= 0: through exp(h), h = log(R)/2 */
+    FN(log1)(r, eps2, w);
+    FN(exp_bwd1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], G, eps2, gh);
+    gh[0] = K(0.5) * gh[0]; gh[1] = K(0.5) * gh[1]; gh[2] = K(0.5) * gh[2];
+    FN(log_bwd1)(r, gh, eps2, ge);
+    /* tr R > 0: out = P den, P_ii = diag + r_ii, P_ij = r_ij + (r_ij - r_ji) inv_s */
+    T s = SO3_SQRT(ok ? K(1.0) + tr : K(4.0));
+    T inv_s = K(1.0) / s, den = K(1.0) / (K(2.0) + s), diag = K(1.0) + s;
+    T p01 = r[1] - r[3], p02 = r[2] - r[6], p12 = r[5] - r[7];  /* r_ij - r_ji, i < j */
+    T gden = G[0] * (diag + r[0]) + G[1] * (r[1] + p01 * inv_s) + G[2] * (r[2] + p02 * inv_s)
+           + G[3] * (r[3] - p01 * inv_s) + G[4] * (diag + r[4]) + G[5] * (r[5] + p12 * inv_s)
+           + G[6] * (r[6] - p02 * inv_s) + G[7] * (r[7] - p12 * inv_s) + G[8] * (diag + r[8]);
+    T g[9];
+#define SO3_S(k) g[k] = G[k] * den;  /* dL/dP */
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T gdiag = g[0] + g[4] + g[8];
+    T ginv = (g[1] - g[3]) * p01 + (g[2] - g[6]) * p02 + (g[5] - g[7]) * p12;
+    T a = K(1.0) + inv_s;
+    /* den = 1/(2 + s), diag = 1 + s, inv_s = 1/s, s = sqrt(1 + tr) */
+    T gs = -gden * den * den + gdiag - ginv * inv_s * inv_s;
+    T gtr = gs / (K(2.0) * s);
+    O[0][j] = ok ? g[0] + gtr : ge[0];
+    O[4][j] = ok ? g[4] + gtr : ge[4];
+    O[8][j] = ok ? g[8] + gtr : ge[8];
+    O[1][j] = ok ? g[1] * a - g[3] * inv_s : ge[1];
+    O[3][j] = ok ? g[3] * a - g[1] * inv_s : ge[3];
+    O[2][j] = ok ? g[2] * a - g[6] * inv_s : ge[2];
+    O[6][j] = ok ? g[6] * a - g[2] * inv_s : ge[6];
+    O[5][j] = ok ? g[5] * a - g[7] * inv_s : ge[5];
+    O[7][j] = ok ? g[7] * a - g[5] * inv_s : ge[7];
+}
+
+void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(sqrt_fwd_k), R, 9, R, 0, S, 9);
+}
+
+void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps)
+{
+    SO3_LOOP(FN(sqrt_bwd_k), R, 9, gS, 9, gR, 9);
+}
+
+#undef T
+#undef FN
+#undef K
+
+#endif /* SO3_T */
