@@ -14,15 +14,22 @@ module computes the *same values* (to round-off) with
   *edge* (both directions), never per tet;
 * gather tables built once per mesh (:class:`TetKernel`).
 
-All functions take any float dtype and device; constants follow the input. :mod:`torchconn.so3`
+All functions take any float dtype and device; constants follow the input. On CPU float32 /
+float64, ``exp_rotvec``, ``log_rotmat`` and ``sqrt_rotmat`` (and so :mod:`torchconn.so3`) run the
+compiled loops of ``torchconn/csrc/so3.c`` (:mod:`torchconn.native`; same branches, values to
+round-off; ``native=False`` keeps the torch code, which is also the fallback and the
+``create_graph`` backward). :mod:`torchconn.so3`
 routes ``exp``, ``log`` and ``sqrt`` here, and :func:`torchconn.dnabla.averaged_dd_solder` /
 :func:`torchconn.dnabla.wedge_solder` route through :func:`tet_dd_solder`.
 """
 from __future__ import annotations
 
+import ctypes
+
 import torch
 from torch.autograd.function import once_differentiable
 
+from . import native as _native
 from .tolerances import get_eps
 
 __all__ = [
@@ -41,6 +48,87 @@ __all__ = [
     "edge_solder_frames",
     "face_torsion_tet",
 ]
+
+
+# ----------------------------------------------------------------------------- native routing
+# The maps below exist twice: as torch code (any device and dtype; differentiable to any
+# order) and as compiled C loops (torchconn/csrc/so3.c: one pass over memory per direction,
+# OpenMP threads). ``native=None`` routes to C for CPU float32/float64 tensors when the library
+# is built (torchconn.native); ``native=False`` forces the torch code (the reference the tests
+# and benchmarks compare against); ``native=True`` requires C (RuntimeError otherwise).
+# The C backward is first-order only: when the backward itself is recorded (create_graph,
+# e.g. gradgradcheck or autograd.functional.jvp) it is computed by the torch code instead,
+# which is detected by grad mode being on inside backward.
+
+
+def _use_native(x: torch.Tensor, native: bool | None) -> bool:
+    if native is False:
+        return False
+    # functorch transforms (vmap, torch.func.grad) wrap tensors without a data pointer
+    ok = not torch._C._functorch.is_functorch_wrapped_tensor(x) and _native.available("so3", x)
+    if native and not ok:
+        raise RuntimeError("native so3 kernels unavailable for this input (need CPU float32/float64 "
+                           "and a built torchconn/csrc/so3.c; see torchconn.native)")
+    return ok
+
+
+def _c_call(name: str, out_shape, *inputs: torch.Tensor) -> torch.Tensor:
+    """Run ``so3_<name>_<f32|f64>(*inputs, out, n, threads, small_angle eps)`` on contiguous copies."""
+    x = inputs[0]
+    out = torch.empty(out_shape, dtype=x.dtype)
+    n = out_shape[0]
+    if n:
+        lib = _native.library("so3")
+        fn = getattr(lib, f"so3_{name}_{'f32' if x.dtype == torch.float32 else 'f64'}")
+        ts = [t.contiguous() for t in inputs]  # kept alive until the call returns
+        fn(*(_native.ptr(t) for t in ts), _native.ptr(out), ctypes.c_long(n),
+           ctypes.c_int(torch.get_num_threads()), ctypes.c_double(get_eps("small_angle", x.dtype)))
+    return out
+
+
+class _NativeMapFn(torch.autograd.Function):
+    """One of the C maps ``kind`` in ``exp`` / ``log`` / ``sqrt`` with its C backward (input saved).
+
+    ``x`` is ``(..., 3)`` (exp) or ``(..., 3, 3)``; the batch dims are flattened for C and
+    restored. Under ``create_graph`` the backward is the torch one (differentiable).
+    """
+
+    @staticmethod
+    def forward(x, kind):
+        batch = x.shape[:-1] if kind == "exp" else x.shape[:-2]
+        n = batch.numel()
+        out_tail = (3,) if kind == "log" else (3, 3)
+        flat = x.reshape(n, 3 if kind == "exp" else 9)
+        out = _c_call(f"{kind}_fwd", (n, 3 if kind == "log" else 9), flat)
+        return out.reshape(*batch, *out_tail)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.kind = inputs[1]
+        ctx.save_for_backward(inputs[0])
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        kind = ctx.kind
+        if torch.is_grad_enabled():  # create_graph: a recorded, differentiable backward
+            if kind == "exp":
+                return _exp_backward(x, g), None
+            torch_fn = log_rotmat if kind == "log" else sqrt_rotmat
+            with torch.enable_grad():
+                out = torch_fn(x, native=False)
+                (gx,) = torch.autograd.grad(out, x, g, create_graph=True)
+            return gx, None
+        m = 3 if kind == "exp" else 9  # components of x per element
+        n = x.numel() // m
+        gx = _c_call(f"{kind}_bwd", (n, m), x.reshape(n, m), g.reshape(n, 3 if kind == "log" else 9))
+        return gx.reshape(x.shape), None
+
+
+def _native_map(x: torch.Tensor, kind: str) -> torch.Tensor:
+    if x.requires_grad and torch.is_grad_enabled():
+        return _NativeMapFn.apply(x, kind)
+    return _NativeMapFn.forward(x, kind)
 
 
 # ----------------------------------------------------------------------------- exp
@@ -111,32 +199,41 @@ class _ExpFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, G):
         (omega,) = ctx.saved_tensors
-        x, y, z = omega.unbind(-1)
-        t2 = x * x + y * y + z * z
-        A, B, dA, dB = _exp_coeffs(t2, True)
-        g00, g01, g02, g10, g11, g12, g20, g21, g22 = G.flatten(-2).unbind(-1)
-        gx, gy, gz = g21 - g12, g02 - g20, g10 - g01
-        tr = g00 + g11 + g22
-        s01, s02, s12 = g01 + g10, g02 + g20, g12 + g21
-        Sx = 2.0 * g00 * x + s01 * y + s02 * z
-        Sy = s01 * x + 2.0 * g11 * y + s12 * z
-        Sz = s02 * x + s12 * y + 2.0 * g22 * z
-        wGw = 0.5 * (x * Sx + y * Sy + z * Sz)
-        wg = x * gx + y * gy + z * gz
-        radial = 2.0 * dA * wg + 2.0 * dB * (wGw - t2 * tr) - 2.0 * B * tr
-        return torch.stack((A * gx + B * Sx + radial * x,
-                            A * gy + B * Sy + radial * y,
-                            A * gz + B * Sz + radial * z), -1)
+        return _exp_backward(omega, G)
 
 
-def exp_rotvec(omega: torch.Tensor) -> torch.Tensor:
+def _exp_backward(omega: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """``∂L/∂ω`` from ``G = ∂L/∂R`` (formula of :class:`_ExpFn`), in differentiable torch ops."""
+    x, y, z = omega.unbind(-1)
+    t2 = x * x + y * y + z * z
+    A, B, dA, dB = _exp_coeffs(t2, True)
+    g00, g01, g02, g10, g11, g12, g20, g21, g22 = G.flatten(-2).unbind(-1)
+    gx, gy, gz = g21 - g12, g02 - g20, g10 - g01
+    tr = g00 + g11 + g22
+    s01, s02, s12 = g01 + g10, g02 + g20, g12 + g21
+    Sx = 2.0 * g00 * x + s01 * y + s02 * z
+    Sy = s01 * x + 2.0 * g11 * y + s12 * z
+    Sz = s02 * x + s12 * y + 2.0 * g22 * z
+    wGw = 0.5 * (x * Sx + y * Sy + z * Sz)
+    wg = x * gx + y * gy + z * gz
+    radial = 2.0 * dA * wg + 2.0 * dB * (wGw - t2 * tr) - 2.0 * B * tr
+    return torch.stack((A * gx + B * Sx + radial * x,
+                        A * gy + B * Sy + radial * y,
+                        A * gz + B * Sz + radial * z), -1)
+
+
+def exp_rotvec(omega: torch.Tensor, native: bool | None = None) -> torch.Tensor:
     """Rodrigues ``exp(hat(ω))``: ``omega (..., 3) -> (..., 3, 3)``, closed-form backward.
 
     Same value as :func:`exp_rotvec_autograd` (and :func:`torchconn.so3.exp`) to round-off;
     finite value and gradient at ``ω = 0`` (Taylor branch, ``small_angle`` registry threshold).
+    ``native``: ``None`` compiled C on CPU float32/float64 when built, else torch; ``False``
+    torch (:class:`_ExpFn`); ``True`` C or ``RuntimeError`` (see "native routing" above).
     """
     if omega.dim() < 1 or omega.shape[-1] != 3:
         raise ValueError(f"exp_rotvec expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
+    if _use_native(omega, native):
+        return _native_map(omega, "exp")
     return _ExpFn.apply(omega)
 
 
@@ -207,23 +304,27 @@ def _log_parts(r, eps_small):
     return w, dict(v=(vx, vy, vz), c=c, obtuse=obtuse)
 
 
-def log_rotmat(R: torch.Tensor) -> torch.Tensor:
+def log_rotmat(R: torch.Tensor, native: bool | None = None) -> torch.Tensor:
     """Rotation vector of ``R (..., 3, 3)`` -> ``(..., 3)``, ``|ω| ∈ [0, π]`` (:func:`torchconn.so3.log`).
 
     The branches of :func:`_log_parts` evaluated entrywise on unbound components, differentiated
-    by plain autograd. (A hand-written backward was measured slower here: it has to recompute
-    every branch, whereas autograd keeps the intermediates.) Not validated (see
+    by plain autograd (torch path: a hand-written torch backward was measured slower, it has to
+    recompute every branch whereas autograd keeps the intermediates). The C path
+    (``native``, as in :func:`exp_rotvec`) computes the same branches and, in its backward, the
+    chain rule autograd forms on them, per element in one pass. Not validated (see
     :func:`torchconn.so3.check_rotation`).
     """
     if R.dim() < 2 or R.shape[-2:] != (3, 3):
         raise ValueError(f"log expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    if _use_native(R, native):
+        return _native_map(R, "log")
     w, _ = _log_parts(R.flatten(-2).unbind(-1), get_eps("small_angle", R.dtype))
     return torch.stack(w, -1)
 
 
 # ----------------------------------------------------------------------------- sqrt
 
-def sqrt_rotmat(R: torch.Tensor) -> torch.Tensor:
+def sqrt_rotmat(R: torch.Tensor, native: bool | None = None) -> torch.Tensor:
     """Principal square root of ``R (..., 3, 3)`` -> ``(..., 3, 3)``, equal to ``exp(log(R)/2)``.
 
     Quaternion half-angle identity: with ``s = sqrt(1 + tr R) = 2 cos(t/2)``,
@@ -232,10 +333,13 @@ def sqrt_rotmat(R: torch.Tensor) -> torch.Tensor:
     120°, ``s > 1``: no cancellation); the remaining entries go through
     ``exp_rotvec(log_rotmat(R)/2)`` (on CPU on that subset only, gathered with ``nonzero``; on
     other devices on every entry with safe-where, so there is no device sync), so at angle
-    exactly π the branch follows :func:`log_rotmat`.
+    exactly π the branch follows :func:`log_rotmat`. ``native`` as in :func:`exp_rotvec` (the C
+    path takes the same two branches per element).
     """
     if R.dim() < 2 or R.shape[-2:] != (3, 3):
         raise ValueError(f"sqrt expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    if _use_native(R, native):
+        return _native_map(R, "sqrt")
     shape = R.shape
     Rf = R.reshape(-1, 3, 3)
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = Rf.flatten(-2).unbind(-1)
@@ -255,11 +359,11 @@ def sqrt_rotmat(R: torch.Tensor) -> torch.Tensor:
         # CPU: the fallback only on the (usually few) obtuse entries; nonzero does not sync here
         bad = torch.nonzero(~ok).squeeze(-1)
         if bad.numel():
-            out = out.index_copy(0, bad, exp_rotvec(0.5 * log_rotmat(Rf.index_select(0, bad))))
+            out = out.index_copy(0, bad, exp_rotvec(0.5 * log_rotmat(Rf.index_select(0, bad), False), False))
     else:
         # other devices: fallback on every entry (harmless input where unused), no device sync
         eye = torch.eye(3, dtype=R.dtype, device=R.device)
-        alt = exp_rotvec(0.5 * log_rotmat(torch.where(ok[:, None, None], eye, Rf)))
+        alt = exp_rotvec(0.5 * log_rotmat(torch.where(ok[:, None, None], eye, Rf), False), False)
         out = torch.where(ok[:, None, None], out, alt)
     return out.reshape(shape)
 

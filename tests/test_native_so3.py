@@ -1,0 +1,301 @@
+"""Compiled SO(3) kernels (torchconn/csrc/so3.c) against the torch path of torchconn.fast.
+
+The torch code (``native=False``) is the reference: same branches, same thresholds, so the
+two agree to round-off in values (float32 1e-6, float64 1e-12) and in gradients, including at
+the singular points θ = 0 and θ = π. Skipped only when no C compiler is found.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+from torch.autograd import gradcheck, gradgradcheck
+
+from torchconn import fast, native, so3
+from torchconn.tolerances import get_eps
+
+DTYPES = [torch.float32, torch.float64]
+VAL_TOL = {torch.float32: 1e-6, torch.float64: 1e-12}
+MAPS = ["exp", "log", "sqrt"]
+FN = {"exp": fast.exp_rotvec, "log": fast.log_rotmat, "sqrt": fast.sqrt_rotmat}
+
+
+@pytest.fixture(autouse=True)
+def _native_built(monkeypatch):
+    if native._compiler() is None:
+        pytest.skip("no C compiler found ($CC, cc, gcc, clang): torchconn/csrc/so3.c cannot be built")
+    monkeypatch.delenv("TORCHCONN_NATIVE", raising=False)
+    assert native.library("so3") is not None, "torchconn/csrc/so3.c did not build or load"
+
+
+def _is_native(out: torch.Tensor) -> bool:
+    return out.grad_fn is not None and "_NativeMapFn" in out.grad_fn.name()
+
+
+def _unit(v):
+    return v / v.norm(dim=-1, keepdim=True)
+
+
+def _rotvecs(n, dtype, seed=0, max_angle=math.pi):
+    """Axis uniform on the sphere, angle uniform in [0, max_angle) (float64, then cast)."""
+    g = torch.Generator().manual_seed(seed)
+    axis = _unit(torch.randn(n, 3, generator=g, dtype=torch.float64))
+    return (axis * torch.rand(n, 1, generator=g, dtype=torch.float64) * max_angle).to(dtype)
+
+
+AXES = _unit(torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 1.0],
+                           [0.3, -0.5, 0.8], [-2.0, 0.1, 0.4]], dtype=torch.float64))
+
+
+def _edge_angles(dtype):
+    eps = get_eps("small_angle", dtype)
+    return [0.0, 1e-8, 0.5 * eps, eps * (1 - 1e-3), eps, eps * (1 + 1e-3), 2 * eps, 0.5,
+            math.pi / 2, 2 * math.pi / 3, 2.5, math.pi - 1e-3, math.pi - 1e-6, math.pi]
+
+
+def _edge_rotvecs(dtype):
+    ang = torch.tensor(_edge_angles(dtype), dtype=torch.float64)
+    return (AXES[:, None, :] * ang[None, :, None]).reshape(-1, 3)
+
+
+def _rotation_pi(n):
+    """Rotation by exactly π about unit n: 2 n nᵀ − I (exact diag(1, −1, −1) for n = e_x)."""
+    return 2.0 * n[..., :, None] * n[..., None, :] - torch.eye(3, dtype=n.dtype)
+
+
+def _inputs(kind, dtype, n=10_000, seed=0):
+    """10⁴ random inputs (angles in [0, π)) plus the edge cases, built in float64 and cast."""
+    w = torch.cat([_rotvecs(n, torch.float64, seed), _edge_rotvecs(dtype)])
+    if kind == "exp":
+        extra = torch.tensor([[0.0, 0.0, 0.0], [7.0, -3.0, 1.0], [2 * math.pi, 0.0, 0.0]], dtype=torch.float64)
+        return torch.cat([w, extra]).to(dtype)
+    R = so3.exp(w)
+    R = torch.cat([R, _rotation_pi(AXES), torch.eye(3, dtype=torch.float64)[None]])
+    return R.to(dtype)
+
+
+def _grad(fn, x, G, **kw):
+    x = x.detach().clone().requires_grad_()
+    out = fn(x, **kw)
+    (g,) = torch.autograd.grad((out * G).sum(), x)
+    return out.detach(), g, out
+
+
+# ---------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("kind", MAPS)
+def test_values_match_torch_path(kind, dtype):
+    x = _inputs(kind, dtype)
+    fn = FN[kind]
+    a, b = fn(x, native=True), fn(x, native=False)
+    assert torch.isfinite(a).all()
+    torch.testing.assert_close(a, b, atol=VAL_TOL[dtype], rtol=0)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_log_at_pi_same_branch_and_sign(dtype):
+    # at exactly π both signs are logarithms; the C path makes the torch path's choice
+    R = _rotation_pi(AXES).to(dtype)
+    a, b = fast.log_rotmat(R, native=True), fast.log_rotmat(R, native=False)
+    torch.testing.assert_close(a, b, atol=VAL_TOL[dtype], rtol=0)
+    torch.testing.assert_close(a.norm(dim=-1), torch.full((len(AXES),), math.pi, dtype=dtype),
+                               atol=10 * VAL_TOL[dtype], rtol=0)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exp_log_roundtrip_native(dtype):
+    w = _rotvecs(5000, dtype, seed=3, max_angle=math.pi - 1e-3)
+    torch.testing.assert_close(fast.log_rotmat(fast.exp_rotvec(w)), w, atol=50 * VAL_TOL[dtype], rtol=0)
+    R = fast.exp_rotvec(w)
+    S = fast.sqrt_rotmat(R)
+    torch.testing.assert_close(S @ S, R, atol=5 * VAL_TOL[dtype], rtol=0)
+
+
+@pytest.mark.parametrize("kind", MAPS)
+def test_batch_shapes_empty_and_noncontiguous(kind):
+    dtype = torch.float64
+    fn = FN[kind]
+    x = _inputs(kind, dtype, n=40)[:40]
+    batched = x.reshape(2, 4, 5, *x.shape[1:])
+    out = fn(batched, native=True)
+    tail = (3,) if kind == "log" else (3, 3)
+    assert out.shape == (2, 4, 5, *tail)
+    torch.testing.assert_close(out.reshape(40, *tail), fn(x, native=True), atol=0, rtol=0)
+    # non-contiguous input (a transposed batch)
+    nc = batched.transpose(0, 2)
+    assert not nc.is_contiguous()
+    torch.testing.assert_close(fn(nc, native=True), fn(nc, native=False), atol=VAL_TOL[dtype], rtol=0)
+    # empty batches, forward and backward
+    for shape in [(0,), (2, 0)]:
+        e = torch.zeros(*shape, *x.shape[1:], dtype=dtype, requires_grad=True)
+        oe = fn(e, native=True)
+        assert oe.shape == (*shape, *tail)
+        (ge,) = torch.autograd.grad(oe.sum(), e)
+        assert ge.shape == e.shape
+
+
+def test_bad_shapes_still_raise():
+    with pytest.raises(ValueError):
+        fast.exp_rotvec(torch.zeros(4, 2), native=True)
+    with pytest.raises(ValueError):
+        fast.log_rotmat(torch.zeros(4, 3), native=True)
+
+
+def test_threads_do_not_change_results():
+    x = _inputs("log", torch.float32, n=50_000)  # above the C code's parallel threshold
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        a = [FN[k](x if k != "exp" else x[:, 0], native=True) for k in MAPS]
+        torch.set_num_threads(2)
+        b = [FN[k](x if k != "exp" else x[:, 0], native=True) for k in MAPS]
+    finally:
+        torch.set_num_threads(before)
+    for u, v in zip(a, b):
+        assert torch.equal(u, v)
+
+
+# ---------------------------------------------------------------- gradients
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("kind", MAPS)
+def test_gradients_match_torch_path(kind, dtype):
+    x = _inputs(kind, dtype)
+    fn = FN[kind]
+    G = torch.randn(fn(x).shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    _, g_n, out = _grad(fn, x, G.to(dtype), native=True)
+    _, g_t, _ = _grad(fn, x, G.to(dtype), native=False)
+    assert _is_native(out)
+    assert torch.isfinite(g_n).all()
+    # both paths against the float64 torch path: the C backward is as accurate as the torch one
+    _, g_64, _ = _grad(fn, x.double(), G, native=False)
+    err_n = (g_n.double() - g_64).abs().max()
+    err_t = (g_t.double() - g_64).abs().max()
+    scale = g_64.abs().max()
+    if dtype == torch.float64:
+        torch.testing.assert_close(g_n, g_t, atol=1e-12 * scale, rtol=0)
+    else:
+        # float32: exp's dB/d(t²) = (t sin t − 2(1 − cos t))/(2 t⁴) cancels just above the Taylor
+        # threshold (|ω| ~ 1e-2..5e-2), where each path is ~1e-5 off float64; elsewhere 1e-6
+        assert err_n <= 2 * err_t + 1e-6 * scale, (float(err_n), float(err_t))
+        if kind == "exp":
+            t = x.double().norm(dim=-1)
+            away = (t < 0.9 * get_eps("small_angle", dtype)) | (t > 0.1)  # margin: float32 rounding of |ω|
+            torch.testing.assert_close(g_n[away], g_t[away], atol=1e-6 * scale, rtol=0)
+        else:
+            torch.testing.assert_close(g_n, g_t, atol=1e-6 * scale, rtol=0)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-3, 1.0, 3.0])
+def test_exp_gradcheck_native(scale):
+    g = torch.Generator().manual_seed(2)
+    w = (torch.randn(6, 3, generator=g, dtype=torch.float64) * scale).requires_grad_()
+    assert _is_native(fast.exp_rotvec(w, native=True))
+    assert gradcheck(lambda x: fast.exp_rotvec(x, native=True), (w,))
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-5, 0.5, 1.4, 1.8, 2.5, math.pi - 1e-3])
+def test_log_sqrt_gradcheck_native(theta):
+    # away from the branch switches (t = π/2, 2π/3), where gradcheck's off-SO(3) perturbations
+    # see the branches extend differently
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    R = so3.exp(axis / axis.norm() * theta)[None].requires_grad_()
+    for kind in ("log", "sqrt"):
+        assert _is_native(FN[kind](R, native=True))
+        assert gradcheck(lambda x: FN[kind](x, native=True), (R,))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_gradients_finite_and_equal_at_0_and_pi(dtype):
+    tol = {torch.float32: 1e-5, torch.float64: 1e-12}[dtype]
+    G = torch.randn(4, 3, 3, generator=torch.Generator().manual_seed(5), dtype=dtype)
+    # exp at ω = 0 and |ω| = π
+    w = torch.stack([torch.zeros(3, dtype=torch.float64), AXES[0] * math.pi, AXES[3] * math.pi,
+                     AXES[4] * 1e-8]).to(dtype)
+    for kind, x, Gk in [("exp", w, G),
+                        ("log", torch.cat([torch.eye(3, dtype=dtype)[None], _rotation_pi(AXES[[0, 3, 4]]).to(dtype)]),
+                         G[..., 0]),
+                        ("sqrt", torch.cat([torch.eye(3, dtype=dtype)[None], _rotation_pi(AXES[[0, 3, 4]]).to(dtype)]),
+                         G)]:
+        v_n, g_n, out = _grad(FN[kind], x, Gk, native=True)
+        v_t, g_t, _ = _grad(FN[kind], x, Gk, native=False)
+        assert _is_native(out)
+        assert torch.isfinite(v_n).all() and torch.isfinite(g_n).all(), kind
+        torch.testing.assert_close(v_n, v_t, atol=tol, rtol=0)
+        torch.testing.assert_close(g_n, g_t, atol=tol, rtol=0)
+
+
+def test_double_backward_uses_torch_path():
+    # create_graph: the backward is recorded through the torch code, so higher orders work
+    g = torch.Generator().manual_seed(6)
+    w = (torch.randn(5, 3, generator=g, dtype=torch.float64) * 1.2).requires_grad_()
+    R = so3.exp(w.detach())[:3].clone().requires_grad_()
+    assert gradgradcheck(lambda x: fast.exp_rotvec(x, native=True), (w,))
+    assert gradgradcheck(lambda x: fast.log_rotmat(x, native=True), (R,))
+    assert gradgradcheck(lambda x: fast.sqrt_rotmat(x, native=True), (R,))
+    # and equals the torch path's second derivative
+    for kind, x in (("exp", w), ("log", R), ("sqrt", R)):
+        outs = []
+        for nat in (True, False):
+            (g1,) = torch.autograd.grad(FN[kind](x, native=nat).square().sum(), x, create_graph=True)
+            (g2,) = torch.autograd.grad(g1.square().sum(), x)
+            outs.append(g2)
+        torch.testing.assert_close(outs[0], outs[1], atol=1e-10, rtol=0)
+
+
+# ---------------------------------------------------------------- routing and fallbacks
+
+
+def test_default_routes_to_native_on_cpu_float():
+    w = torch.randn(10, 3, dtype=torch.float32, requires_grad=True)
+    assert _is_native(so3.exp(w))
+    assert _is_native(so3.log(so3.exp(w)))
+    assert _is_native(so3.sqrt(so3.exp(w)))
+
+
+def test_disabled_native_uses_torch(monkeypatch):
+    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
+    monkeypatch.setattr(native, "_LIBS", {})  # no cached library: library() must answer None
+    assert native.library("so3") is None
+    w = _rotvecs(100, torch.float64, seed=7).requires_grad_()
+    for kind, x in (("exp", w), ("log", so3.exp(w)), ("sqrt", so3.exp(w))):
+        out = FN[kind](x)
+        assert not _is_native(out)
+        assert torch.equal(out, FN[kind](x, native=False))
+        out.sum().backward()
+        with pytest.raises(RuntimeError, match="native so3 kernels unavailable"):
+            FN[kind](x, native=True)
+
+
+def test_no_compiler_warns_and_falls_back(monkeypatch):
+    monkeypatch.setattr(native, "_compiler", lambda: None)
+    monkeypatch.setattr(native, "_LIBS", {})
+    monkeypatch.setattr(native, "_WARNED", set())
+    w = _rotvecs(20, torch.float32, seed=8)
+    with pytest.warns(RuntimeWarning, match="no C compiler"):
+        out = so3.exp(w)
+    torch.testing.assert_close(out, fast.exp_rotvec(w, native=False), atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_other_dtypes_use_torch(dtype):
+    w = _rotvecs(20, torch.float32, seed=9).to(dtype).requires_grad_()
+    out = fast.exp_rotvec(w)
+    assert out.dtype == dtype and not _is_native(out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "native unavailable" warning for a dtype it never handles
+        fast.exp_rotvec(w.detach())
+
+
+def test_vmap_uses_torch_path():
+    w = _rotvecs(8, torch.float64, seed=10)
+    out = torch.func.vmap(fast.exp_rotvec)(w)
+    torch.testing.assert_close(out, fast.exp_rotvec(w, native=False), atol=0, rtol=0)
+    R = so3.exp(w)
+    torch.testing.assert_close(torch.func.vmap(fast.log_rotmat)(R), fast.log_rotmat(R, native=False),
+                               atol=0, rtol=0)
