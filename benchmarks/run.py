@@ -9,11 +9,14 @@ reference / fast; extra keys: ``reference``, ``max_abs_diff``, ``unit``, ``note`
 Cases
 -----
 1. ``so3.exp`` / ``so3.log`` / ``so3.sqrt`` forward+backward on 10⁶ rotations (10⁵ with
-   ``--quick``), float32: the closed forms of :mod:`torchconn.fast` against
+   ``--quick``), float32, as the library routes them (the compiled ``csrc/so3.c`` kernels when
+   :mod:`torchconn.native` builds them, recorded as ``path``) against
    ``torch.linalg.matrix_exp(hat(ω))`` (exp), the previous matrix-based ``so3.log`` kept below
    (``_ref_log``; there is no matrix-log route in torch), ``exp(log(R)/2)`` through those
-   references (sqrt), and ``roma`` when it is installed (extra rows). ``max_abs_diff`` is the
-   largest entry difference of the forward values.
+   references (sqrt), the torch code of :mod:`torchconn.fast` (``native=False``, the fallback;
+   ``*_vs_torch`` rows) and ``roma`` when it is installed (``*_vs_roma`` rows).
+   ``max_abs_diff`` is the largest entry difference of the forward values (log against the
+   matrix log and roma: through ``exp``, both signs being logarithms at angle π).
 2. Curvature + averaged ``d∇d∇θ̃`` (and torsion alone) on box meshes of ~10k, 100k, 1M tets
    (``io.box(n)``, ``6 n³`` tets; ``--quick`` stops at 100k), float32 and float64, from a
    ``ConnectionField``-like parameter tensor (``so3.exp`` of skew params), loss
@@ -295,6 +298,8 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
         import roma
     except ImportError:
         roma = None
+    # which path so3.exp/log/sqrt take here (compiled csrc/so3.c or the torch code)
+    path = "native C" if fast._use_native(w, None) else "torch (native unavailable)"
 
     def fb(f, x):
         def run():
@@ -302,10 +307,16 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
             f(x).sum().backward()
         return run
 
+    def torch_path(f):
+        return lambda x: f(x, native=False)
+
     cases = [
         ("so3.exp", so3.exp, w, _ref_exp_matrix, "matrix_exp(hat(w))"),
+        ("so3.exp_vs_torch", so3.exp, w, torch_path(fast.exp_rotvec), "torch closed form (native=False)"),
         ("so3.log", so3.log, R, _ref_log, "previous matrix-based so3.log"),
+        ("so3.log_vs_torch", so3.log, R, torch_path(fast.log_rotmat), "torch branches (native=False)"),
         ("so3.sqrt", so3.sqrt, R, _ref_sqrt, "exp(log(R)/2), previous so3 exp/log"),
+        ("so3.sqrt_vs_torch", so3.sqrt, R, torch_path(fast.sqrt_rotmat), "torch half-angle (native=False)"),
     ]
     if roma is not None:
         cases += [("so3.exp_vs_roma", so3.exp, w, roma.rotvec_to_rotmat, f"roma {roma.__version__} rotvec_to_rotmat"),
@@ -314,12 +325,12 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
         t, tr = _side_by_side(fb(f, x), fb(ref, x), repeats)
         with torch.no_grad():
             a, b = f(x), ref(x)
-            if name.startswith("so3.log"):  # angle-pi sign ambiguity: compare through exp
+            if name in ("so3.log", "so3.log_vs_roma"):  # angle-pi sign ambiguity: compare through exp
                 diff = float((so3.exp(a) - so3.exp(b)).abs().max())
             else:
                 diff = float((a - b).abs().max())
         rows.append(_row(name, n, "float32", t, tr, _peak_mb(fb(f, x)), reference=ref_name,
-                         max_abs_diff=diff, unit="rotations"))
+                         max_abs_diff=diff, unit="rotations", path=path))
     if roma is None:
         rows.append(_row("so3.exp_vs_roma", n, "float32", None, None, None, note="roma not installed"))
 
