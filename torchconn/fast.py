@@ -61,11 +61,16 @@ __all__ = [
 # which is detected by grad mode being on inside backward.
 
 
+def _plain(t: torch.Tensor) -> bool:
+    """Not a tensor of a vmap / torch.func transform (those have no data pointer for C)."""
+    f = torch._C._functorch
+    return not (f.is_functorch_wrapped_tensor(t) or f.is_legacy_batchedtensor(t))
+
+
 def _use_native(x: torch.Tensor, native: bool | None) -> bool:
     if native is False:
         return False
-    # functorch transforms (vmap, torch.func.grad) wrap tensors without a data pointer
-    ok = not torch._C._functorch.is_functorch_wrapped_tensor(x) and _native.available("so3", x)
+    ok = _plain(x) and _native.available("so3", x)
     if native and not ok:
         raise RuntimeError("native so3 kernels unavailable for this input (need CPU float32/float64 "
                            "and a built torchconn/csrc/so3.c; see torchconn.native)")
@@ -111,7 +116,9 @@ class _NativeMapFn(torch.autograd.Function):
     def backward(ctx, g):
         (x,) = ctx.saved_tensors
         kind = ctx.kind
-        if torch.is_grad_enabled():  # create_graph: a recorded, differentiable backward
+        # create_graph (a recorded, differentiable backward) or a batched grad_output
+        # (autograd.functional.jacobian(vectorize=True)): the torch formulas
+        if torch.is_grad_enabled() or not _plain(g):
             if kind == "exp":
                 return _exp_backward(x, g), None
             torch_fn = log_rotmat if kind == "log" else sqrt_rotmat
@@ -207,7 +214,7 @@ def _exp_backward(omega: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     x, y, z = omega.unbind(-1)
     t2 = x * x + y * y + z * z
     A, B, dA, dB = _exp_coeffs(t2, True)
-    g00, g01, g02, g10, g11, g12, g20, g21, g22 = G.flatten(-2).unbind(-1)
+    (g00, g01, g02), (g10, g11, g12), (g20, g21, g22) = (r.unbind(-1) for r in G.unbind(-2))
     gx, gy, gz = g21 - g12, g02 - g20, g10 - g01
     tr = g00 + g11 + g22
     s01, s02, s12 = g01 + g10, g02 + g20, g12 + g21
