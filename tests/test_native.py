@@ -72,3 +72,22 @@ def test_available_checks_device_and_dtype():
     assert not native.available("frame_loss")
     with pytest.raises(ValueError, match="contiguous"):
         native.ptr(torch.zeros(3, 3).t())
+
+
+def test_torch_compile_traces_the_torch_path():
+    """Under torch.compile (fake tensors, no data pointers) the callers record their torch code."""
+    from torchconn import so3
+    from torchconn.losses import FrameFieldLoss
+    from torchconn import io
+
+    mesh = io.box(1)
+    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0})
+    g = torch.Generator().manual_seed(0)
+    w = 0.2 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=torch.float64)
+    phi = 0.2 * torch.randn(mesh.n_vertices, 3, generator=g, dtype=torch.float64)
+
+    def f(w, phi):
+        return loss(so3.exp(w), so3.exp(phi))["total"]
+
+    compiled = torch.compile(f, backend="eager", fullgraph=False)
+    assert abs(float(compiled(w, phi)) - float(f(w, phi))) <= 1e-12

@@ -70,7 +70,7 @@ def _plain(t: torch.Tensor) -> bool:
 def _use_native(x: torch.Tensor, native: bool | None) -> bool:
     if native is False:
         return False
-    ok = _plain(x) and _native.available("so3", x)
+    ok = _native.available("so3", x) and _plain(x)  # available() first: False while torch.compile traces
     if native and not ok:
         raise RuntimeError("native so3 kernels unavailable for this input (need CPU float32/float64 "
                            "and a built torchconn/csrc/so3.c; see torchconn.native)")

@@ -125,8 +125,11 @@ def library(name: str) -> ctypes.CDLL | None:
 
 
 def available(name: str, *tensors: torch.Tensor) -> bool:
-    """Whether ``csrc/<name>.c`` can run on ``tensors``: all on the CPU, float32 or float64, one dtype."""
-    if not tensors:
+    """Whether ``csrc/<name>.c`` can run on ``tensors``: all on the CPU, float32 or float64, one dtype.
+
+    ``False`` while ``torch.compile`` traces (the callers then record their torch code).
+    """
+    if not tensors or torch.compiler.is_compiling():  # traced (fake) tensors have no data for C
         return False
     dt = tensors[0].dtype
     if dt not in (torch.float32, torch.float64):
