@@ -466,43 +466,52 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
                      note="compiled kernel vs the torch path of the same class, side by side"))
 
 
+_E2E_KEYS = ("smoothness_mean_deg", "alignment_mean_deg", "feature_alignment_mean_deg", "n_singular_faces")
+
+
 def bench_end_to_end(rows: list, threads: int, mouette_timeout: float = 600.0) -> None:
+    """The main job on the gear (wall time incl. startup) and mouette's Ray 2016 field, with metrics.
+
+    mouette runs through :func:`benchmarks.compare_frames._run_mouette` (subprocess with a time
+    limit, boundary-first vertex renumbering, frames evaluated with our metrics). The ratio is
+    mouette's wall time over ours; both metric sets go into the row (``ours``, ``mouette``).
+    """
     if not GEAR.exists():
-        rows.append(_row("train_frames(gear)", None, "float32", None, None, None, note=f"not measured: {GEAR} missing"))
+        rows.append(_row("train_frames(gear)", None, "float64", None, None, None, note=f"not measured: {GEAR} missing"))
         return
-    if (ROOT / "training" / "train_frames.py").exists():
-        with tempfile.TemporaryDirectory() as tmp:
-            cmd = [sys.executable, "-m", "training.train_frames", f"mesh={GEAR}", f"output_dir={tmp}",
-                   f"num_threads={threads}"]
-            t0 = time.perf_counter()
-            res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-            dt = time.perf_counter() - t0
-        note = "one run, wall time incl. startup, SH init, metrics, plots" if res.returncode == 0 else \
-            f"failed (rc {res.returncode}): {res.stderr.strip().splitlines()[-1:] }"
-        rows.append(_row("train_frames(gear)", GEAR.name, "default", dt if res.returncode == 0 else None,
-                         None, None, note=note, command=" ".join(cmd[1:])))
-    else:
-        rows.append(_row("train_frames(gear)", GEAR.name, "default", None, None, None,
-                         note="not measured: training/train_frames.py missing"))
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "training.train_frames", f"mesh={GEAR}", f"output_dir={tmp}",
+               f"num_threads={threads}", "progress=false"]
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        dt = time.perf_counter() - t0
+        ours = {}
+        if res.returncode == 0:
+            final = json.loads((Path(tmp) / "metrics.json").read_text())["final"]
+            ours = {k: final.get(k) for k in _E2E_KEYS}
+    if res.returncode != 0:
+        rows.append(_row("train_frames(gear)", GEAR.name, "float64", None, None, None,
+                         note=f"failed (rc {res.returncode}): {res.stderr.strip().splitlines()[-1:]}"))
+        return
     try:
         import mouette as M
-    except ImportError:
-        rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", None, None, None, note="mouette not installed"))
+        from benchmarks.compare_frames import _run_mouette
+    except ImportError as exc:
+        rows.append(_row("train_frames(gear)", GEAR.name, "float64", dt, None, None, ours=ours,
+                         note=f"one run, wall incl. startup, SH init, metrics, plots; mouette not run: {exc}"))
         return
-    # in a subprocess with a time limit: its OSQP boundary solve can run for many minutes
-    code = ("import sys, time, mouette as M; m = M.mesh.load(sys.argv[1]); t0 = time.perf_counter(); "
-            "ff = M.framefield.VolumeFrameField(m, 'vertices'); ff.run(); print(time.perf_counter() - t0)")
     ver = getattr(M, "__version__", "?")
-    try:
-        res = subprocess.run([sys.executable, "-c", code, str(GEAR)], capture_output=True, text=True,
-                             timeout=mouette_timeout)
-        ok = res.returncode == 0
-        dt = float(res.stdout.strip().splitlines()[-1]) if ok else None
-        note = (f"VolumeFrameField(mesh, 'vertices').run(), one run, mouette {ver}" if ok
-                else f"failed (rc {res.returncode}): {res.stderr.strip().splitlines()[-1:]}")
-    except subprocess.TimeoutExpired:
-        dt, note = None, f"not finished within {mouette_timeout:.0f} s (mouette {ver}; OSQP setup of its vertex solve)"
-    rows.append(_row("mouette Ray2016(gear)", GEAR.name, "float64", dt, None, None, note=note))
+    m = _run_mouette(GEAR, None, mouette_timeout, threads)
+    ref = m.get("wall_s")
+    theirs = {k: m["metrics"].get(k) for k in _E2E_KEYS} if "metrics" in m else {}
+    note = (f"one run each, wall incl. startup; reference: mouette {ver} VolumeFrameField(mesh, 'vertices').run()"
+            + (f" ({m['error']})" if "error" in m else ""))
+    def brief(d):
+        return ", ".join(f"{k.replace('_deg', '')}={v:.3g}" for k, v in d.items() if v is not None) or "n/a"
+
+    note += f"; ours: {brief(ours)}; mouette: {brief(theirs)}"
+    rows.append(_row("train_frames(gear) vs mouette", GEAR.name, "float64", dt, ref, None, ours=ours,
+                     mouette=theirs, note=note, command=" ".join(cmd[1:])))
 
 
 # ----------------------------------------------------------------------------- report
