@@ -3,11 +3,15 @@
     python -m benchmarks.compare_frames [--cases sphere,gear,bunny,fandisk] [--mouette]
         [--mouette-timeout 300] [--threads 1] [--output-dir DIR] [key=value ...]
 
-Each case runs :func:`training.train_frames.train` twice on the same mesh (``method=sh_baseline``
-and ``method=connection``, otherwise the default config plus the trailing ``key=value``
-overrides, e.g. ``steps=300``) and reports the fixed metrics of
-:func:`torchconn.frames.metrics.frame_metrics` with the wall time of each run. The row
-"vs SH" is the relative change of the mean smoothness.
+Each case runs :func:`training.train_frames.train` three times on the same mesh: ``sh_linear``
+(``method=sh_baseline sh.n_smooth_iters=0``: the linear L4 solve with the boundary constraint and
+the projection only, literally the issue's description of the baseline), ``sh_baseline`` (the
+default, with Ray et al.'s nonlinear smoothing) and ``connection`` (the default config plus the
+trailing ``key=value`` overrides, e.g. ``steps=300``), and reports the fixed metrics of
+:func:`torchconn.frames.metrics.frame_metrics` with the wall time of each run. The columns
+"vs SH" and "vs SH lin" are the relative change of the mean smoothness against ``sh_baseline``
+and ``sh_linear``. ``--breakdown`` also prints, per run, the edge-class split of the mean angle
+(:func:`torchconn.frames.metrics.edge_class_breakdown`, stored in ``metrics.json``).
 
 Cases (``--cases``; the surfaces are tetrahedralized with the edge length given here):
 
@@ -82,17 +86,25 @@ print("RESULT " + json.dumps({"metrics": met, "wall_s": wall}))
 '''
 
 
-def _run_train(name: str, path: Path, edge_length, method: str, out: Path, threads: int, overrides: list[str]) -> dict:
+RUNS = {  # label: (method, fixed overrides)
+    "sh_linear": ("sh_baseline", ["sh.n_smooth_iters=0"]),
+    "sh_baseline": ("sh_baseline", []),
+    "connection": ("connection", []),
+}
+
+
+def _run_train(name: str, path: Path, edge_length, label: str, out: Path, threads: int, overrides: list[str]) -> dict:
     from training.train_frames import load_config, train
 
-    ov = [f"mesh={path}", f"method={method}", f"output_dir={out / name / method}", "progress=false",
-          f"num_threads={threads}", *overrides]
+    method, fixed = RUNS[label]
+    ov = [f"mesh={path}", f"method={method}", f"output_dir={out / name / label}", "progress=false",
+          f"num_threads={threads}", *fixed, *overrides]
     if edge_length is not None:
         ov.append(f"edge_length={edge_length}")
     cfg = load_config(ov)
     t0 = time.perf_counter()
     m = train(cfg)
-    return {"metrics": m["final"], "wall_s": time.perf_counter() - t0}
+    return {"metrics": m["final"], "wall_s": time.perf_counter() - t0, "edge_classes": m["edge_classes"]}
 
 
 def _run_mouette(path: Path, edge_length, timeout: float, threads: int) -> dict:
@@ -122,18 +134,28 @@ def _fmt(v) -> str:
 
 def table(results: dict) -> str:
     """Markdown table of ``results[case][method] = {"metrics": ..., "wall_s": ...} | {"error": ...}``."""
-    head = ["mesh", "method", *COLUMNS, "vs SH", "wall s"]
+    head = ["mesh", "method", *COLUMNS, "vs SH", "vs SH lin", "wall s"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for case, runs in results.items():
-        base = runs.get("sh_baseline", {}).get("metrics", {}).get("smoothness_mean_deg")
+        bases = [runs.get(b, {}).get("metrics", {}).get("smoothness_mean_deg") for b in ("sh_baseline", "sh_linear")]
         for method, r in runs.items():
             if "error" in r:
-                lines.append(f"| {case} | {method} | " + " | ".join(["–"] * len(COLUMNS)) + f" | – | {r['error']} |")
+                lines.append(f"| {case} | {method} | " + " | ".join(["–"] * len(COLUMNS)) + f" | – | – | {r['error']} |")
                 continue
             m = r["metrics"]
-            rel = "–" if not base else f"{100.0 * (m['smoothness_mean_deg'] / base - 1.0):+.1f}%"
+            rel = ["–" if not b else f"{100.0 * (m['smoothness_mean_deg'] / b - 1.0):+.1f}%" for b in bases]
             lines.append(f"| {case} | {method} | " + " | ".join(_fmt(m.get(k)) for k in COLUMNS)
-                         + f" | {rel} | {r['wall_s']:.1f} |")
+                         + f" | {rel[0]} | {rel[1]} | {r['wall_s']:.1f} |")
+    return "\n".join(lines)
+
+
+def breakdown_table(results: dict) -> str:
+    """Markdown table of the edge-class split (count, mean angle, share of the sum) per run."""
+    lines = ["| mesh | method | class | edges | mean deg | share |", "|---|---|---|---|---|---|"]
+    for case, runs in results.items():
+        for method, r in runs.items():
+            for cls, v in (r.get("edge_classes") or {}).items():
+                lines.append(f"| {case} | {method} | {cls} | {v['count']} | {_fmt(v['mean_deg'])} | {v['share']:.3f} |")
     return "\n".join(lines)
 
 
@@ -144,6 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--mouette-timeout", type=float, default=300.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--output-dir", default=None)
+    ap.add_argument("--breakdown", action="store_true", help="also print the edge-class split of the mean angle")
     ap.add_argument("overrides", nargs="*", help="train_frames overrides for the connection runs (key=value)")
     args = ap.parse_args(argv)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
@@ -156,7 +179,7 @@ def main(argv: list[str] | None = None) -> dict:
     for case in cases:
         path, el = CASES[case]
         results[case] = {}
-        for method in ("sh_baseline", "connection"):
+        for method in RUNS:
             ov = args.overrides if method == "connection" else []
             results[case][method] = _run_train(case, path, el, method, out, args.threads, ov)
             (out / "compare_frames.json").write_text(json.dumps(results, indent=1))
@@ -164,6 +187,9 @@ def main(argv: list[str] | None = None) -> dict:
             results[case]["mouette"] = _run_mouette(path, el, args.mouette_timeout, args.threads)
             (out / "compare_frames.json").write_text(json.dumps(results, indent=1))
     print(table(results))
+    if args.breakdown:
+        print()
+        print(breakdown_table(results))
     print(f"\n(json: {out / 'compare_frames.json'})")
     return results
 

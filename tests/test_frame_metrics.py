@@ -168,3 +168,68 @@ def test_metrics_bad_input():
         frame_metrics(torch.eye(3).expand(5, 3, 3), object())
     with pytest.raises(ValueError, match="angle_deg"):
         feature_edges(m, angle_deg=-1.0)
+
+
+def _slow_edge_classes(frames, m, near_rings=2):
+    """Per-edge loop reference of edge_class_breakdown (same priority order)."""
+    from torchconn import octahedral
+
+    F = frames.numpy()
+    group = _cube_group()
+    E = m.edges.tolist()
+    ang = []
+    for i, j in E:
+        best = max(group, key=lambda g: np.trace(g.T @ F[i].T @ F[j]))
+        R = (F[i] @ best).T @ F[j]
+        ang.append(math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    feat = set(feature_vertices(m).tolist())
+    bnd = set(m.boundary_vertices.tolist())
+    surf = set()
+    for a, b, c in m.boundary_faces.tolist():
+        surf |= {tuple(sorted(p)) for p in ((a, b), (b, c), (a, c))}
+    mask, _ = octahedral.singular_faces(frames, m)
+    sing = {v for f in m.faces[mask].tolist() for v in f}
+    near = set(sing)
+    for _ in range(near_rings):
+        near |= {v for i, j in E if i in near or j in near for v in (i, j)}
+    out = {}
+    for (i, j), a in zip(E, ang):
+        if i in feat or j in feat:
+            c = "feature"
+        elif (i, j) in surf:
+            c = "boundary_surface"
+        elif i in bnd or j in bnd:
+            c = "boundary_layer"
+        elif i in sing or j in sing:
+            c = "singular"
+        elif i in near or j in near:
+            c = "near_singular"
+        else:
+            c = "interior"
+        out.setdefault(c, []).append(a)
+    return out, float(np.sum(ang))
+
+
+@pytest.mark.parametrize("scale", [0.15, 0.5])
+def test_edge_class_breakdown_equals_slow_reference(gen, scale):
+    from torchconn.frames.metrics import EDGE_CLASSES, edge_class_breakdown
+
+    m = io.box(6)  # scale 0.15: every class non-empty; 0.5: singular faces everywhere inside
+    frames = so3.exp(scale * torch.randn(m.vertices.shape[0], 3, generator=gen, dtype=torch.float64))
+    b = edge_class_breakdown(frames, m)
+    ref, total = _slow_edge_classes(frames, m)
+    assert tuple(b) == EDGE_CLASSES
+    assert sum(v["count"] for v in b.values()) == m.edges.shape[0]
+    if scale < 0.3:
+        assert all(b[k]["count"] > 0 for k in EDGE_CLASSES)
+    for k in EDGE_CLASSES:
+        assert b[k]["count"] == len(ref.get(k, [])), k
+        if b[k]["count"]:
+            assert b[k]["mean_deg"] == pytest.approx(np.mean(ref[k]), abs=1e-5), k
+            assert b[k]["share"] == pytest.approx(np.sum(ref[k]) / total, abs=1e-7), k
+    # the class means recompose the smoothness metric
+    mean = sum(v["fraction"] * v["mean_deg"] for v in b.values() if v["count"])
+    assert mean == pytest.approx(frame_metrics(frames, m)["smoothness_mean_deg"], rel=1e-12)
+    assert sum(v["share"] for v in b.values()) == pytest.approx(1.0, abs=1e-12)
+    with pytest.raises(ValueError, match="near_rings"):
+        edge_class_breakdown(frames, m, near_rings=-1)

@@ -85,6 +85,14 @@ def test_sh_baseline_method(tmp_path):
     m = train(_cfg(tmp_path, method="sh_baseline"))
     assert m["final"] == m["init"] and m["timings"]["iterations"] == 0
     assert (tmp_path / "run" / "frames.npz").is_file()
+    # the edge-class diagnostic recomposes the smoothness mean
+    ec = m["edge_classes"]
+    mean = sum(v["fraction"] * v["mean_deg"] for v in ec.values() if v["count"])
+    assert mean == pytest.approx(m["final"]["smoothness_mean_deg"], rel=1e-9)
+    # the optional MBO refinement of the initialization is wired through the config
+    mb = train(_cfg(tmp_path, name="mbo", method="sh_baseline", sh={"n_smooth_iters": 5, "mbo_steps": 2}))
+    assert mb["config"]["sh"]["mbo_steps"] == 2 and mb["final"] != m["final"]
+    assert mb["final"]["alignment_max_deg"] < 1e-6
 
 
 def test_resume_equals_uninterrupted(tmp_path, monkeypatch):
@@ -225,3 +233,34 @@ def test_compare_frames_table():
     lines = table(res).splitlines()
     assert len(lines) == 5 and "-10.0%" in lines[3] and "did not finish" in lines[4]
     assert "| – |" in lines[2]  # nan shown as a dash
+    # with the linear-only baseline: a second relative column
+    res["gear"]["sh_linear"] = {"metrics": base | {"smoothness_mean_deg": 4.5}, "wall_s": 0.5,
+                                "edge_classes": {"interior": {"count": 3, "mean_deg": 2.0, "share": 1.0}}}
+    lines = table(res).splitlines()
+    assert "| -10.0% | -20.0% |" in lines[3]
+    from benchmarks.compare_frames import breakdown_table
+
+    assert "| gear | sh_linear | interior | 3 | 2.000 | 1.000 |" in breakdown_table(res)
+
+
+def test_init_frames_from_file(tmp_path):
+    """init_frames= starts from a saved field (studies); shape and rotation are checked first."""
+    a = train(_cfg(tmp_path, name="a", method="sh_baseline"))
+    src = tmp_path / "a" / "frames.npz"
+    b = train(_cfg(tmp_path, name="b", method="sh_baseline", init_frames=str(src), sh={"n_smooth_iters": 0}))
+    keys = ("smoothness_mean_deg", "feature_alignment_mean_deg", "n_singular_faces")
+    # the saved field (to round-off), not the (different) SH field without smoothing
+    assert [b["init"][k] for k in keys] == pytest.approx([a["init"][k] for k in keys], rel=1e-9)
+    assert b["init"]["alignment_max_deg"] < 1e-6
+    c = train(_cfg(tmp_path, name="c", init_frames=str(src), steps=3))
+    assert [c["init"][k] for k in keys] == pytest.approx([a["init"][k] for k in keys], rel=1e-9)
+    assert c["timings"]["iterations"] == 3
+    F = np.load(src)["frames"]
+    np.save(tmp_path / "short.npy", F[:-1])
+    with pytest.raises(ValueError, match="shape"):
+        train(_cfg(tmp_path, name="d", init_frames=str(tmp_path / "short.npy")))
+    np.save(tmp_path / "scaled.npy", 2.0 * F)
+    with pytest.raises(ValueError, match="not rotations"):
+        train(_cfg(tmp_path, name="e", init_frames=str(tmp_path / "scaled.npy")))
+    with pytest.raises(FileNotFoundError, match="init_frames"):
+        train(_cfg(tmp_path, name="f", init_frames=str(tmp_path / "missing.npz")))

@@ -61,6 +61,82 @@ the metric's own angle (smoothed, eps annealed 0.1 -> 0.001, up to 3000 Adam ste
 boundary weight 10/1000 or 200 smoothing iterations, all end at 10.74-11.10 deg; relaxing exact
 boundary alignment only helps once the alignment mean exceeds 1 deg. The largest decrease seen
 is thus about -9% (sphere), -10% (gear), far from -15%.
+
+Both baselines and where the error sits (2026-11-21, 1 thread, busy 2-core machine; ``python -m
+benchmarks.compare_frames --cases sphere,gear,bunny,fandisk --breakdown``). ``sh_linear`` is
+``method=sh_baseline sh.n_smooth_iters=0`` (the L4 linear solve with the boundary constraint
+and the projection, literally the issue's description of the baseline); ``sh_baseline`` adds
+Ray's nonlinear smoothing (the default, and the initialization). Mean smoothness in degrees
+(singular faces); alignment mean is 0.000 everywhere; no tet has exactly one singular face:
+
+============  ===============  ===============  ===============  ========  ========
+mesh          sh_linear        sh_baseline      connection       vs SH     vs linear
+============  ===============  ===============  ===============  ========  ========
+sphere_r0.17  17.957 (308)     11.859 (245)     11.178 (243)     -5.7%     -37.7%
+gear          4.435 (207)      4.377 (152)      3.920 (151)      -10.4%    -11.6%
+bunny 0.08    9.620 (2056)     7.970 (1654)     7.471 (1634)     -6.3%     -22.3%
+fandisk 0.2   3.134 (372)      3.043 (346)      2.779 (345)      -8.7%     -11.4%
+============  ===============  ===============  ===============  ========  ========
+
+``metrics.json`` now holds ``edge_classes`` (:func:`torchconn.frames.metrics.edge_class_breakdown`:
+edges touching a feature vertex, other boundary-surface edges, other edges touching the
+boundary ("layer"), edges touching a singular-face vertex, 2 rings further, the rest). Gear
+(51626 edges), mean angle per class for sh_baseline -> connection, with the share of the sum:
+feature 7585 edges 6.17 -> 5.70 deg (21% of the sum), boundary surface 5848 2.55 -> 2.27 (7%),
+layer 9737 5.00 -> 5.53 (27%), singular 1353/1364 11.10 -> 11.15 (8%), near singular
+10533/10840 4.12 -> 3.74 (20%), interior 16570/16252 3.45 -> 2.23 (18%). The connection's
+gain is in the interior and near the singular curves; the layer gets *worse* (total variation moves rotation into the layer next to
+the boundary); the feature and surface classes (26% of the edges, 28% of the sum) are forced by
+the geometry. Sphere and bunny alike (sphere: layer 17.3 -> 20.2, near singular 5.6 -> 2.8;
+bunny: layer 11.5 -> 12.8, interior 3.2 -> 2.2); on the fandisk the layer improves too (3.36 ->
+2.79, interior 2.32 -> 2.16, boundary surface 2.09 -> 1.97).
+
+Bounds and ideas measured for the -15% target (commands reproduce the figures;
+:mod:`torchconn.frames.studies` holds the study code):
+
+* The gear is an extrusion: every field above has an axis on ``z`` (mean deviation 0.01 deg),
+  so a frame is an in-plane angle and, with the period jumps (the singular structure) frozen,
+  the minimum of "mean edge angle + lam * feature-alignment mean" over fields with an axis on
+  ``z`` and exact side-wall alignment (alignment max 0.49 deg from the few near-vertical
+  normals) is a linear program
+  (``python -m torchconn.frames.studies planar_lp OUT/gear/connection/frames.npz --mesh
+  78322_gear.2.mesh --lam L``). Its exact optimum for the connection's structure: lam=1: 3.892
+  deg (feature 4.897); lam=0.5: 3.845 (4.963); lam=0.3: 3.820 (5.024, over the 5 deg target);
+  lam=0: 3.717 (6.30). From the structures of sh_linear (207 faces) and sh_baseline (152):
+  3.889 and 3.894 at lam=1 (sh_baseline's at lam=0.5: 3.845, as from the connection's). So with feature alignment <= 5 deg no field with these singular
+  structures has a mean below ~3.84 (-12.2% vs 4.377); -15% (3.72) needs giving up feature
+  alignment entirely (6.3 deg). The connection run sits ~0.05 deg above this frontier
+  (``weights.feature`` 1 / 0.5 / 0.3: 3.920 / 3.881 / 3.860 deg with feature 4.93 / 5.01 / 5.09;
+  ``steps=800 weights.flat=0 weights.torsion=0``: 3.88, 151 faces, ~44 s).
+* (a) MBO diffusion-projection (Palmer, Bommes & Solomon 2020) as a refinement of the
+  projected SH field before Ray's smoothing, ``sh.mbo_steps=20`` (tau 4 -> 0.05): sphere SH
+  11.56 deg (250 faces), then connection 10.90 (-8.1% vs 11.86, but 249 > 245 faces); gear SH
+  4.369 (149), connection 3.918 (148), +18-28 s of initialization. MBO alone without the
+  smoothing: sphere 12.0-12.4, gear 4.33-4.34 for tau schedules 0.5-50 -> 0.02-0.5, 10-40
+  rounds. Off by default: the connection then no longer starts from Ray's baseline (a
+  different, smoother initialization), it adds singular faces on the sphere and nothing on
+  the gear.
+* (b) Frames only with the edge matchings frozen per round (Adam on the smoothed angle, 3
+  rounds of 200 steps, re-matched between rounds; ``python -m torchconn.frames.studies
+  fixmatch FRAMES.npz --mesh M``): sphere from SH or from the connection 10.92 deg but 258
+  singular faces (> 245); 6 rounds of 500 steps 10.89 (254); gear from the connection 3.899
+  (151 faces, feature 4.90) -- the LP bound above says that is essentially optimal.
+* (c) A constant interior: one rotation at every interior vertex, snapped to the normal on the
+  boundary (``python -m torchconn.frames.studies constint --mesh sphere_r0.17.mesh --out
+  c.npy``; best of 16 rotations): sphere 10.65 deg, 244 faces; then ``init_frames=c.npy``
+  (connection): 10.60 deg (-10.6%), 244 faces -- better than anything starting from the SH
+  field, but degenerate (boundary-layer edges 31 deg mean, interior ~0.3; the singular curves
+  hug the boundary) and it does not start from the SH baseline. On the gear it gives 10.5 deg
+  and 3175 singular faces. The mean edge angle rewards concentrating the rotation in the
+  boundary layer; the total-variation loss already drifts that way.
+* (c) ``smooth_eps`` 1e-4 / 1e-2: gear 3.92 / 3.94; ``lr`` 0.05 / 0.01 with 400 steps (no
+  flat/torsion): 3.88 / 3.90.
+
+Judgment: against the smoothed SH baseline, -15% on the gear is not reachable with exact
+boundary alignment and feature alignment <= 5 deg for the singular structures any of these
+methods produce (LP bound -12.2%); on the sphere the best field found (-10.6%) is degenerate.
+Against the linear-only baseline the connection method is at -37.7% / -22.3% (sphere, bunny)
+and -11.6% / -11.4% (gear, fandisk).
 4. Invariants: the differential (and algebraic) Bianchi residuals of the optimized connection
    (:func:`torchconn.bianchi.check`, error above tolerance) and the count of tets with exactly
    one singular face; both in ``metrics.json``.
@@ -92,7 +168,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import bianchi, io as tio, octahedral, so3
 from torchconn.connection import ConnectionField
-from torchconn.frames.metrics import METRIC_KEYS, frame_metrics
+from torchconn.frames.metrics import METRIC_KEYS, edge_class_breakdown, frame_metrics
 from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_tree
 from torchconn.frames.sh import sh_frame_field
 from torchconn.losses import TERMS, FrameFieldLoss
@@ -176,6 +252,23 @@ def _load_mesh(cfg, dtype, device):
     if mesh.boundary_faces.shape[0] == 0:
         raise MeshError(f"mesh {name!r} has no boundary faces; a frame field needs a boundary to align to")
     return mesh.to(device=device, dtype=dtype)
+
+
+def _load_init_frames(path: str, mesh) -> torch.Tensor:
+    """Frames ``(V, 3, 3)`` from a ``.npz`` (key ``frames``) or ``.npy``; checked against the mesh."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise FileNotFoundError(f"init_frames {path!r}: no such file")
+    data = np.load(p)
+    F = data["frames"] if isinstance(data, np.lib.npyio.NpzFile) else data
+    V = mesh.n_vertices
+    if F.shape != (V, 3, 3):
+        raise ValueError(f"init_frames {path!r} has shape {F.shape}, expected ({V}, 3, 3) for this mesh")
+    F = torch.as_tensor(np.asarray(F, dtype=np.float64)).to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
+    err = float((F.transpose(-1, -2) @ F - torch.eye(3, dtype=F.dtype, device=F.device)).abs().max())
+    if not err < 1e-4 or not bool((torch.linalg.det(F) > 0).all()):
+        raise ValueError(f"init_frames {path!r} are not rotations (max |F^T F - I| = {err:.2e} or det <= 0)")
+    return so3.project_to_rotation(F)
 
 
 # ----------------------------------------------------------------------------- model
@@ -396,10 +489,15 @@ def train(cfg) -> dict:
     if ckpt is not None:
         F0 = ckpt["init_frames"].to(device=device, dtype=dtype)
         init_metrics = ckpt["init_metrics"]
+    elif cfg.init_frames is not None:
+        F0 = _load_init_frames(str(cfg.init_frames), mesh)
+        init_metrics = frame_metrics(F0, mesh, cfg.feature_angle_deg)
     else:
         F0 = sh_frame_field(mesh, boundary_weight=float(cfg.sh.boundary_weight),
                             n_smooth_iters=int(cfg.sh.n_smooth_iters),
-                            feature_angle_deg=float(cfg.feature_angle_deg))
+                            feature_angle_deg=float(cfg.feature_angle_deg),
+                            mbo_steps=int(cfg.sh.mbo_steps),
+                            mbo_tau=(float(cfg.sh.mbo_tau_start), float(cfg.sh.mbo_tau_end)))
         init_metrics = frame_metrics(F0, mesh, cfg.feature_angle_deg)
     t_init = time.perf_counter() - t0
 
@@ -505,6 +603,7 @@ def train(cfg) -> dict:
         "formulation": cfg.formulation if cfg.method == "connection" else None,
         "final": final_metrics,
         "init": init_metrics,
+        "edge_classes": edge_class_breakdown(F.detach(), mesh, cfg.feature_angle_deg),
         "final_loss_terms": final_terms,
         "loss_history": history,
         "invariants": {

@@ -15,6 +15,10 @@ coordinates):
   mesh has no feature vertex).
 * **singularities**: number of faces with non-identity matched holonomy and number of tets with
   exactly one such face (:mod:`torchconn.octahedral`).
+
+Diagnostics (not part of the fixed metrics): :func:`edge_class_breakdown` splits the mean edge
+angle by where the edge lies (feature, boundary surface, boundary layer, near singular faces,
+interior).
 """
 from __future__ import annotations
 
@@ -24,7 +28,8 @@ import torch
 
 from .. import octahedral, so3
 
-__all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS"]
+__all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
+           "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
 
 METRIC_KEYS = (
     "smoothness_mean_deg",
@@ -169,3 +174,83 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
         "n_singular_faces": int(mask.sum()),
         "n_tets_one_singular_face": int(one.sum()),
     }
+
+
+EDGE_CLASSES = ("feature", "boundary_surface", "boundary_layer", "singular", "near_singular", "interior")
+
+
+def edge_angles_deg(frames: torch.Tensor, mesh) -> torch.Tensor:
+    """``(E,)`` angle in degrees of ``(F_i g*)^T F_j`` per mesh edge (the smoothness metric's terms)."""
+    Fi, Fj = frames[mesh.edges[:, 0]], frames[mesh.edges[:, 1]]
+    _, g = octahedral.match(Fi, Fj)
+    return so3.geodesic_distance(Fi @ g, Fj) * (180.0 / math.pi)
+
+
+def edge_class_breakdown(frames: torch.Tensor, mesh, angle_deg: float = 30.0, near_rings: int = 2) -> dict:
+    """Where the mean edge angle sits: edges split into disjoint classes, first match wins.
+
+    Classes (:data:`EDGE_CLASSES`), in priority order:
+
+    * ``feature``: an endpoint is a feature vertex;
+    * ``boundary_surface``: an edge of a boundary face;
+    * ``boundary_layer``: another edge with an endpoint on the boundary;
+    * ``singular``: an endpoint is a vertex of a singular face (matched holonomy ``!= I``);
+    * ``near_singular``: an endpoint within ``near_rings`` edge rings of such a vertex;
+    * ``interior``: the rest.
+
+    Returns:
+        ``{class: {"count", "fraction", "mean_deg", "share"}}`` with ``share`` the class's
+        fraction of the summed angle (so ``sum_c fraction_c * mean_c`` is the smoothness mean
+        and the shares add up to 1); ``mean_deg`` is ``nan`` for an empty class.
+    """
+    _require(mesh, "vertices", "edges", "faces", "boundary_faces", "boundary_vertices")
+    V = mesh.vertices.shape[0]
+    if not torch.is_tensor(frames) or frames.shape != (V, 3, 3):
+        raise ValueError(f"frames must have shape (V, 3, 3) = ({V}, 3, 3) for this mesh")
+    if near_rings < 0:
+        raise ValueError(f"near_rings must be >= 0, got {near_rings}")
+    frames = frames.to(mesh.vertices.dtype)
+    e = mesh.edges
+    ang = edge_angles_deg(frames, mesh)
+    dev = e.device
+    is_feat = torch.zeros(V, dtype=torch.bool, device=dev)
+    is_feat[feature_vertices(mesh, angle_deg)] = True
+    on_b = torch.zeros(V, dtype=torch.bool, device=dev)
+    on_b[mesh.boundary_vertices] = True
+    # boundary-face edges by sorted key lookup
+    bf = mesh.boundary_faces
+    be = torch.cat([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]]).sort(dim=1).values
+    bkey = torch.unique(be[:, 0] * V + be[:, 1])
+    ekey = e[:, 0] * V + e[:, 1]  # mesh.edges rows are i < j
+    pos = torch.searchsorted(bkey, ekey).clamp(max=max(bkey.numel() - 1, 0))
+    on_surface = (bkey[pos] == ekey) if bkey.numel() else torch.zeros_like(ekey, dtype=torch.bool)
+    mask, _ = octahedral.singular_faces(frames, mesh)
+    near = torch.zeros(V, dtype=torch.bool, device=dev)
+    near[mesh.faces[mask].reshape(-1)] = True
+    sing_v = near.clone()
+    for _ in range(near_rings):
+        hit = near[e[:, 0]] | near[e[:, 1]]
+        near = near.index_fill(0, e[hit].reshape(-1), True)
+    tests = [
+        is_feat[e[:, 0]] | is_feat[e[:, 1]],
+        on_surface,
+        on_b[e[:, 0]] | on_b[e[:, 1]],
+        sing_v[e[:, 0]] | sing_v[e[:, 1]],
+        near[e[:, 0]] | near[e[:, 1]],
+        torch.ones_like(on_surface),
+    ]
+    taken = torch.zeros_like(on_surface)
+    total = float(ang.sum())
+    E = max(int(e.shape[0]), 1)
+    out = {}
+    for name, t in zip(EDGE_CLASSES, tests):
+        m = t & ~taken
+        taken |= m
+        a = ang[m]
+        out[name] = {
+            "count": int(m.sum()),
+            "fraction": int(m.sum()) / E,
+            "mean_deg": float(a.mean()) if a.numel() else float("nan"),
+            "share": float(a.sum()) / total if total > 0 else 0.0,
+        }
+    return out
