@@ -126,9 +126,13 @@ Bounds and ideas measured for the -15% target (commands reproduce the figures;
   c.npy``; best of 16 rotations): sphere 10.65 deg, 244 faces; then ``init_frames=c.npy``
   (connection): 10.60 deg (-10.6%), 244 faces -- better than anything starting from the SH
   field, but degenerate (boundary-layer edges 31 deg mean, interior ~0.3; the singular curves
-  hug the boundary) and it does not start from the SH baseline. On the gear it gives 10.5 deg
-  and 3175 singular faces. The mean edge angle rewards concentrating the rotation in the
-  boundary layer; the total-variation loss already drifts that way.
+  hug the boundary) and it does not start from the SH baseline. On the gear (``R = I`` wins):
+  3.708 deg (-15.3%), 113 singular faces, exact alignment -- but feature alignment 15.9 deg;
+  the connection from it ends at 3.879 with feature 6.51 and 230 faces, and the LP for its
+  structure at 3.809 with feature 6.40 (lam=1): that structure cannot carry the features.
+  (Snapping the feature vertices too: 10.5 deg, 3175 faces.) The mean edge angle rewards
+  concentrating the rotation in the boundary layer and giving up feature alignment; the
+  total-variation loss already drifts that way.
 * (c) ``smooth_eps`` 1e-4 / 1e-2: gear 3.92 / 3.94; ``lr`` 0.05 / 0.01 with 400 steps (no
   flat/torsion): 3.88 / 3.90.
 
