@@ -20,7 +20,8 @@ from training.train_frames import NonFiniteLossError, load_config, train
 
 ROOT = Path(__file__).resolve().parents[1]
 # a tiny generated mesh with singular curves and sharp rims (about 180 vertices)
-TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1}
+TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1,
+        "polish": {"steps": 40, "check_every": 20}}
 OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "singular_faces.vtu", "loss.png", "singularities.png",
            "checkpoint.pt")
 
@@ -73,6 +74,13 @@ def test_loss_decreases_and_field_improves(tmp_path):
     m = train(_cfg(tmp_path, steps=25))
     h = m["loss_history"]
     assert h["total"][-1] < h["total"][0]
+    # the guarded polish never returns a field worse than the optimized one, nor more singular
+    # faces than the SH initialization
+    p = m["polish"]
+    assert [c[0] for c in p["checks"]] == [0, 20, 40]
+    assert m["final"]["smoothness_mean_deg"] <= p["checks"][0][1] + 1e-12
+    assert m["final"]["n_singular_faces"] <= m["init"]["n_singular_faces"]
+    assert m["invariants"]["bianchi_ok"]
     assert h["feature"][-1] < h["feature"][0]  # the rims follow their face normals better
     f, i = m["final"], m["init"]
     assert f["smoothness_mean_deg"] < i["smoothness_mean_deg"]
