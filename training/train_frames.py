@@ -145,7 +145,10 @@ Bounds and ideas measured for the -15% target (commands reproduce the figures;
   (what the polish of step 4 runs, unguarded, 600 steps): sphere 10.886 (254 faces), gear
   3.898 (148), bunny 6.987 (1698 > 1654; 7.388 with exactly 1654 at step 20 when checked every
   10 steps), fandisk 2.705 (322). With frozen matchings per round (``fixmatch``): fandisk 2.713
-  (325), bunny 7.209 (1710).
+  (325), bunny 7.209 (1710). On the sphere the gain and the new singular faces come together:
+  lr 0.002 / 0.0005 give 11.05 (251) / 11.13 (247) already at step 50; adding ``beta *
+  mean angle^2`` to the polish objective (beta 0.5 / 2 / 5) keeps 247 / 242 / 242 faces but
+  ends at 11.16 / 11.42 / 11.63 deg.
 
 Judgment: against the smoothed SH baseline, -15% on the gear is not reachable with exact
 boundary alignment and feature alignment <= 5 deg for the singular structures any of these
