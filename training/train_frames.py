@@ -140,7 +140,6 @@ Bounds and ideas measured for the -15% target (commands reproduce the figures;
   total-variation loss already drifts that way.
 * (c) ``smooth_eps`` 1e-4 / 1e-2: gear 3.92 / 3.94; ``lr`` 0.05 / 0.01 with 400 steps (no
   flat/torsion): 3.88 / 3.90.
-
 * Frames-only descent of the metric with re-matching at every step from the connection result
   (what the polish of step 4 runs, unguarded, 600 steps): sphere 10.886 (254 faces), gear
   3.898 (148), bunny 6.987 (1698 > 1654; 7.388 with exactly 1654 at step 20 when checked every
@@ -156,6 +155,7 @@ methods produce (LP bound -12.2%); on the sphere the best field found (-10.6%) i
 and on the sphere and the bunny every further decrease of the metric found adds singular faces.
 Against the linear-only baseline the method (with the polish) is at -37.7% / -22.3% (sphere,
 bunny) and -12.1% / -13.7% (gear, fandisk).
+
 4. Polish (``polish.steps``, default 600; :mod:`torchconn.frames.polish`): Adam on the frames
    alone (about the normal at non-feature boundary vertices) with the smoothness metric's own
    smoothed edge angle, matchings re-chosen every step, plus ``weights.feature`` times the
@@ -164,7 +164,7 @@ bunny) and -12.1% / -13.7% (gear, fandisk).
    with one singular face is kept. The returned connection is then the matched connection of
    the polished frames (``F_i R_ij = F_j h_ij`` exactly). Measured (``metrics.json`` ``polish``):
    gear 3.920 -> 3.898 deg (150 faces, feature 4.897, +11 s), fandisk 2.779 -> 2.705 (322
-   faces, +14 s); on the sphere (255 faces at step 50 > 245) and the bunny (1686 > 1654) the
+   faces, +14 s); on the sphere (257 faces at step 50 > 245) and the bunny (1694 > 1654) the
    guard keeps the unpolished field. The RMS angle grows (gear 6.71 -> 7.49, fandisk 5.53 ->
    5.88): the L1 metric concentrates rotation.
 5. Invariants: the differential (and algebraic) Bianchi residuals of the optimized connection
