@@ -91,3 +91,23 @@ def test_torch_compile_traces_the_torch_path():
 
     compiled = torch.compile(f, backend="eager", fullgraph=False)
     assert abs(float(compiled(w, phi)) - float(f(w, phi))) <= 1e-12
+
+
+def test_declared_signature_rejects_wrong_calls():
+    """argtypes make a caller that disagrees with the C signature fail in Python, not in C."""
+    import ctypes
+
+    if native.library("so3") is None:
+        pytest.skip("no C compiler on this machine")
+    fn = native.function("so3", "so3_exp_fwd_f64", [ctypes.c_void_p] * 2 + [ctypes.c_long, ctypes.c_int, ctypes.c_double])
+    x = torch.zeros(1, 3, dtype=torch.float64)
+    with pytest.raises(TypeError):
+        fn(native.ptr(x), ctypes.c_long(1), ctypes.c_int(1), ctypes.c_double(1e-4))  # one pointer missing
+    with pytest.raises(ctypes.ArgumentError):
+        fn(native.ptr(x), 1.5, ctypes.c_long(1), ctypes.c_int(1), ctypes.c_double(1e-4))  # a float for a pointer
+    out = torch.empty(1, 9, dtype=torch.float64)
+    fn(native.ptr(x), native.ptr(out), 1, 1, 1e-4)
+    assert torch.equal(out.reshape(3, 3), torch.eye(3, dtype=torch.float64))
+    with pytest.raises(RuntimeError, match="not available"):
+        native._LIBS["nothing"] = None
+        native.function("nothing", "f", [])

@@ -83,8 +83,8 @@ def _c_call(name: str, out_shape, *inputs: torch.Tensor) -> torch.Tensor:
     out = torch.empty(out_shape, dtype=x.dtype)
     n = out_shape[0]
     if n:
-        lib = _native.library("so3")
-        fn = getattr(lib, f"so3_{name}_{'f32' if x.dtype == torch.float32 else 'f64'}")
+        fn = _native.function("so3", f"so3_{name}_{'f32' if x.dtype == torch.float32 else 'f64'}",
+                              [ctypes.c_void_p] * (len(inputs) + 1) + [ctypes.c_long, ctypes.c_int, ctypes.c_double])
         ts = [t.contiguous() for t in inputs]  # kept alive until the call returns
         fn(*(_native.ptr(t) for t in ts), _native.ptr(out), ctypes.c_long(n),
            ctypes.c_int(torch.get_num_threads()), ctypes.c_double(get_eps("small_angle", x.dtype)))

@@ -214,7 +214,6 @@ def _native_frame_loss(loss, edge_rot: torch.Tensor, frames: torch.Tensor, flags
     """Run ``csrc/frame_loss.c``: ``(sums (5,) float64, gR (E,3,3) | None, gF (V,3,3) | None)``."""
     import ctypes
 
-    lib = native.library("frame_loss")
     dt = edge_rot.dtype
     E, V, F = edge_rot.shape[0], frames.shape[0], loss.mesh.faces.shape[0]
     nt = max(1, torch.get_num_threads())
@@ -225,8 +224,9 @@ def _native_frame_loss(loss, edge_rot: torch.Tensor, frames: torch.Tensor, flags
     w64 = torch.tensor([float(x) for x in wts] + [0.0] * (4 - len(wts)), dtype=torch.float64)
     gR = edge_rot.new_empty(E, 3, 3) if grad else None
     gF = frames.new_empty(V, 3, 3) if grad else None
-    fn = lib.frame_loss_f64 if dt == torch.float64 else lib.frame_loss_f32
-    fn.restype = ctypes.c_int
+    vp, long_, int_, dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_double
+    fn = native.function("frame_loss", "frame_loss_f64" if dt == torch.float64 else "frame_loss_f32",
+                         [long_, long_, long_, int_] + [vp] * 7 + [int_, dbl, dbl] + [vp] * 8, ctypes.c_int)
     P, nul = native.ptr, ctypes.c_void_p(None)
     status = fn(ctypes.c_long(E), ctypes.c_long(V), ctypes.c_long(F), ctypes.c_int(nt),
        P(edge_rot), P(frames), P(buf["edges"]), P(buf["fidx"]), P(buf["vec"]), P(buf["area"]), P(buf["group"]),

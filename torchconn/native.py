@@ -37,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["library", "available", "enabled", "ptr", "CSRC"]
+__all__ = ["library", "available", "enabled", "function", "ptr", "CSRC"]
 
 #: Folder of the C sources.
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -137,6 +137,21 @@ def available(name: str, *tensors: torch.Tensor) -> bool:
     if any(t.device.type != "cpu" or t.dtype != dt for t in tensors):
         return False
     return library(name) is not None
+
+
+def function(name: str, symbol: str, argtypes: list, restype=None):
+    """The C function ``symbol`` of ``csrc/<name>.c`` with its signature declared.
+
+    With ``argtypes`` set, ctypes checks the number and kinds of the arguments of every call, so
+    a caller that disagrees with the C signature raises ``ctypes.ArgumentError`` instead of
+    passing garbage (or crashing). The library must be available (see :func:`library`).
+    """
+    lib = library(name)
+    if lib is None:
+        raise RuntimeError(f"torchconn.native: csrc/{name}.c is not available (see the warning above)")
+    fn = getattr(lib, symbol)
+    fn.argtypes, fn.restype = argtypes, restype
+    return fn
 
 
 def ptr(t: torch.Tensor) -> ctypes.c_void_p:
