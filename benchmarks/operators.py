@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 
 from torchconn import io
-from torchconn.connection import Connection, ConnectionField
-from torchconn.modules import AveragedCovariantD, Curvature
+from torchconn.dec.connection import Connection, ConnectionField
+from torchconn.nn import AveragedCovariantD, Curvature
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

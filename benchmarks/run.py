@@ -23,7 +23,7 @@ Cases
    ``Σ‖Ω_f‖² + Σ‖d∇d∇θ̃_t‖²``, backward to the params. Reference: the generic path (dense
    per-tet tables ``dnabla.tet_transports`` / ``tet_solder_sqrt`` / ``averaged_dd_tet``, loop
    curvature ``orient`` + ``curvature.two_prong``, matrix-route ``exp`` / ``sqrt``).
-3. The frame-field loss (:class:`torchconn.losses.FrameFieldLoss`, every term weight 1) at the
+3. The frame-field loss (:class:`torchconn.frames.loss.FrameFieldLoss`, every term weight 1) at the
    same sizes, forward+backward to connection params and per-vertex frame params, against an
    eager composition of the same terms kept here (:func:`_ref_frame_loss`, generic curvature
    and torsion). Reported as "not measured" if ``torchconn.losses`` lacks ``FrameFieldLoss``.
@@ -69,9 +69,10 @@ from pathlib import Path
 
 import torch
 
-from torchconn import curvature, dnabla, fast, io, so3
+from torchconn import curvature, dnabla, io, so3
+from torchconn.ops import fast
 from torchconn import torsion as _torsion
-from torchconn.transport import orient
+from torchconn.dec.transport import orient
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -394,7 +395,7 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
 
 def _ref_frame_loss(loss, edge_rot, frames):
     """Eager composition of the terms of ``FrameFieldLoss`` (generic curvature and torsion)."""
-    from torchconn import losses as L
+    from torchconn.frames import loss as L
 
     mesh, w = loss.mesh, loss.weights
     out = {}
@@ -422,7 +423,7 @@ def _ref_frame_loss(loss, edge_rot, frames):
 def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
     dname = str(dtype).replace("torch.", "")
     try:
-        from torchconn.losses import TERMS, FrameFieldLoss
+        from torchconn.frames.loss import TERMS, FrameFieldLoss
     except ImportError as exc:
         rows.append(_row("frame_field_loss", tets, dname, None, None, None, note=f"not measured: {exc}"))
         return

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchconn import so3, son
-from torchconn.connection import Connection, ConnectionField
-from torchconn.smooth import ReportConnection
+from torchconn.dec.connection import Connection, ConnectionField
+from torchconn.dec.smooth import ReportConnection
 from torchconn.tolerances import get_eps
 
 F64 = torch.float64

@@ -11,9 +11,9 @@ import math
 import pytest
 import torch
 
-from torchconn import experiments as E
+from training import experiments as E
 from torchconn import so3
-from torchconn.smooth import ReportConnection, SmoothConnection, evaluate_2form
+from torchconn.dec.smooth import ReportConnection, SmoothConnection, evaluate_2form
 
 CONVERGING = [q for q in E.QUANTITIES if E.CLAIMS[q]]
 NOT_CONVERGING = [q for q in E.QUANTITIES if not E.CLAIMS[q]]

@@ -227,7 +227,7 @@ def test_face_curvature_tet_mesh_matches_slow_loop(gen):
 
 def test_face_curvature_accepts_connection(gen):
     from torchconn import io
-    from torchconn.connection import Connection
+    from torchconn.dec.connection import Connection
 
     mesh = io.box(n=1)
     conn = Connection.random(mesh.edges, mesh.n_vertices, generator=gen, dtype=torch.float64)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from torchconn import experiments as E
+from training import experiments as E
 
 REPO = Path(__file__).resolve().parents[1]
 

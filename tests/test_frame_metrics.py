@@ -172,7 +172,7 @@ def test_metrics_bad_input():
 
 def _slow_edge_classes(frames, m, near_rings=2):
     """Per-edge loop reference of edge_class_breakdown (same priority order)."""
-    from torchconn import octahedral
+    from torchconn.frames import octahedral
 
     F = frames.numpy()
     group = _cube_group()

@@ -1,4 +1,4 @@
-"""torchconn.frames.studies: the diagnostic studies of the smoothness metric on small meshes."""
+"""studies.frame_studies: the diagnostic studies of the smoothness metric on small meshes."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import torch
 
 from torchconn import io, so3
 from torchconn.frames import frame_metrics
-from torchconn.frames import studies
+from studies import frame_studies as studies
 
 
 def _about_z(theta):

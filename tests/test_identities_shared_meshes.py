@@ -11,7 +11,7 @@ import torch
 
 from conftest import TET_MESHES, data_path
 from torchconn import bianchi, chains, curvature, dnabla, io, so3, torsion
-from torchconn.transport import orient
+from torchconn.dec.transport import orient
 
 F64 = torch.float64
 TOL = 1e-12

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-import torchconn.io as tio
-from torchconn.io import (ball, box, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh,
+import torchconn.mesh.io as tio
+from torchconn.mesh.io import (ball, box, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh,
                           tetrahedralize, torus)
 from torchconn.mesh import MeshError, TetMesh
 

@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from torchconn import io as tio
-from torchconn import octahedral, so3
+from torchconn import so3
+from torchconn.frames import octahedral
 from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_tree
-from torchconn.losses import (
+from torchconn.frames.loss import (
     TERMS,
     FrameFieldLoss,
     axis_angle_loss,

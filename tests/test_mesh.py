@@ -10,9 +10,9 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from torchconn.io import ball, box, load_tet_mesh, torus
+from torchconn.mesh.io import ball, box, load_tet_mesh, torus
 from torchconn.mesh import CellComplex, MeshError, TetMesh, tet_mesh_as_cell_complex
-from torchconn.transport import pair_list
+from torchconn.dec.transport import pair_list
 
 from conftest import data_path
 

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from torchconn import curvature, dnabla, io, so3, torsion
-from torchconn.bianchi import BianchiError
-from torchconn.connection import Connection, ConnectionField
-from torchconn.modules import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, MeshBuffers, Torsion
+from torchconn.dec.bianchi import BianchiError
+from torchconn.dec.connection import Connection, ConnectionField
+from torchconn.nn import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, MeshBuffers, Torsion
 
 
 @pytest.fixture(scope="module")

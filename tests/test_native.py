@@ -4,7 +4,7 @@ import warnings
 import pytest
 import torch
 
-from torchconn import native
+from torchconn.ops import native
 
 
 @pytest.fixture
@@ -77,7 +77,7 @@ def test_available_checks_device_and_dtype():
 def test_torch_compile_traces_the_torch_path():
     """Under torch.compile (fake tensors, no data pointers) the callers record their torch code."""
     from torchconn import so3
-    from torchconn.losses import FrameFieldLoss
+    from torchconn.frames.loss import FrameFieldLoss
     from torchconn import io
 
     mesh = io.box(1)

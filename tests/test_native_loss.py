@@ -10,8 +10,10 @@ fallback and errors.
 import pytest
 import torch
 
-from torchconn import io, native, octahedral, so3
-from torchconn.losses import FrameFieldLoss, TERMS, _NATIVE_TERMS, _native_frame_loss
+from torchconn import io, so3
+from torchconn.ops import native
+from torchconn.frames import octahedral
+from torchconn.frames.loss import FrameFieldLoss, TERMS, _NATIVE_TERMS, _native_frame_loss
 from torchconn.tolerances import get_eps
 
 from conftest import data_path

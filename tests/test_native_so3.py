@@ -13,7 +13,9 @@ import pytest
 import torch
 from torch.autograd import gradcheck, gradgradcheck
 
-from torchconn import fast, native, so3
+from torchconn import so3
+from torchconn.ops import fast
+from torchconn.ops import native
 from torchconn.tolerances import get_eps
 
 DTYPES = [torch.float32, torch.float64]

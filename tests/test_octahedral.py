@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import octahedral, so3
+from torchconn import so3
+from torchconn.frames import octahedral
 
 
 def test_group_is_the_cube_rotation_group():

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from conftest import data_path
-from torchconn import io, octahedral, so3
+from torchconn import io, so3
+from torchconn.frames import octahedral
 from torchconn.frames import frame_metrics
 from torchconn.frames import sh
 

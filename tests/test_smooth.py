@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchconn import so3, son
-from torchconn.smooth import (
+from torchconn.dec.smooth import (
     FunctionConnection,
     ReportConnection,
     SmoothConnection,
@@ -324,7 +324,7 @@ def test_errors(gen):
 
 def test_path_ordered_chunking_matches(gen, monkeypatch):
     """Chunked evaluation of the sub-steps (large batches) gives the same product."""
-    import torchconn.smooth as sm
+    import torchconn.dec.smooth as sm
 
     conn = CONNECTIONS["nonlinear"]
     a, b = _random_segments(gen, 3)

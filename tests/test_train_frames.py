@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import losses
+from torchconn.frames import loss as losses
 from torchconn.frames.metrics import METRIC_KEYS
 from torchconn.mesh import MeshError
 from training import io_utils

@@ -1,43 +1,38 @@
 """torchconn: discrete connections on cell complexes in PyTorch.
 
-Functional core (``so3``, ``son``, ``transport``, ``curvature``, ``chains``, ``torsion``,
-``dnabla``, ``bianchi``), cell complexes built once (``mesh``, ``io``), connections
-(``connection``, ``smooth``), thin ``nn.Module`` wrappers (``modules``) and the frame-field
-application (``octahedral``, ``frames``, ``losses``). See README.md and docs/architecture.md.
+Layers, each importing only the ones above it:
+
+* :mod:`torchconn.tolerances` -- the one per-dtype registry of thresholds and tolerances;
+* :mod:`torchconn.ops` -- kernels (compiled C and fused torch) and the choice between them;
+* :mod:`torchconn.lie` -- ``so3`` and ``son``;
+* :mod:`torchconn.mesh` -- ``TetMesh``, ``CellComplex``, I/O and built-in meshes;
+* :mod:`torchconn.dec` -- the report: transport, connection, smooth, curvature, chains, torsion,
+  dnabla, bianchi;
+* :mod:`torchconn.nn` -- ``nn.Module`` wrappers;
+* :mod:`torchconn.frames` -- the application: octahedral frame fields on tet meshes.
+
+The report's modules are also reachable from the top level (``torchconn.so3``,
+``torchconn.curvature``, ...). See README.md and docs/architecture.md.
 """
-from . import (
-    bianchi,
-    chains,
-    connection,
-    curvature,
-    dnabla,
-    frames,
-    io,
-    losses,
-    mesh,
-    modules,
-    octahedral,
-    smooth,
-    so3,
-    son,
-    tolerances,
-    torsion,
-    transport,
+from . import dec, frames, lie, mesh, nn, ops, tolerances
+from .dec import bianchi, chains, connection, curvature, dnabla, smooth, torsion, transport
+from .dec.bianchi import BianchiError
+from .dec.connection import Connection, ConnectionField
+from .dec.smooth import FunctionConnection, ReportConnection, SmoothConnection, evaluate_2form, unit_normal
+from .lie import so3, son
+from .mesh import (
+    CellComplex, FaceGroup, MeshError, TetMesh, ball, box, cylinder, io, load_mesh, load_polygon_surface, load_surface,
+    load_tet_mesh, tet_mesh_as_cell_complex, tetrahedralize, torus,
 )
-from .bianchi import BianchiError
-from .connection import Connection, ConnectionField
-from .io import ball, box, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh, tetrahedralize, torus
-from .mesh import CellComplex, FaceGroup, MeshError, TetMesh, tet_mesh_as_cell_complex
-from .modules import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, Torsion
-from .smooth import FunctionConnection, ReportConnection, SmoothConnection, evaluate_2form, unit_normal
+from .nn import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, Torsion
 from .tolerances import get_eps
 
 __version__ = "0.1.0"
 
 __all__ = [
     # submodules
-    "bianchi", "chains", "connection", "curvature", "dnabla", "frames", "io", "losses", "mesh", "modules",
-    "octahedral", "smooth", "so3", "son", "tolerances", "torsion", "transport",
+    "lie", "mesh", "ops", "dec", "nn", "frames", "tolerances",
+    "so3", "son", "io", "transport", "connection", "smooth", "curvature", "chains", "torsion", "dnabla", "bianchi",
     # meshes
     "TetMesh", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",

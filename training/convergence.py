@@ -36,8 +36,8 @@ from pathlib import Path
 
 import torch
 
-from torchconn import experiments as E
-from training.io_utils import atomic_write, atomic_write_text, check_output_dir
+from . import experiments as E
+from .io_utils import atomic_write, atomic_write_text, check_output_dir
 
 __all__ = ["train", "main", "KNOWN_KEYS", "VARIANTS"]
 

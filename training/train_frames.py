@@ -28,7 +28,7 @@ Method (``method=connection``; details in :mod:`torchconn.losses`):
 
 3. Loss: ``smooth + tie + flat + torsion + align + feature`` (weights in the config;
    ``smooth`` and ``tie`` use ``rho = |x|^smooth_power``, default 1). ``align`` and ``feature``
-   take the form ``align_kind``: ``angle`` (default; :func:`torchconn.losses.axis_angle_loss`,
+   take the form ``align_kind``: ``angle`` (default; :func:`torchconn.frames.loss.axis_angle_loss`,
    the smoothed angle between a normal and the closest axis, i.e. what the alignment metrics
    average) or ``quartic`` (``1 - sum_k (F_k . n)^4``). At a feature vertex the incident face
    normals generally cannot all be matched by one frame (non-right dihedral angles, curved
@@ -97,14 +97,14 @@ bunny: layer 11.5 -> 12.8, interior 3.2 -> 2.2); on the fandisk the layer improv
 2.79, interior 2.32 -> 2.16, boundary surface 2.09 -> 1.97).
 
 Bounds and ideas measured for the -15% target (commands reproduce the figures;
-:mod:`torchconn.frames.studies` holds the study code):
+:mod:`studies.frame_studies` holds the study code):
 
 * The gear is an extrusion: every field above has an axis on ``z`` (mean deviation 0.01 deg),
   so a frame is an in-plane angle and, with the period jumps (the singular structure) frozen,
   the minimum of "mean edge angle + lam * feature-alignment mean" over fields with an axis on
   ``z`` and exact side-wall alignment (alignment max 0.49 deg from the few near-vertical
   normals) is a linear program
-  (``python -m torchconn.frames.studies planar_lp OUT/gear/connection/frames.npz --mesh
+  (``python -m studies.frame_studies planar_lp OUT/gear/connection/frames.npz --mesh
   78322_gear.2.mesh --lam L``). Its exact optimum for the connection's structure: lam=1: 3.892
   deg (feature 4.897); lam=0.5: 3.845 (4.963); lam=0.3: 3.820 (5.024, over the 5 deg target);
   lam=0: 3.717 (6.30). From the structures of sh_linear (207 faces) and sh_baseline (152):
@@ -122,12 +122,12 @@ Bounds and ideas measured for the -15% target (commands reproduce the figures;
   different, smoother initialization), it adds singular faces on the sphere and nothing on
   the gear.
 * (b) Frames only with the edge matchings frozen per round (Adam on the smoothed angle, 3
-  rounds of 200 steps, re-matched between rounds; ``python -m torchconn.frames.studies
+  rounds of 200 steps, re-matched between rounds; ``python -m studies.frame_studies
   fixmatch FRAMES.npz --mesh M``): sphere from SH or from the connection 10.92 deg but 258
   singular faces (> 245); 6 rounds of 500 steps 10.89 (254); gear from the connection 3.899
   (151 faces, feature 4.90) -- the LP bound above says that is essentially optimal.
 * (c) A constant interior: one rotation at every interior vertex, snapped to the normal on the
-  boundary (``python -m torchconn.frames.studies constint --mesh sphere_r0.17.mesh --out
+  boundary (``python -m studies.frame_studies constint --mesh sphere_r0.17.mesh --out
   c.npy``; best of 16 rotations): sphere 10.65 deg, 244 faces; then ``init_frames=c.npy``
   (connection): 10.60 deg (-10.6%), 244 faces -- better than anything starting from the SH
   field, but degenerate (boundary-layer edges 31 deg mean, interior ~0.3; the singular curves
@@ -196,13 +196,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchconn import bianchi, io as tio, octahedral, so3
-from torchconn.connection import ConnectionField
+from torchconn import bianchi, io as tio, so3
+from torchconn.frames import octahedral
+from torchconn.dec.connection import ConnectionField
 from torchconn.frames.metrics import METRIC_KEYS, edge_class_breakdown, frame_metrics
 from torchconn.frames.polish import polish_frames
 from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_tree
 from torchconn.frames.sh import sh_frame_field
-from torchconn.losses import TERMS, FrameFieldLoss
+from torchconn.frames.loss import TERMS, FrameFieldLoss
 from torchconn.mesh import MeshError
 
 from . import io_utils

@@ -26,7 +26,8 @@ import math
 
 import torch
 
-from .. import octahedral, so3
+from ..lie import so3
+from . import octahedral
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
            "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]

@@ -20,7 +20,8 @@ import math
 
 import torch
 
-from .. import octahedral, so3
+from ..lie import so3
+from . import octahedral
 from .metrics import frame_metrics
 
 __all__ = ["polish_frames"]
@@ -43,7 +44,7 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
         ``(frames, info)`` with ``info = {"accepted_step", "checks": [(step, smoothness_mean_deg,
         n_singular_faces, n_tets_one_singular_face), ...]}``.
     """
-    from ..losses import axis_angle_loss
+    from .loss import axis_angle_loss
     from .metrics import boundary_face_normals, feature_vertices
 
     if steps < 0 or check_every < 1 or not lr > 0:

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import connected_components, shortest_path
 
-from ..transport import orient
+from ..dec.transport import orient
 
 __all__ = ["TreeLevel", "SpanningTree", "spanning_tree", "propagate_frames", "comb_frames"]
 
@@ -230,7 +230,7 @@ def comb_frames(frames: torch.Tensor, tree: SpanningTree) -> torch.Tensor:
     Returns:
         ``(V, 3, 3)`` relabeled frames (no gradient through the discrete choice).
     """
-    from ..octahedral import match
+    from .octahedral import match
 
     if frames.dim() != 3 or frames.shape[1:] != (3, 3) or frames.shape[0] != tree.n_vertices:
         raise ValueError(f"frames must have shape ({tree.n_vertices}, 3, 3), got {tuple(frames.shape)}")

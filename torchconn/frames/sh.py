@@ -37,7 +37,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from .. import so3
+from ..lie import so3
 from .metrics import boundary_face_normals, feature_vertices
 
 __all__ = [

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .tolerances import get_eps
-from .transport import pair_list
+from ..tolerances import get_eps
+from ..dec.transport import pair_list
 
 __all__ = ["MeshError", "TetMesh", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex"]
 
@@ -441,8 +441,7 @@ class TetMesh:
         """Copy on ``device`` with float buffers in ``dtype`` (topology is not rebuilt)."""
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating torch dtype, got {dtype}")
-        new = object.__new__(TetMesh)
-        new.__dict__.update(self.__dict__)
+        new = self._fresh_copy()
         for name in self._INT_BUFFERS:
             setattr(new, name, getattr(self, name).to(device=device))
         for name in self._FLOAT_BUFFERS:
@@ -535,7 +534,7 @@ class FaceGroup:
         return FaceGroup(*(x.to(device=device) for x in (self.loops, self.loop_edges, self.loop_signs, self.face_ids)))
 
 
-class CellComplex:
+class CellComplex(_Derived):
     """Polygonal 2-complex (faces of any size), optionally with polyhedral 3-cells.
 
     Args:
@@ -696,8 +695,7 @@ class CellComplex:
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> "CellComplex":
         """Copy on ``device`` with ``vertices`` in ``dtype``."""
-        new = object.__new__(CellComplex)
-        new.__dict__.update(self.__dict__)
+        new = self._fresh_copy()
         new.vertices = self.vertices.to(device=device, dtype=dtype)
         for name in ("edges", "edge_face_count", "face_sizes", "cell_faces", "cell_face_signs", "cell_offsets"):
             setattr(new, name, getattr(self, name).to(device=device))

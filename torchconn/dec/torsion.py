@@ -22,8 +22,8 @@ from typing import Any
 
 import torch
 
-from . import fast as _fast
-from . import so3
+from ..ops import fast as _fast
+from ..lie import so3
 from .curvature import _check_loop_rot, _edge_rot_of, _normalize_cut, _prefix_products, _suffix_products, face_loops
 from .transport import orient
 

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import torch
 
-from . import fast as _fast
+from ..ops import fast as _fast
+from ._validate import check_rotation as _check_rotation_n
 
 __all__ = [
     "hat",
@@ -232,14 +233,12 @@ def random_rotation(
 def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) -> None:
     """Raise ``ValueError`` unless every ``R (..., 3, 3)`` is a rotation.
 
-    Delegates to :func:`torchconn.son.check_rotation` (NaN/inf, ``||R^T R - I||_F > atol``,
+    Delegates to :func:`torchconn.lie.son.check_rotation` (NaN/inf, ``||R^T R - I||_F > atol``,
     ``det R < 0``; the message names the first offending batch index). ``atol`` defaults to
     ``get_eps("rotation", R.dtype)``. Synchronizes with the device (explicit validation).
     """
     _check_mat3(R, "check_rotation")
-    from .son import check_rotation as _check
-
-    _check(R, name=name, atol=atol)
+    _check_rotation_n(R, name=name, atol=atol)
 
 
 def project_to_rotation(M: torch.Tensor) -> torch.Tensor:

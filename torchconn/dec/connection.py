@@ -23,9 +23,9 @@ from typing import Any
 
 import torch
 
-from . import so3, son
+from ..lie import so3, son
 from .transport import dense_simplex_transports, orient, pair_list, path_product
-from .tolerances import get_eps
+from ..tolerances import get_eps
 
 __all__ = ["Connection", "ConnectionField"]
 

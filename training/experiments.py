@@ -63,9 +63,9 @@ from typing import Iterable, Sequence
 
 import torch
 
-from . import curvature, dnabla, so3, torsion
-from .smooth import ReportConnection, SmoothConnection, evaluate_2form, unit_normal
-from .transport import dense_simplex_transports, pair_list
+from torchconn import curvature, dnabla, so3, torsion
+from torchconn.dec.smooth import ReportConnection, SmoothConnection, evaluate_2form, unit_normal
+from torchconn.dec.transport import dense_simplex_transports, pair_list
 
 __all__ = [
     "CASES",

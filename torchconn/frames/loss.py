@@ -51,8 +51,9 @@ from typing import Mapping
 
 import torch
 
-from . import fast as _fast
-from . import native, octahedral
+from ..ops import fast as _fast
+from ..ops import native
+from . import octahedral
 
 __all__ = [
     "TERMS",
@@ -265,7 +266,7 @@ class FrameFieldLoss:
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
                  smooth_power: float = 2.0, smooth_eps: float = 1e-3, align_kind: str = "quartic",
                  align_eps: float = 1e-3, native: bool | None = None):
-        from .frames.metrics import boundary_face_normals, feature_vertices
+        from .metrics import boundary_face_normals, feature_vertices
 
         unknown = set(weights) - set(TERMS)
         if unknown:
@@ -306,7 +307,7 @@ class FrameFieldLoss:
         self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
 
     def __call__(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> dict[str, torch.Tensor]:
-        from . import curvature, torsion
+        from ..dec import curvature, torsion
 
         mesh, w = self.mesh, self.weights
         out: dict[str, torch.Tensor] = {}

@@ -28,8 +28,8 @@ from typing import Callable
 
 import torch
 
-from . import so3, son
-from .tolerances import get_eps
+from ..lie import so3, son
+from ..tolerances import get_eps
 
 __all__ = [
     "SmoothConnection",

@@ -30,7 +30,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from . import native as _native
-from .tolerances import get_eps
+from ..tolerances import get_eps
 
 __all__ = [
     "exp_rotvec",

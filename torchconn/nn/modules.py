@@ -29,11 +29,11 @@ from typing import Any
 import torch
 from torch import nn
 
-from . import bianchi as _bianchi
-from . import curvature as _curvature
-from . import dnabla as _dnabla
-from . import torsion as _torsion
-from .mesh import FaceGroup
+from ..dec import bianchi as _bianchi
+from ..dec import curvature as _curvature
+from ..dec import dnabla as _dnabla
+from ..dec import torsion as _torsion
+from ..mesh import FaceGroup
 
 __all__ = [
     "edge_rotations",

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .mesh import CellComplex, MeshError, TetMesh
+from .complex import CellComplex, MeshError, TetMesh
 
 __all__ = [
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
@@ -205,7 +205,7 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
     surf.check_closed_manifold()
     deg = surf.degenerate_faces().numpy()
     if deg.size:
-        from .mesh import _few
+        from .complex import _few
 
         raise MeshError(f"surface has degenerate (zero-area) triangles: face indices {_few(deg)}")
     flags = f"pq{quality:g}"

@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 
 from . import dnabla
-from .tolerances import get_eps
+from ..tolerances import get_eps
 
 __all__ = [
     "BianchiError",

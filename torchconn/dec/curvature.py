@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import fast as _fast
+from ..ops import fast as _fast
 from .transport import orient, path_product
 
 __all__ = [

@@ -3,9 +3,9 @@
 These are *not* part of the frame-field method; they answer "how low can the mean edge angle go
 on this mesh, and where" (figures in the docstring of :mod:`training.train_frames`)::
 
-    python -m torchconn.frames.studies fixmatch FRAMES.npz --mesh M [--edge-length H]
-    python -m torchconn.frames.studies constint --mesh M
-    python -m torchconn.frames.studies planar_lp FRAMES.npz --mesh M [--lam 1.0]
+    python -m studies.frame_studies fixmatch FRAMES.npz --mesh M [--edge-length H]
+    python -m studies.frame_studies constint --mesh M
+    python -m studies.frame_studies planar_lp FRAMES.npz --mesh M [--lam 1.0]
 
 ``FRAMES.npz`` is a ``frames.npz`` written by ``python -m training.train_frames``.
 
@@ -31,8 +31,9 @@ import math
 import numpy as np
 import torch
 
-from .. import octahedral, so3
-from .metrics import boundary_face_normals, feature_vertices, frame_metrics
+from torchconn import so3
+from torchconn.frames import octahedral
+from torchconn.frames.metrics import boundary_face_normals, feature_vertices, frame_metrics
 
 __all__ = ["fixed_matching_descent", "constant_interior_field", "planar_l1_optimum", "main"]
 
@@ -52,9 +53,9 @@ def fixed_matching_descent(mesh, frames: torch.Tensor, rounds: int = 3, steps: i
     """Minimize ``mean_e angle(F_i g_ij, F_j)`` (smoothed by ``eps``) over the frames, ``g_ij`` frozen per round.
 
     Plus ``feature_weight`` times the smoothed feature-alignment angle
-    (:func:`torchconn.losses.axis_angle_loss`). Returns the frames ``(V, 3, 3)``.
+    (:func:`torchconn.frames.loss.axis_angle_loss`). Returns the frames ``(V, 3, 3)``.
     """
-    from ..losses import FrameFieldLoss
+    from torchconn.frames.loss import FrameFieldLoss
 
     loss = FrameFieldLoss(mesh, {"feature": 1.0}, feature_angle_deg=angle_deg, align_kind="angle")
     n, con = _normals_and_constrained(mesh, angle_deg)
@@ -86,7 +87,7 @@ def fixed_matching_descent(mesh, frames: torch.Tensor, rounds: int = 3, steps: i
 
 def constant_interior_field(mesh, R: torch.Tensor, angle_deg: float = 30.0) -> torch.Tensor:
     """``R`` at every vertex, snapped minimally to the normal at every non-feature boundary vertex."""
-    from .sh import _snap_axis
+    from torchconn.frames.sh import _snap_axis
 
     V = mesh.vertices.shape[0]
     F = R.to(mesh.vertices.dtype).expand(V, 3, 3).clone()
@@ -175,7 +176,7 @@ def _summary(tag: str, F: torch.Tensor, mesh) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from .. import io as tio
+    from torchconn import io as tio
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("study", choices=("fixmatch", "constint", "planar_lp"))

@@ -1,0 +1,64 @@
+"""Validation shared by :mod:`.so3` and :mod:`.son` (kept below both so neither imports the other)."""
+from __future__ import annotations
+
+import torch
+
+from ..tolerances import get_eps
+
+__all__ = ["check_rotation"]
+
+
+def _check_square(K: torch.Tensor, fn: str) -> int:
+    if K.dim() < 2 or K.shape[-1] != K.shape[-2]:
+        raise ValueError(f"{fn} expects a tensor of shape (..., n, n), got {tuple(K.shape)}")
+    return K.shape[-1]
+
+
+def _first_index(mask: torch.Tensor) -> tuple[int, ...]:
+    return tuple(int(i) for i in torch.nonzero(mask)[0].tolist())
+
+
+def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) -> None:
+    """Raise ``ValueError`` unless every matrix of ``R (..., n, n)`` is a rotation.
+
+    Checks, per matrix: all entries finite; ``||R^T R - I||_F <= atol``; ``det R > 0``.
+    ``atol`` defaults to ``get_eps("rotation", R.dtype)``. The message names ``name``, the
+    number of bad matrices and, for each defect found, the first offending batch index tuple
+    (``()`` for an unbatched matrix) with the defect value. Synchronizes with the device
+    (explicit validation, keep it out of hot paths). Returns ``None``.
+    """
+    n = _check_square(R, "check_rotation")
+    if not R.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {R.dtype}")
+    if atol is None:
+        atol = get_eps("rotation", R.dtype)
+    with torch.no_grad():
+        work = torch.promote_types(R.dtype, torch.float32)
+        Rd = R.detach().to(work)
+        eye = torch.eye(n, dtype=work, device=R.device)
+        finite = torch.isfinite(Rd).all(-1).all(-1)
+        Rs = torch.where(finite[..., None, None], Rd, eye)
+        err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
+        det = torch.linalg.det(Rs)
+        bad_fin = ~finite
+        bad_orth = finite & (err > atol)
+        bad_det = finite & ~bad_orth & (det < 0)
+        bad = bad_fin | bad_orth | bad_det
+        if not bool(bad.any()):
+            return
+        msgs = []
+        if bool(bad_fin.any()):
+            i = _first_index(bad_fin)
+            msgs.append(f"non-finite entries (NaN/inf) at index {i}")
+        if bool(bad_orth.any()):
+            i = _first_index(bad_orth)
+            msgs.append(
+                f"not orthogonal at index {i}: ||R^T R - I||_F = {float(err[i]):.3e} > atol {atol:.1e}"
+            )
+        if bool(bad_det.any()):
+            i = _first_index(bad_det)
+            msgs.append(f"det = {float(det[i]):.6f} (a reflection, det -1) at index {i}")
+        raise ValueError(
+            f"{name} (shape {tuple(R.shape)}): {int(bad.sum())} of {bad.numel()} matrices are not "
+            f"rotations; " + "; ".join(msgs)
+        )
