@@ -131,7 +131,29 @@ def _edge_keys(edges: np.ndarray, V: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- TetMesh
-class TetMesh:
+class _Derived:
+    """Derived data cached by the mesh itself (geometry-central's ``requireX()``).
+
+    ``mesh.require(name, builder)`` returns ``builder(mesh)`` built once per mesh and cached
+    under ``name`` (tables of gather indices, kernel layouts, ...). ``to()`` gives the copy an
+    empty cache, so derived data always lives on the copy's device. Builders must depend only
+    on the mesh (topology and geometry), never on values passed to an operator.
+    """
+
+    def require(self, name: str, builder):
+        cache = self.__dict__.setdefault("_derived", {})
+        if name not in cache:
+            cache[name] = builder(self)
+        return cache[name]
+
+    def _fresh_copy(self):
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.__dict__["_derived"] = {}
+        return new
+
+
+class TetMesh(_Derived):
     """Tetrahedral mesh with its full oriented incidence, built once at construction.
 
     Args:
