@@ -1,6 +1,6 @@
 """Losses for octahedral frame fields from a differentiable connection (the ``train_frames`` method).
 
-Conventions (CONVENTIONS §1, :mod:`torchconn.octahedral`):
+Conventions (CONVENTIONS §1, :mod:`torchconn.frames.octahedral`):
 
 * ``edge_rot (E, 3, 3)`` holds ``R_ij`` for the canonical edges ``(i, j)``, ``i < j``: it maps
   coordinates at ``v_j`` to coordinates at ``v_i``.
@@ -26,9 +26,9 @@ dimensionless):
   ``θ_ab + R_ab θ_bc - θ_ac`` equals ``(R_ab F_b^T - F_a^T)(v_c - v_b)``, which vanishes for every
   triangle exactly when ``F_a R_ab = F_b`` on its edges.
 * ``flat``    — symmetric flatness ``mean_f min_{g in O} ||H_f - g||_F^2`` with ``H_f`` the face
-  holonomy (report eq. 3.2.1 plus the identity; :func:`torchconn.curvature.face_curvature`).
+  holonomy (report eq. 3.2.1 plus the identity; :func:`torchconn.dec.curvature.face_curvature`).
   Singular faces (``H_f`` near a non-identity element) are allowed, anything else is penalized.
-* ``torsion`` — solder-form torsion (report Def. 3.2, √R transports, :mod:`torchconn.torsion`)
+* ``torsion`` — solder-form torsion (report Def. 3.2, √R transports, :mod:`torchconn.dec.torsion`)
   of ``θ`` expressed in the frames, per face ``|Θ_f|^2 / area_f`` (dimensionless), averaged over
   the faces whose three edges are *unrelabeled* (``h = I``; elsewhere the frame labels jump and
   the solder form is not expressed in one gauge). It ties the connection to the Euclidean
@@ -42,7 +42,7 @@ dimensionless):
   L1-type penalty. At a feature vertex whose incident face normals cannot all be matched by
   one frame (dihedral angles that are not multiples of 90 degrees, curved faces), the quartic
   penalty settles at a least-squares compromise, which has a larger *mean* angle than the
-  L1 optimum (on ``78322_gear.2.mesh``: 5.08 vs 4.89 degrees).
+  L1 optimum (measurements: ``docs/results/frame-fields.md``).
 """
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ import torch
 from ..ops import fast as _fast
 from ..ops import native
 from . import octahedral
+from .constraints import BoundaryConstraint
 
 __all__ = [
     "TERMS",
@@ -247,7 +248,9 @@ class FrameFieldLoss:
         mesh: a ``TetMesh``.
         weights: mapping from term name (:data:`TERMS`) to its weight; missing names weigh 0
             and are not evaluated.
-        feature_angle_deg: threshold of :func:`torchconn.frames.metrics.feature_edges`.
+        feature_angle_deg: threshold of :func:`torchconn.frames.metrics.feature_edges`; the
+            ``align`` and ``feature`` terms use the mesh's
+            :class:`~torchconn.frames.constraints.BoundaryConstraint` for it.
         smooth_power, smooth_eps: ``rho`` of the ``smooth`` and ``tie`` terms.
         align_kind: ``"quartic"`` (:func:`normal_alignment_loss`) or ``"angle"``
             (:func:`axis_angle_loss` with ``align_eps``) for the ``align`` and ``feature`` terms.
@@ -266,8 +269,6 @@ class FrameFieldLoss:
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
                  smooth_power: float = 2.0, smooth_eps: float = 1e-3, align_kind: str = "quartic",
                  align_eps: float = 1e-3, native: bool | None = None):
-        from .metrics import boundary_face_normals, feature_vertices
-
         unknown = set(weights) - set(TERMS)
         if unknown:
             raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS)}")
@@ -287,21 +288,10 @@ class FrameFieldLoss:
         bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
         if bad:
             raise ValueError(f"loss weights must be finite and >= 0: {[(k, self.weights[k]) for k in bad]}")
-        V = mesh.n_vertices
-        fv = feature_vertices(mesh, feature_angle_deg)
-        is_feat = torch.zeros(V, dtype=torch.bool, device=mesh.vertices.device)
-        is_feat[fv] = True
-        self.is_feature = is_feat
-        bv = mesh.boundary_vertices
-        keep = ~is_feat[bv]
-        self.align_vertices = bv[keep]
-        self.align_normals = mesh.boundary_vertex_normals[keep]
-        bf = mesh.boundary_faces
-        vert = bf.reshape(-1)
-        face = torch.arange(bf.shape[0], device=bf.device).repeat_interleave(3)
-        sel = is_feat[vert]
-        self.feature_vertices_rep = vert[sel]
-        self.feature_normals = boundary_face_normals(mesh)[face[sel]]
+        con = self.constraint = BoundaryConstraint.from_mesh(mesh, feature_angle_deg)
+        self.is_feature = con.is_feature
+        self.align_vertices, self.align_normals = con.align_vertices, con.align_normals
+        self.feature_vertices_rep, self.feature_normals = con.pair_vertices, con.pair_normals
         # face areas for the torsion normalization
         p = mesh.vertices[mesh.faces]
         self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)

@@ -4,7 +4,7 @@ Definitions (all angles in degrees; ``frames[i][:, k]`` is axis ``k`` at vertex 
 coordinates):
 
 * **smoothness** over all mesh edges ``(i, j)``: with the best match
-  ``g* = octahedral.match(F_i, F_j)`` the residual rotation is ``(F_i g*)^T F_j``; report the mean
+  ``g* = octahedral.match_edges(frames, edges)`` (``F_i g* ~ F_j``) the residual rotation is ``(F_i g*)^T F_j``; report the mean
   and the RMS of its geodesic angle and the mean of ``||F_i g* - F_j||_F^2``.
 * **feature edges**: boundary edges whose two boundary faces' normals differ by more than
   ``angle_deg`` (30 by default); **feature vertices** are their endpoints.
@@ -14,7 +14,10 @@ coordinates):
   pair, angle between the face normal and the closest frame axis; mean and max (``nan`` if the
   mesh has no feature vertex).
 * **singularities**: number of faces with non-identity matched holonomy and number of tets with
-  exactly one such face (:mod:`torchconn.octahedral`).
+  exactly one such face (:mod:`torchconn.frames.octahedral`).
+
+The boundary sets (feature vertices, aligned vertices and their normals, feature pairs) come from
+the mesh's :class:`~torchconn.frames.constraints.BoundaryConstraint`.
 
 Diagnostics (not part of the fixed metrics): :func:`edge_class_breakdown` splits the mean edge
 angle by where the edge lies (feature, boundary surface, boundary layer, near singular faces,
@@ -28,6 +31,7 @@ import torch
 
 from ..lie import so3
 from . import octahedral
+from .constraints import BoundaryConstraint
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
            "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
@@ -132,27 +136,17 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
     deg = 180.0 / math.pi
 
     # smoothness
-    Fi, Fj = frames[mesh.edges[:, 0]], frames[mesh.edges[:, 1]]
-    _, g = octahedral.match(Fi, Fj)
-    Fm = Fi @ g
+    _, g = octahedral.match_edges(frames, mesh.edges)
+    Fm = frames[mesh.edges[:, 0]] @ g
+    Fj = frames[mesh.edges[:, 1]]
     ang = so3.geodesic_distance(Fm, Fj) * deg
     sqf = ((Fm - Fj) ** 2).sum((-2, -1))
 
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
     # alignment at non-feature boundary vertices
-    fv = feature_vertices(mesh, angle_deg)
-    bv = mesh.boundary_vertices
-    is_feat = torch.zeros(V, dtype=torch.bool, device=bv.device)
-    is_feat[fv] = True
-    keep = ~is_feat[bv]
-    al = axis_alignment_angle(frames[bv[keep]], mesh.boundary_vertex_normals[keep].to(frames.dtype)) * deg
-
+    al = axis_alignment_angle(frames[bc.align_vertices], bc.align_normals.to(frames.dtype)) * deg
     # alignment at feature vertices against each incident boundary face normal
-    nf = boundary_face_normals(mesh).to(frames.dtype)
-    bf = mesh.boundary_faces
-    vert = bf.reshape(-1)
-    face = torch.arange(bf.shape[0], device=bf.device).repeat_interleave(3)
-    sel = is_feat[vert]
-    fal = axis_alignment_angle(frames[vert[sel]], nf[face[sel]]) * deg
+    fal = axis_alignment_angle(frames[bc.pair_vertices], bc.pair_normals.to(frames.dtype)) * deg
 
     mask, _ = octahedral.singular_faces(frames, mesh)
     one = octahedral.tets_with_one_singular_face(mask, mesh)
@@ -171,7 +165,7 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
         "alignment_max_deg": _max(al),
         "feature_alignment_mean_deg": _mean(fal),
         "feature_alignment_max_deg": _max(fal),
-        "n_feature_vertices": int(fv.numel()),
+        "n_feature_vertices": int(bc.feature_vertices.numel()),
         "n_singular_faces": int(mask.sum()),
         "n_tets_one_singular_face": int(one.sum()),
     }
@@ -182,9 +176,8 @@ EDGE_CLASSES = ("feature", "boundary_surface", "boundary_layer", "singular", "ne
 
 def edge_angles_deg(frames: torch.Tensor, mesh) -> torch.Tensor:
     """``(E,)`` angle in degrees of ``(F_i g*)^T F_j`` per mesh edge (the smoothness metric's terms)."""
-    Fi, Fj = frames[mesh.edges[:, 0]], frames[mesh.edges[:, 1]]
-    _, g = octahedral.match(Fi, Fj)
-    return so3.geodesic_distance(Fi @ g, Fj) * (180.0 / math.pi)
+    _, g = octahedral.match_edges(frames, mesh.edges)
+    return so3.geodesic_distance(frames[mesh.edges[:, 0]] @ g, frames[mesh.edges[:, 1]]) * (180.0 / math.pi)
 
 
 def edge_class_breakdown(frames: torch.Tensor, mesh, angle_deg: float = 30.0, near_rings: int = 2) -> dict:
@@ -214,8 +207,7 @@ def edge_class_breakdown(frames: torch.Tensor, mesh, angle_deg: float = 30.0, ne
     e = mesh.edges
     ang = edge_angles_deg(frames, mesh)
     dev = e.device
-    is_feat = torch.zeros(V, dtype=torch.bool, device=dev)
-    is_feat[feature_vertices(mesh, angle_deg)] = True
+    is_feat = BoundaryConstraint.from_mesh(mesh, angle_deg).is_feature
     on_b = torch.zeros(V, dtype=torch.bool, device=dev)
     on_b[mesh.boundary_vertices] = True
     # boundary-face edges by sorted key lookup

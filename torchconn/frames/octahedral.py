@@ -23,6 +23,7 @@ import torch
 __all__ = [
     "group",
     "match",
+    "match_edges",
     "closest_element",
     "matched_rotations",
     "face_matched_holonomy",
@@ -129,6 +130,24 @@ def _check_index(name: str, idx: torch.Tensor, width: int, V: int) -> None:
         raise IndexError(f"{name} refers to vertices outside [0, {V}) (frames has {V} rows)")
 
 
+def match_edges(frames: torch.Tensor, edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Best match of every edge, ``frames[i] @ g*_ij ~ frames[j]`` for the rows ``(i, j)`` of ``edges``.
+
+    The one edge-matching convention of the package: the first endpoint's frame is relabeled
+    onto the second's. The reverse direction is the transpose, ``g*_ji = g*_ij^T`` (up to exact
+    ties, which go to the lowest index of :func:`group` in each direction).
+
+    Args:
+        frames: ``(V, 3, 3)``; ``frames[i][:, k]`` is axis ``k`` at vertex ``i`` (world coords).
+        edges: ``(E, 2)`` long, row ``(i, j)`` (no range check: hot paths call this every step).
+
+    Returns:
+        ``(index (E,) long into group(), g (E, 3, 3))`` as :func:`match` of
+        ``frames[edges[:, 0]]`` against ``frames[edges[:, 1]]``.
+    """
+    return match(frames.index_select(0, edges[:, 0]), frames.index_select(0, edges[:, 1]))
+
+
 def matched_rotations(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """Per-edge matching ``g*_ij (E, 3, 3)`` with ``frames[i] @ g*_ij ~ frames[j]``.
 
@@ -138,7 +157,7 @@ def matched_rotations(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor
     """
     _check_frames(frames)
     _check_index("edges", edges, 2, frames.shape[0])
-    return match(frames[edges[:, 0]], frames[edges[:, 1]])[1]
+    return match_edges(frames, edges)[1]
 
 
 def _faces_of(faces_or_mesh) -> torch.Tensor:
@@ -166,7 +185,7 @@ def face_matched_holonomy(frames: torch.Tensor, faces_or_mesh) -> torch.Tensor:
 
     def oriented(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         lo, hi = torch.minimum(u, v), torch.maximum(u, v)
-        g = match(frames[lo], frames[hi])[1]
+        g = match_edges(frames, torch.stack([lo, hi], 1))[1]
         return torch.where((u < v)[:, None, None], g, g.transpose(-1, -2))
 
     a, b, c = faces.unbind(-1)

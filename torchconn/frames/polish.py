@@ -4,12 +4,12 @@ After the connection optimization the frames can still be moved to lower the *me
 over edges of the angle of ``(F_i g*)^T F_j``, :mod:`torchconn.frames.metrics`), which is not
 exactly what the connection loss minimizes. :func:`polish_frames` runs Adam on per-vertex
 rotations ``F_i = exp(hat(w_i)) F_i^0`` (about the normal only at non-feature boundary
-vertices, so the alignment stays exact) minimizing
+vertices, so the alignment stays exact; :mod:`torchconn.frames.param`) minimizing
 
     mean_e 2 asin(sqrt(||F_i g_ij - F_j||^2 + eps^2) / (2 sqrt 2))  +  w_f * feature angle
 
 with ``g_ij`` re-matched at every step (no gradient through the matching) and the feature term of
-:func:`torchconn.losses.axis_angle_loss`. The mean angle prefers to split large edge rotations
+:func:`torchconn.frames.loss.axis_angle_loss`. The mean angle prefers to split large edge rotations
 into new singular faces, so the result is *guarded*: every ``check_every`` steps the field is
 scored, and the best-smoothness checkpoint (step 0, the input, included) with at most
 ``max_singular_faces`` singular faces and no tet with exactly one singular face is returned.
@@ -22,7 +22,11 @@ import torch
 
 from ..lie import so3
 from . import octahedral
+from .constraints import BoundaryConstraint
+from .loss import axis_angle_loss
 from .metrics import frame_metrics
+from .param import constrained_frames
+from .solver import cosine_factor
 
 __all__ = ["polish_frames"]
 
@@ -44,26 +48,12 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
         ``(frames, info)`` with ``info = {"accepted_step", "checks": [(step, smoothness_mean_deg,
         n_singular_faces, n_tets_one_singular_face), ...]}``.
     """
-    from .loss import axis_angle_loss
-    from .metrics import boundary_face_normals, feature_vertices
-
     if steps < 0 or check_every < 1 or not lr > 0:
         raise ValueError(f"need steps >= 0, check_every >= 1, lr > 0; got {steps}, {check_every}, {lr}")
-    dtype, dev = mesh.vertices.dtype, mesh.vertices.device
+    dtype = mesh.vertices.dtype
     F0 = frames.detach().to(dtype)
-    V = F0.shape[0]
-    is_feat = torch.zeros(V, dtype=torch.bool, device=dev)
-    is_feat[feature_vertices(mesh, angle_deg)] = True
-    n = torch.zeros(V, 3, dtype=dtype, device=dev)
-    n[mesh.boundary_vertices] = mesh.boundary_vertex_normals.to(dtype)
-    con = torch.zeros(V, dtype=torch.bool, device=dev)
-    con[mesh.boundary_vertices] = True
-    con &= ~is_feat
-    bf = mesh.boundary_faces
-    vert = bf.reshape(-1)
-    face = torch.arange(bf.shape[0], device=dev).repeat_interleave(3)
-    sel = is_feat[vert]
-    fv, fn = vert[sel], boundary_face_normals(mesh).to(dtype)[face[sel]]
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
+    fv, fn = bc.pair_vertices, bc.pair_normals
     e0, e1 = mesh.edges[:, 0], mesh.edges[:, 1]
 
     def score(F):
@@ -76,21 +66,20 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
     best, best_F, best_step = (s0[0] if s0[1] <= bound and s0[2] == 0 else math.inf), F0, 0
     if steps == 0:
         return F0, {"accepted_step": 0, "checks": checks}
-    w = torch.zeros(V, 3, dtype=dtype, device=dev, requires_grad=True)
+    w = torch.zeros_like(F0[:, :, 0], requires_grad=True)
     opt = torch.optim.Adam([w], lr=lr)
 
     def current():
-        ww = torch.where(con[:, None], (w * n).sum(-1, keepdim=True) * n, w)
-        return so3.exp(ww) @ F0
+        return constrained_frames(w, F0, bc.constrained, bc.normals)
 
     with torch.enable_grad():
         for s in range(steps):
             for pg in opt.param_groups:
-                pg["lr"] = lr * 0.5 * (1.0 + math.cos(math.pi * s / steps))
+                pg["lr"] = lr * cosine_factor(s, steps)
             F = current()
             A, B = F[e0], F[e1]
             with torch.no_grad():
-                _, g = octahedral.match(A, B)
+                _, g = octahedral.match_edges(F, mesh.edges)
             d2 = ((A @ g - B) ** 2).sum((-2, -1))
             ang = 2.0 * torch.asin((torch.sqrt(d2 + eps * eps) / (2.0 * math.sqrt(2.0))).clamp(max=1.0))
             total = ang.mean()

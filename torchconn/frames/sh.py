@@ -38,7 +38,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from ..lie import so3
-from .metrics import boundary_face_normals, feature_vertices
+from .constraints import BoundaryConstraint
 
 __all__ = [
     "sh_basis",
@@ -282,30 +282,26 @@ def _snap_axis(F: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
 
 
 def _penalty_rows(mesh, angle_deg: float, dtype):
-    """Boundary constraints: (vertex ids (C,), normals (C,3), weights (C,), smooth-vertex mask)."""
+    """Penalty rows of the :class:`BoundaryConstraint`: (vertex ids (C,), normals (C,3), weights (C,), smooth-vertex mask).
+
+    One row per aligned vertex (weight 1) and one per feature pair (weight: the face's fraction of
+    the boundary area around the vertex).
+    """
     V = mesh.vertices.shape[0]
-    bv = mesh.boundary_vertices
-    fv = feature_vertices(mesh, angle_deg)
-    is_feat = torch.zeros(V, dtype=torch.bool, device=bv.device)
-    is_feat[fv] = True
-    smooth = bv[~is_feat[bv]]
-    n_smooth = mesh.boundary_vertex_normals[~is_feat[bv]].to(dtype)
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
+    smooth = bc.align_vertices
+    n_smooth = bc.align_normals.to(dtype)
     # feature vertices: one constraint per incident boundary face, weights = area fractions
     bf = mesh.boundary_faces
     p = mesh.vertices[bf].to(dtype)
     area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-    nf = boundary_face_normals(mesh).to(dtype)
-    vert = bf.reshape(-1)
-    face = torch.arange(bf.shape[0], device=bf.device).repeat_interleave(3)
-    sel = is_feat[vert]
-    fvert, fface = vert[sel], face[sel]
+    fvert, fface = bc.pair_vertices, bc.pair_faces
     tot = torch.zeros(V, dtype=dtype, device=bf.device).index_add_(0, fvert, area[fface])
     fw = area[fface] / tot[fvert]
     ids = torch.cat([smooth, fvert])
-    normals = torch.cat([n_smooth, nf[fface]])
+    normals = torch.cat([n_smooth, bc.pair_normals.to(dtype)])
     weights = torch.cat([torch.ones(smooth.shape[0], dtype=dtype, device=bf.device), fw])
-    smooth_mask = torch.zeros(V, dtype=torch.bool, device=bv.device)
-    smooth_mask[smooth] = True
+    smooth_mask = bc.constrained
     return ids, normals, weights, smooth_mask
 
 
@@ -442,16 +438,13 @@ def sh_frame_field(
         raise ValueError("sh_frame_field needs a mesh with a boundary (no boundary faces found)")
     if not boundary_weight > 0:
         raise ValueError(f"boundary_weight must be positive, got {boundary_weight}")
-    dtype, device = mesh.vertices.dtype, mesh.vertices.device
+    dtype = mesh.vertices.dtype
     ids, normals, weights, smooth_mask = _penalty_rows(mesh, feature_angle_deg, dtype)
     if mbo_steps < 0 or not all(float(t) > 0 for t in mbo_tau):
         raise ValueError(f"mbo_steps must be >= 0 and mbo_tau positive, got {mbo_steps}, {mbo_tau}")
     q = _solve_linear(mesh, boundary_weight, ids, normals, weights)
 
-    bv = mesh.boundary_vertices
-    V = mesh.vertices.shape[0]
-    vnorm = torch.zeros(V, 3, dtype=dtype, device=device)
-    vnorm[bv] = mesh.boundary_vertex_normals.to(dtype)
+    vnorm = BoundaryConstraint.from_mesh(mesh, feature_angle_deg).normals.to(dtype)
     sm = smooth_mask
     F0 = _project_frames(q, sm, vnorm, n_restarts)
     if mbo_steps > 0:
