@@ -1,7 +1,7 @@
 """Diagnostic studies of the mean-smoothness metric (issue 5), reproducible from the command line.
 
 These are *not* part of the frame-field method; they answer "how low can the mean edge angle go
-on this mesh, and where" (figures in the docstring of :mod:`training.train_frames`)::
+on this mesh, and where" (figures and commands in ``docs/results/frame-fields.md``)::
 
     python -m studies.frame_studies fixmatch FRAMES.npz --mesh M [--edge-length H]
     python -m studies.frame_studies constint --mesh M
@@ -31,21 +31,14 @@ import math
 import numpy as np
 import torch
 
-from torchconn import so3
 from torchconn.frames import octahedral
-from torchconn.frames.metrics import boundary_face_normals, feature_vertices, frame_metrics
+from torchconn.frames.constraints import BoundaryConstraint
+from torchconn.frames.metrics import frame_metrics
+from torchconn.frames.param import constrained_frames
+from torchconn.frames.solver import cosine_factor
+from torchconn.lie import so3
 
 __all__ = ["fixed_matching_descent", "constant_interior_field", "planar_l1_optimum", "main"]
-
-
-def _normals_and_constrained(mesh, angle_deg: float):
-    V = mesh.vertices.shape[0]
-    n = torch.zeros(V, 3, dtype=mesh.vertices.dtype)
-    n[mesh.boundary_vertices] = mesh.boundary_vertex_normals
-    con = torch.zeros(V, dtype=torch.bool)
-    con[mesh.boundary_vertices] = True
-    con[feature_vertices(mesh, angle_deg)] = False
-    return n, con
 
 
 def fixed_matching_descent(mesh, frames: torch.Tensor, rounds: int = 3, steps: int = 200, lr: float = 0.01,
@@ -58,19 +51,18 @@ def fixed_matching_descent(mesh, frames: torch.Tensor, rounds: int = 3, steps: i
     from torchconn.frames.loss import FrameFieldLoss
 
     loss = FrameFieldLoss(mesh, {"feature": 1.0}, feature_angle_deg=angle_deg, align_kind="angle")
-    n, con = _normals_and_constrained(mesh, angle_deg)
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
     e0, e1 = mesh.edges[:, 0], mesh.edges[:, 1]
     F = frames.detach().to(mesh.vertices.dtype)
     for _ in range(rounds):
         with torch.no_grad():
-            _, g = octahedral.match(F[e0], F[e1])
+            _, g = octahedral.match_edges(F, mesh.edges)
         w = torch.zeros_like(F[:, :, 0], requires_grad=True)
         opt = torch.optim.Adam([w], lr=lr)
         for s in range(steps):
             for pg in opt.param_groups:
-                pg["lr"] = lr * 0.5 * (1.0 + math.cos(math.pi * s / max(steps, 1)))
-            ww = torch.where(con[:, None], (w * n).sum(-1, keepdim=True) * n, w)
-            Fc = so3.exp(ww) @ F
+                pg["lr"] = lr * cosine_factor(s, steps)
+            Fc = constrained_frames(w, F, bc.constrained, bc.normals)
             d2 = ((Fc[e0] @ g - Fc[e1]) ** 2).sum((-2, -1))
             th = 2.0 * torch.asin((torch.sqrt(d2 + eps * eps) / (2.0 * math.sqrt(2.0))).clamp(max=1.0))
             total = th.mean()
@@ -80,8 +72,7 @@ def fixed_matching_descent(mesh, frames: torch.Tensor, rounds: int = 3, steps: i
             total.backward()
             opt.step()
         with torch.no_grad():
-            ww = torch.where(con[:, None], (w * n).sum(-1, keepdim=True) * n, w)
-            F = so3.project_to_rotation(so3.exp(ww) @ F)
+            F = so3.project_to_rotation(constrained_frames(w, F, bc.constrained, bc.normals))
     return F
 
 
@@ -91,8 +82,8 @@ def constant_interior_field(mesh, R: torch.Tensor, angle_deg: float = 30.0) -> t
 
     V = mesh.vertices.shape[0]
     F = R.to(mesh.vertices.dtype).expand(V, 3, 3).clone()
-    n, con = _normals_and_constrained(mesh, angle_deg)
-    F[con] = _snap_axis(F[con], n[con].to(F.dtype))
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
+    F[bc.constrained] = _snap_axis(F[bc.constrained], bc.normals[bc.constrained].to(F.dtype))
     return F
 
 
@@ -128,20 +119,17 @@ def planar_l1_optimum(mesh, frames: torch.Tensor, lam: float = 1.0, rounds: int 
     V = mesh.vertices.shape[0]
     e = mesh.edges.cpu().numpy()
     E = e.shape[0]
-    isf = np.zeros(V, bool)
-    isf[feature_vertices(mesh, angle_deg).cpu().numpy()] = True
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
+    isf = bc.is_feature.cpu().numpy()
     bv = mesh.boundary_vertices.cpu().numpy()
     bn = mesh.boundary_vertex_normals.detach().double().cpu().numpy()
     side = (~isf[bv]) & (np.abs(bn[:, 2]) < 0.9)
     fix_v, fix_phi = bv[side], np.degrees(np.arctan2(bn[side, 1], bn[side, 0])) % 90.0
-    nf = boundary_face_normals(mesh).detach().double().cpu().numpy()
-    bf = mesh.boundary_faces.cpu().numpy()
-    vert, face = bf.reshape(-1), np.repeat(np.arange(bf.shape[0]), 3)
-    sel = isf[vert]
-    P_all = max(int(sel.sum()), 1)
-    vert, face = vert[sel], face[sel]
-    vs = np.abs(nf[face, 2]) < 0.9
-    pv, pphi = vert[vs], np.degrees(np.arctan2(nf[face[vs], 1], nf[face[vs], 0])) % 90.0
+    vert = bc.pair_vertices.cpu().numpy()
+    pn = bc.pair_normals.detach().double().cpu().numpy()  # (P, 3) normal of each pair's face
+    P_all = max(vert.size, 1)
+    vs = np.abs(pn[:, 2]) < 0.9
+    pv, pphi = vert[vs], np.degrees(np.arctan2(pn[vs, 1], pn[vs, 0])) % 90.0
     nP = pv.size
     th = _planar_angle(frames.detach().cpu())
     obj = float("nan")

@@ -43,7 +43,7 @@ def test_smoothness_is_chordal_angle(gen):
 
 
 def test_tie_zero_for_matched_connection_and_label_invariant(box, gen):
-    from training.train_frames import matched_connection
+    from torchconn.frames.model import matched_connection
 
     F = _random_frames(box.n_vertices, gen)
     R = matched_connection(F, box.edges)
@@ -110,7 +110,7 @@ def test_axis_angle_loss_gradient_finite_at_alignment(gen):
 
 # ----------------------------------------------------------------------------- FrameFieldLoss
 def test_frame_field_loss_terms_and_total(box, gen):
-    from training.train_frames import matched_connection
+    from torchconn.frames.model import matched_connection
 
     w = {"smooth": 1.0, "tie": 2.0, "flat": 0.5, "torsion": 0.1, "align": 3.0, "feature": 4.0}
     lf = FrameFieldLoss(box, w)
