@@ -1,4 +1,10 @@
-"""Octahedral frame fields: the spherical-harmonic baseline (Ray et al. 2016) and fixed metrics.
+"""Octahedral frame fields on tet meshes: the application of the connection library.
+
+Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-harmonic baseline of
+Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
+:mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
+parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
+:mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.export` (VTU).
 
 >>> from torchconn import io
 >>> from torchconn.frames import sh_frame_field, frame_metrics
@@ -8,6 +14,7 @@
 0
 """
 from . import propagate
+from .constraints import BoundaryConstraint
 from .metrics import METRIC_KEYS, axis_alignment_angle, feature_edges, feature_vertices, frame_metrics
 from .sh import (
     boundary_constraint,
@@ -22,6 +29,7 @@ from .sh import (
 
 __all__ = [
     "propagate",
+    "BoundaryConstraint",
     "METRIC_KEYS",
     "axis_alignment_angle",
     "feature_edges",
