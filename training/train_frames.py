@@ -691,5 +691,10 @@ def _main() -> None:
     app()
 
 
-if __name__ == "__main__":
+def main() -> None:
+    """Console-script entry point ``torchconn-frames`` (the Hydra job of :func:`_main`)."""
     _main()
+
+
+if __name__ == "__main__":
+    main()
