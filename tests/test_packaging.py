@@ -24,7 +24,7 @@ SCRIPTS = {
     "torchconn-demo": "torchconn.training.demo:main",
 }
 
-pytest.importorskip("setuptools")
+pytest.importorskip("setuptools", reason="building the wheel needs setuptools (part of the test extra)")
 
 
 @pytest.fixture(scope="module")
