@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from training import experiments as E
+from training import report_quantities as RQ
 from torchconn import so3
 from torchconn.dec.smooth import ReportConnection, SmoothConnection, evaluate_2form
 
@@ -159,8 +160,8 @@ def test_averaged_equals_explicit_chapter5_formula():
     smooth = E.WaveConnection()
     _, tet, _ = E.case_cells(list(E.CASES), [0, 2])
     got = E.tet_quantities(smooth, tet, ["ddtheta_averaged"])["ddtheta_averaged"][0]
-    T = E._pair_transports(smooth, tet, "midpoint", 1)
-    theta_t = dnabla.solder_form_sqrt(E._half_transports(smooth, tet, "midpoint", 1), dnabla.solder_form(tet))
+    T = RQ._pair_transports(smooth, tet, "midpoint", 1)
+    theta_t = dnabla.solder_form_sqrt(RQ._half_transports(smooth, tet, "midpoint", 1), dnabla.solder_form(tet))
     vol = torch.linalg.det(tet[..., 1:, :] - tet[..., :1, :]) / 6
     explicit = dnabla.wedge_curvature_solder_tet(T, theta_t) / vol[..., None]
     assert torch.allclose(got, explicit, rtol=1e-9, atol=1e-10)

@@ -12,9 +12,15 @@ Layers, each importing only the ones above it:
 * :mod:`torchconn.frames` -- the application: octahedral frame fields on tet meshes.
 
 The report's modules are also reachable from the top level (``torchconn.so3``,
-``torchconn.curvature``, ...). See README.md and docs/architecture.md.
+``torchconn.curvature``, ...). The core (``tolerances`` ... ``nn``) never imports the
+application: ``torchconn.frames`` is a lazy attribute (PEP 562), imported on first access, so
+``import torchconn`` loads the core only. See README.md and docs/architecture.md.
 """
-from . import dec, frames, lie, mesh, nn, ops, tolerances
+from __future__ import annotations
+
+import importlib
+
+from . import dec, lie, mesh, nn, ops, tolerances
 from .dec import bianchi, chains, connection, curvature, dnabla, smooth, torsion, transport
 from .dec.bianchi import BianchiError
 from .dec.connection import Connection, ConnectionField
@@ -28,6 +34,9 @@ from .nn import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, Torsion
 from .tolerances import get_eps
 
 __version__ = "0.1.0"
+
+#: Subpackages of the application, imported on first attribute access (PEP 562).
+_LAZY_SUBPACKAGES = ("frames",)
 
 __all__ = [
     # submodules
@@ -44,3 +53,15 @@ __all__ = [
     "Curvature", "Torsion", "CovariantD", "AveragedCovariantD", "BianchiCheck", "BianchiError",
     "get_eps", "__version__",
 ]
+
+
+def __getattr__(name: str):
+    """Import the application subpackage ``torchconn.<name>`` on first access (PEP 562)."""
+    if name in _LAZY_SUBPACKAGES:
+        # The import binds torchconn.<name> as an attribute, so later accesses skip this hook.
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -1,0 +1,1 @@
+"""Hydra configurations of the jobs in ``training/`` (installed as ``torchconn.configs``, read through ``pkg://``)."""

@@ -1,0 +1,242 @@
+"""The package's layering: the core never imports the application, imports only go down, no cycles.
+
+Layer order (docs/architecture.md): ``tolerances < ops < lie < mesh < dec < nn < frames``; the
+jobs (``training/``), ``studies/`` and ``benchmarks/`` sit on top. The checks walk the source
+tree, so they hold for whatever modules each layer holds.
+"""
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = ROOT / "torchconn"
+LAYERS = ("tolerances", "ops", "lie", "mesh", "dec", "nn", "frames")
+CORE = LAYERS[:-1]
+APPLICATION_PREFIXES = ("torchconn.frames", "torchconn.training", "training", "studies", "benchmarks")
+MESH_IO_DEPENDENCIES = ("meshio", "igl", "pymeshlab")
+
+
+# ----------------------------------------------------------------------------- import in a subprocess
+_IMPORT_CORE = r"""
+import importlib, json, pkgutil, sys
+blocked = set(sys.argv[2].split(",")) if sys.argv[2] else set()
+
+class Blocker:
+    # Make the named top-level packages unimportable, as if they were not installed.
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in blocked:
+            raise ImportError(f"{name} is blocked by the test")
+
+sys.meta_path.insert(0, Blocker())
+import torchconn
+imported = ["torchconn"]
+for layer in sys.argv[1].split(","):
+    mod = importlib.import_module(f"torchconn.{layer}")
+    imported.append(mod.__name__)
+    if hasattr(mod, "__path__"):
+        for info in pkgutil.walk_packages(mod.__path__, prefix=mod.__name__ + "."):
+            importlib.import_module(info.name)
+            imported.append(info.name)
+print(json.dumps({"imported": imported, "modules": sorted(sys.modules)}))
+"""
+
+
+def _import_core(blocked: tuple[str, ...] = ()) -> dict:
+    proc = subprocess.run(
+        [sys.executable, "-c", _IMPORT_CORE, ",".join(CORE), ",".join(blocked)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_core_imports_without_the_application():
+    result = _import_core()
+    # every layer of the core was walked, down to the modules of its subpackages
+    for layer in CORE:
+        assert f"torchconn.{layer}" in result["imported"]
+    assert len(result["imported"]) > len(CORE) + 1
+    leaked = [m for m in result["modules"] if m.startswith(APPLICATION_PREFIXES)]
+    assert leaked == [], f"importing the core loaded application modules: {leaked}"
+
+
+def test_core_imports_without_mesh_io_dependencies():
+    """libigl, pymeshlab and meshio are the optional ``io`` extra: the core imports without them."""
+    result = _import_core(blocked=MESH_IO_DEPENDENCIES)
+    assert "torchconn.mesh" in result["imported"]
+    assert not [m for m in result["modules"] if m.split(".")[0] in MESH_IO_DEPENDENCIES]
+
+
+def test_top_level_names_resolve_lazily():
+    code = (
+        "import sys, torchconn as tc\n"
+        "assert 'torchconn.frames' not in sys.modules\n"
+        "missing = [n for n in tc.__all__ if not hasattr(tc, n)]\n"
+        "assert not missing, missing\n"
+        "assert 'torchconn.frames' in sys.modules and tc.frames.__name__ == 'torchconn.frames'\n"
+        "assert callable(tc.so3.exp) and callable(tc.curvature.two_prong) and callable(tc.io.box)\n"
+        "try:\n    tc.no_such_name\nexcept AttributeError:\n    pass\nelse:\n    raise SystemExit('no AttributeError')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+
+
+# ----------------------------------------------------------------------------- static import graph
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in sorted(PKG.rglob("*.py"))}
+
+
+def _resolve_from(module: str, path: Path, node: ast.ImportFrom) -> str:
+    """Absolute name of the module a ``from X import ...`` statement names as X."""
+    if node.level == 0:
+        return node.module or ""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    base = package.split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _root_reexports(modules: dict[str, Path]) -> dict[str, str]:
+    """Name re-exported by ``torchconn/__init__.py`` -> the torchconn module it comes from."""
+    out = {}
+    for node in ast.walk(ast.parse(modules["torchconn"].read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level >= 1:
+            source = _resolve_from("torchconn", modules["torchconn"], node)
+            for alias in node.names:
+                sub = f"{source}.{alias.name}"
+                out[alias.asname or alias.name] = sub if sub in modules else source
+    return out
+
+
+def _imports(modules: dict[str, Path]) -> dict[str, list[tuple[str, int, bool]]]:
+    """Module -> the torchconn modules it imports, as ``(target, line, at_module_level)``.
+
+    ``from torchconn import so3`` is followed through the re-exports of ``torchconn/__init__``
+    (that module is the facade over every layer and is not a node of the graph).
+    """
+    reexports = _root_reexports(modules)
+    graph: dict[str, list[tuple[str, int, bool]]] = {}
+    for module, path in modules.items():
+        if module == "torchconn":
+            continue
+        tree = ast.parse(path.read_text())
+        top_level = {id(n) for n in tree.body}
+        # imports under `if`/`try` at module level run at import time too
+        for stmt in tree.body:
+            if isinstance(stmt, (ast.If, ast.Try)):
+                top_level |= {id(n) for n in ast.walk(stmt)}
+        edges = []
+        for node in ast.walk(tree):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                source = _resolve_from(module, path, node)
+                for alias in node.names:
+                    sub = f"{source}.{alias.name}"
+                    if source == "torchconn":
+                        targets.append(reexports.get(alias.name, sub))
+                    else:
+                        targets.append(sub if sub in modules else source)
+            for target in targets:
+                while target and target not in modules:  # `import torchconn.dec.curvature.x` -> owning module
+                    target = target.rpartition(".")[0]
+                if target.startswith("torchconn.") and target != module:
+                    edges.append((target, node.lineno, id(node) in top_level))
+        graph[module] = edges
+    return graph
+
+
+def _layer(module: str) -> int:
+    name = module.split(".")[1]
+    assert name in LAYERS, (
+        f"{module} is in no layer: place torchconn/{name} in the layer order of docs/architecture.md "
+        f"and tests/test_layering.py {LAYERS}"
+    )
+    return LAYERS.index(name)
+
+
+def test_every_module_is_in_a_layer():
+    for module in _modules():
+        if module != "torchconn":
+            _layer(module)
+
+
+def test_imports_only_go_down_the_layers():
+    modules = _modules()
+    violations = [
+        f"{modules[m].relative_to(ROOT)}:{line}: {m} ({LAYERS[_layer(m)]}) imports {t} ({LAYERS[_layer(t)]})"
+        for m, edges in _imports(modules).items()
+        for t, line, _ in edges
+        if _layer(t) > _layer(m)
+    ]
+    assert violations == [], "imports going up the layers:\n" + "\n".join(violations)
+
+
+def _cycles(graph: dict[str, list[str]]) -> list[list[str]]:
+    """One cycle per strongly connected component with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return components
+
+
+def test_no_import_cycles_between_modules():
+    """Module-level imports form no cycle (a package's ``__init__`` counts as its own module)."""
+    graph = {m: sorted({t for t, _, top in edges if top}) for m, edges in _imports(_modules()).items()}
+    assert _cycles(graph) == []
+
+
+def test_cycle_detection_sees_a_cycle():
+    assert _cycles({"a": ["b"], "b": ["c"], "c": ["a"], "d": ["a"]}) == [["a", "b", "c"]]
+
+
+@pytest.mark.parametrize("source,level,module,expected", [
+    ("torchconn.dec.curvature", 1, "transport", "torchconn.dec.transport"),
+    ("torchconn.dec.curvature", 2, "lie", "torchconn.lie"),
+    ("torchconn.dec", 1, "smooth", "torchconn.dec.smooth"),
+])
+def test_relative_imports_resolve(source, level, module, expected):
+    path = Path("__init__.py") if source == "torchconn.dec" else Path("x.py")
+    node = ast.ImportFrom(module=module, names=[], level=level)
+    assert _resolve_from(source, path, node) == expected
