@@ -45,8 +45,8 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
         max_singular_faces: the guard's bound (``None``: the input's count).
 
     Returns:
-        ``(frames, info)`` with ``info = {"accepted_step", "checks": [(step, smoothness_mean_deg,
-        n_singular_faces, n_tets_one_singular_face), ...]}``.
+        ``(frames, info)``: ``info["accepted_step"]`` and ``info["checks"]``, a list of
+        ``(step, smoothness_mean_deg, n_singular_faces, n_tets_one_singular_face)``.
     """
     if steps < 0 or check_every < 1 or not lr > 0:
         raise ValueError(f"need steps >= 0, check_every >= 1, lr > 0; got {steps}, {check_every}, {lr}")

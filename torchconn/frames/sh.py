@@ -396,25 +396,25 @@ def sh_frame_field(
     """Boundary-aligned smooth octahedral frame field (Ray, Sokolov & Lévy 2016).
 
     Steps:
-      1. Boundary constraints (Sec. 4): at each non-feature boundary vertex the normal ``n_i``
-         (area-weighted); at each feature vertex (endpoint of a boundary edge sharper than
-         ``feature_angle_deg``) one constraint per incident boundary face normal, weighted by
-         the face's area fraction — several normals can then be matched at once (box corners).
-      2. Linear step: minimize ``sum_edges ||q_i - q_j||^2`` (uniform weights over tet edges)
-         ``+ boundary_weight * sum_c weight_c ||A_c q - t_c||^2`` (:func:`boundary_constraint`),
-         a sparse SPD system solved by Jacobi-preconditioned conjugate gradients
-         (``scipy.sparse.linalg.cg``, relative residual ``1e-10``).
-      3. Projection: each ``q_i`` normalized and projected to the nearest frame
-         (:func:`sh_to_frame`); non-feature boundary frames snapped so an axis equals ``±n_i``.
-      3b. Optional (``mbo_steps > 0``; not part of Ray et al.): the diffusion-projection (MBO)
-         iteration of Palmer, Bommes & Solomon 2020 ("Algebraic representations for volumetric
-         frame fields"), alternating an implicit heat step of the SH vectors under the same
-         energy (boundary penalty kept) with the projection of step 3 (:func:`_mbo`).
-      4. Nonlinear step (the paper's optimization in the frame domain): frames
-         ``F_i = exp(hat(w_i)) F_i^0`` with ``w_i = phi_i n_i`` restricted to the normal at
-         non-feature boundary vertices (alignment stays exact), minimizing the same energy with
-         ``q_i = frame_to_sh(F_i)`` (unit, exactly octahedral) by L-BFGS for
-         ``n_smooth_iters`` iterations (0 skips it).
+      - (1) Boundary constraints (Sec. 4): at each non-feature boundary vertex the normal ``n_i``
+        (area-weighted); at each feature vertex (endpoint of a boundary edge sharper than
+        ``feature_angle_deg``) one constraint per incident boundary face normal, weighted by
+        the face's area fraction — several normals can then be matched at once (box corners).
+      - (2) Linear step: minimize ``sum_edges ||q_i - q_j||^2`` (uniform weights over tet edges)
+        ``+ boundary_weight * sum_c weight_c ||A_c q - t_c||^2`` (:func:`boundary_constraint`),
+        a sparse SPD system solved by Jacobi-preconditioned conjugate gradients
+        (``scipy.sparse.linalg.cg``, relative residual ``1e-10``).
+      - (3) Projection: each ``q_i`` normalized and projected to the nearest frame
+        (:func:`sh_to_frame`); non-feature boundary frames snapped so an axis equals ``±n_i``.
+      - (3b) Optional (``mbo_steps > 0``; not part of Ray et al.): the diffusion-projection (MBO)
+        iteration of Palmer, Bommes & Solomon 2020 ("Algebraic representations for volumetric
+        frame fields"), alternating an implicit heat step of the SH vectors under the same
+        energy (boundary penalty kept) with the projection of step 3 (:func:`_mbo`).
+      - (4) Nonlinear step (the paper's optimization in the frame domain): frames
+        ``F_i = exp(hat(w_i)) F_i^0`` with ``w_i = phi_i n_i`` restricted to the normal at
+        non-feature boundary vertices (alignment stays exact), minimizing the same energy with
+        ``q_i = frame_to_sh(F_i)`` (unit, exactly octahedral) by L-BFGS for
+        ``n_smooth_iters`` iterations (0 skips it).
 
     Args:
         mesh: a ``TetMesh`` with a non-empty boundary.
