@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
+from ._cache import require as _require
+
 __all__ = ["face_curvature"]
 
 
@@ -143,8 +145,8 @@ def face_curvature(edge_rot: torch.Tensor, mesh, cut=-1, kind: str = "two_prong"
 
 def _face_index(mesh, device) -> torch.Tensor:
     """``(3, F)`` canonical edges ``ab, bc, ac`` of the sorted faces (cached with ``mesh.require``)."""
-    idx = mesh.require("ops.face_index", lambda m: m.face_edges[:, [2, 0, 1]].t().contiguous())
+    idx = _require(mesh, "ops.face_index", lambda m: m.face_edges[:, [2, 0, 1]].t().contiguous())
     if idx.device == torch.device(device):
         return idx
     dev = torch.device(device)
-    return mesh.require(f"ops.face_index.{dev}", lambda m: idx.to(dev))
+    return _require(mesh, f"ops.face_index.{dev}", lambda m: idx.to(dev))

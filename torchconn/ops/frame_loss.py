@@ -15,6 +15,7 @@ from typing import Mapping
 import torch
 
 from . import native as _native
+from ._cache import require as _require
 from .backend import can_use_compiled
 from .curvature import _sorted_triangles
 
@@ -81,7 +82,7 @@ def _buffers(mesh, dtype: torch.dtype) -> dict[str, torch.Tensor]:
             "area": area.to("cpu", dtype).contiguous(),
         }
 
-    return mesh.require(f"ops.frame_loss.buffers.{dtype}", build)
+    return _require(mesh, f"ops.frame_loss.buffers.{dtype}", build)
 
 
 def _workspace(mesh, dtype: torch.dtype, nt: int) -> dict[str, torch.Tensor]:
@@ -93,7 +94,7 @@ def _workspace(mesh, dtype: torch.dtype, nt: int) -> dict[str, torch.Tensor]:
         return {"work": torch.empty(need, dtype=dtype), "theta": torch.empty(E, 3, dtype=dtype),
                 "gtheta": torch.empty(E, 3, dtype=dtype), "unrel": torch.empty(E, dtype=torch.uint8)}
 
-    return mesh.require(f"ops.frame_loss.workspace.{dtype}.{nt}", build)
+    return _require(mesh, f"ops.frame_loss.workspace.{dtype}.{nt}", build)
 
 
 def _run(mesh, edge_rot: torch.Tensor, frames: torch.Tensor, group: torch.Tensor, flags: int, wts,

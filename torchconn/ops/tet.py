@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
+from ._cache import require as _require
 from ._mat import _matTvec, _matvec
 from .so3 import sqrt as _sqrt
 
@@ -71,11 +72,11 @@ class TetKernel:
 
 def tet_kernel(mesh, device: torch.device | str | None = None) -> TetKernel:
     """The :class:`TetKernel` of ``mesh`` on ``device`` (default: the mesh's), cached with ``mesh.require``."""
-    k = mesh.require("ops.tet_kernel", TetKernel)
+    k = _require(mesh, "ops.tet_kernel", TetKernel)
     if device is None or k.rot_index.device == torch.device(device):
         return k
     dev = torch.device(device)
-    return mesh.require(f"ops.tet_kernel.{dev}", lambda m: k.to(dev))
+    return _require(mesh, f"ops.tet_kernel.{dev}", lambda m: k.to(dev))
 
 
 def edge_solder_sqrt(half_rot: torch.Tensor, edge_vec: torch.Tensor) -> torch.Tensor:
