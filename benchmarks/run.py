@@ -10,10 +10,11 @@ Cases
 -----
 1. ``so3.exp`` / ``so3.log`` / ``so3.sqrt`` forward+backward on 10⁶ rotations (10⁵ with
    ``--quick``), float32, as the library routes them (the compiled ``csrc/so3.c`` kernels when
-   :mod:`torchconn.native` builds them, recorded as ``path``) against
+   :mod:`torchconn.ops.native` builds them, recorded as ``path``) against
    ``torch.linalg.matrix_exp(hat(ω))`` (exp), the previous matrix-based ``so3.log`` kept below
    (``_ref_log``; there is no matrix-log route in torch), ``exp(log(R)/2)`` through those
-   references (sqrt), the torch code of :mod:`torchconn.fast` (``native=False``, the fallback;
+   references (sqrt), the same op with the compiled kernels switched off
+   (``torchconn.ops.compiled(False)``: the torch code of :mod:`torchconn.ops.so3`, the fallback;
    ``*_vs_torch`` rows) and ``roma`` when it is installed (``*_vs_roma`` rows).
    ``max_abs_diff`` is the largest entry difference of the forward values (log against the
    matrix log and roma: through ``exp``, both signs being logarithms at angle π).
@@ -70,7 +71,8 @@ from pathlib import Path
 import torch
 
 from torchconn import curvature, dnabla, io, so3
-from torchconn.ops import fast
+import torchconn.ops
+from torchconn.ops import so3 as ops_so3
 from torchconn import torsion as _torsion
 from torchconn.dec.transport import orient
 
@@ -195,7 +197,7 @@ def _row(name, size, dtype, seconds, ref_seconds, peak_mb, **extra):
 
 
 # ----------------------------------------------------------------------------- references
-# Eager, generic compositions (the code paths before torchconn.fast): kept here so that the
+# Eager, generic compositions (the code paths before the fused kernels of torchconn.ops): kept here so that the
 # ratios stay measurable after the library routes through the fused kernels.
 
 def _ref_exp_matrix(w: torch.Tensor) -> torch.Tensor:
@@ -300,7 +302,7 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
     except ImportError:
         roma = None
     # which path so3.exp/log/sqrt take here (compiled csrc/so3.c or the torch code)
-    path = "native C" if fast._use_native(w, None) else "torch (native unavailable)"
+    path = "compiled C" if torchconn.ops.can_use_compiled("so3", w) else "torch (compiled kernels unavailable)"
 
     def fb(f, x):
         def run():
@@ -309,15 +311,18 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
         return run
 
     def torch_path(f):
-        return lambda x: f(x, native=False)
+        def call(x):
+            with torchconn.ops.compiled(False):
+                return f(x)
+        return call
 
     cases = [
         ("so3.exp", so3.exp, w, _ref_exp_matrix, "matrix_exp(hat(w))"),
-        ("so3.exp_vs_torch", so3.exp, w, torch_path(fast.exp_rotvec), "torch closed form (native=False)"),
+        ("so3.exp_vs_torch", so3.exp, w, torch_path(so3.exp), "torch closed form (compiled kernels off)"),
         ("so3.log", so3.log, R, _ref_log, "previous matrix-based so3.log"),
-        ("so3.log_vs_torch", so3.log, R, torch_path(fast.log_rotmat), "torch branches (native=False)"),
+        ("so3.log_vs_torch", so3.log, R, torch_path(so3.log), "torch branches (compiled kernels off)"),
         ("so3.sqrt", so3.sqrt, R, _ref_sqrt, "exp(log(R)/2), previous so3 exp/log"),
-        ("so3.sqrt_vs_torch", so3.sqrt, R, torch_path(fast.sqrt_rotmat), "torch half-angle (native=False)"),
+        ("so3.sqrt_vs_torch", so3.sqrt, R, torch_path(so3.sqrt), "torch half-angle (compiled kernels off)"),
     ]
     if roma is not None:
         cases += [("so3.exp_vs_roma", so3.exp, w, roma.rotvec_to_rotmat, f"roma {roma.__version__} rotvec_to_rotmat"),
@@ -354,7 +359,7 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
         w.grad = None
         R = so3.exp(w)
         (curvature.face_curvature(R, mesh).square().sum()
-         + dnabla.averaged_dd_solder(R, mesh, half_rot=fast.half_exp(w)).square().sum()).backward()
+         + dnabla.averaged_dd_solder(R, mesh, half_rot=ops_so3.half_exp(w)).square().sum()).backward()
 
     def fast_cd_sqrt():
         w.grad = None
@@ -447,23 +452,22 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
         a = float(loss(so3.exp(w), so3.exp(phi))["total"])
         b = float(_ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)))
     t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
-    path = "compiled kernel csrc/frame_loss.c" if loss._use_native(so3.exp(w.detach()), so3.exp(phi.detach())) \
+    path = "compiled kernel csrc/frame_loss.c" if torchconn.ops.can_use_compiled("frame_loss", w, phi) \
         else "torch kernels (no compiled kernel)"
     rows.append(_row("frame_field_loss", T, dname, t, tr, _peak_mb(fast_fn), unit="tets",
                      reference="eager composition of the same terms (generic curvature/torsion, matrix_exp)",
                      max_abs_diff=abs(a - b), note=f"all six terms, weight 1; fwd+bwd to edge and vertex params; {path}"))
-    # the torch-kernel path of the same loss (native=False: what runs without a C compiler / off the CPU)
-    torch_loss = FrameFieldLoss(mesh, {k: 1.0 for k in TERMS}, native=False)
-
+    # the same loss with the compiled kernels switched off (what runs without a C compiler / off the CPU)
     def torch_fn():
         w.grad = phi.grad = None
-        torch_loss(so3.exp(w), so3.exp(phi))["total"].backward()
+        with torchconn.ops.compiled(False):
+            loss(so3.exp(w), so3.exp(phi))["total"].backward()
 
-    with torch.no_grad():
-        c = float(torch_loss(so3.exp(w), so3.exp(phi))["total"])
+    with torch.no_grad(), torchconn.ops.compiled(False):
+        c = float(loss(so3.exp(w), so3.exp(phi))["total"])
     t2, tr2 = _side_by_side(fast_fn, torch_fn, repeats)
     rows.append(_row("frame_field_loss_vs_torch_path", T, dname, t2, tr2, None, unit="tets",
-                     reference="FrameFieldLoss(native=False): the fused torch kernels", max_abs_diff=abs(a - c),
+                     reference="FrameFieldLoss with torchconn.ops.compiled(False): the fused torch kernels", max_abs_diff=abs(a - c),
                      note="compiled kernel vs the torch path of the same class, side by side"))
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import TET_MESHES, data_path
-from torchconn import bianchi, io, so3
+from torchconn import bianchi, curvature, io, so3
 from torchconn import dnabla as D
 from torchconn.mesh import TetMesh
 
@@ -128,7 +128,7 @@ def test_gauge_invariance_of_residuals(gen):
     assert bianchi.differential_residual(er2, mesh).max() < 1e-12
     assert bianchi.algebraic_residual(er2, mesh, frames=G.transpose(-1, -2)).max() < 1e-12
     # curvature as a Lie value transforms with G_eval (.) G_cut^T
-    om, om2 = D.curvature_2form(er, mesh), D.curvature_2form(er2, mesh)
+    om, om2 = curvature.face_curvature(er, mesh), curvature.face_curvature(er2, mesh)
     a, c = mesh.faces[:, 0], mesh.faces[:, 2]
     torch.testing.assert_close(om2, G[a] @ om @ G[c].transpose(-1, -2), atol=1e-12, rtol=0)
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchconn import dnabla as D
-from torchconn import so3, son, transport
+from torchconn import curvature, so3, son, transport
 from torchconn.mesh import TetMesh
 from torchconn.tolerances import get_eps
 
@@ -399,10 +399,37 @@ def test_mesh_wrappers_vs_per_tet_reference(gen):
         a, b, c, d_ = tet
         R_ab, R_bc, R_ac = edge_R(mesh, er, a, b), edge_R(mesh, er, b, c), edge_R(mesh, er, a, c)
         torch.testing.assert_close(bh[t], (R_ab @ R_bc - R_ac) @ (mesh.vertices[d_] - mesh.vertices[c]), atol=1e-12, rtol=0)
-    om = D.curvature_2form(er, mesh)
+    om = _curvature_2form_ref(er, mesh)
     for f, (a, b, c) in enumerate(mesh.faces.tolist()):
         ref = edge_R(mesh, er, a, b) @ edge_R(mesh, er, b, c) - edge_R(mesh, er, a, c)
         torch.testing.assert_close(om[f], ref, atol=1e-13, rtol=0)
+    # the public face curvature (fused kernel on a tet mesh) is the same two-prong form
+    torch.testing.assert_close(curvature.face_curvature(er, mesh), om, atol=1e-13, rtol=0)
+
+
+def _curvature_2form_ref(edge_rot, mesh):
+    """Slow reference: ``⟨Ω,[abc]⟩_a^c = R_ab R_bc - R_ac`` as ``𝔡∇w`` on the face template (Ch. 5).
+
+    The vector version of 𝔡∇ applied column-wise to the matrix-valued connection form ``w``;
+    evaluation ``a = faces[f,0]``, cut ``c = faces[f,2]``: ``(F, n, n)``.
+    """
+    fe = mesh.face_edges.to(edge_rot.device)
+    # pair_list(3) = (01, 02, 12) = (ab, ac, bc) = face_edges slots (2, 1, 0); all canonical (a<b<c)
+    T = transport.dense_simplex_transports(edge_rot[fe[:, [2, 1, 0]]], 3)
+    tri = torch.tensor([[0, 1, 2]], dtype=torch.long, device=edge_rot.device)
+    return D.unsymmetrized_vector(T, D.connection_form(T), tri, matrix_values=True).squeeze(-3)
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_curvature_2form_reference_equals_face_curvature(gen, n):
+    """𝔡∇w on every face of a tet mesh equals :func:`torchconn.curvature.face_curvature` (any rank)."""
+    from torchconn import io
+
+    mesh = io.box(2)
+    er = son.random_rotation(mesh.edges.shape[0], n=n, generator=gen, dtype=F64)
+    ref = _curvature_2form_ref(er, mesh)
+    assert ref.shape == (mesh.faces.shape[0], n, n) and ref.abs().max() > 0.1
+    torch.testing.assert_close(curvature.face_curvature(er, mesh), ref, atol=1e-13, rtol=0)
 
 
 def test_mesh_frames_and_half_rot_gauge(gen):

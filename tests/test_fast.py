@@ -1,4 +1,4 @@
-"""Fused kernels of torchconn.fast against the generic operators and plain autograd."""
+"""Fused kernels of torchconn.ops against the generic operators and plain autograd."""
 from __future__ import annotations
 
 import math
@@ -10,7 +10,11 @@ from scipy.spatial.transform import Rotation as Rot
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchconn import dnabla, io, so3
-from torchconn.ops import fast
+import torchconn.ops
+from torchconn.ops import curvature as ops_curvature
+from torchconn.ops import so3 as ops_so3
+from torchconn.ops import tet as ops_tet
+from torchconn.ops import torsion as ops_torsion
 from torchconn.dec.connection import Connection
 from torchconn.dec.transport import orient
 
@@ -40,12 +44,13 @@ def _rodrigues_matrix_route(w):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_exp_matches_matrix_exp_and_autograd(dtype):
     w = _rotvecs(2000, dtype).requires_grad_()
-    R = fast.exp_rotvec(w, native=False)  # the torch kernel (the compiled one: tests/test_native_so3.py)
+    with torchconn.ops.compiled(False):  # the torch kernel (the compiled one: tests/test_native_so3.py)
+        R = ops_so3.exp(w)
     torch.testing.assert_close(R, _rodrigues_matrix_route(w.detach().double()).to(dtype), atol=TOL[dtype] * 4, rtol=0)
     G = torch.randn(R.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
     (g_fast,) = torch.autograd.grad((R * G).sum(), w)
     w2 = w.detach().clone().requires_grad_()
-    R2 = fast.exp_rotvec_autograd(w2)
+    R2 = ops_so3.exp_autograd(w2)
     (g_ref,) = torch.autograd.grad((R2 * G).sum(), w2)
     assert torch.equal(R.detach(), R2.detach())
     torch.testing.assert_close(g_fast, g_ref, atol=10 * TOL[dtype], rtol=0)
@@ -56,15 +61,15 @@ def test_exp_matches_matrix_exp_and_autograd(dtype):
 def test_exp_gradcheck_and_double_backward(scale):
     g = torch.Generator().manual_seed(2)
     w = (torch.randn(6, 3, generator=g, dtype=torch.float64) * scale).requires_grad_()
-    assert gradcheck(fast.exp_rotvec, (w,))
-    assert gradgradcheck(fast.exp_rotvec, (w,))
+    assert gradcheck(ops_so3.exp, (w,))
+    assert gradgradcheck(ops_so3.exp, (w,))
 
 
 def test_exp_gradient_at_identity_is_hat_pairing():
     # dR/dw at 0 is hat(e_k): the gradient of <G, R> is (G21 - G12, G02 - G20, G10 - G01)
     w = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
     G = torch.arange(9, dtype=torch.float64).reshape(1, 3, 3) ** 1.5
-    (g,) = torch.autograd.grad((fast.exp_rotvec(w) * G).sum(), w)
+    (g,) = torch.autograd.grad((ops_so3.exp(w) * G).sum(), w)
     Gm = G[0]
     expect = torch.stack((Gm[2, 1] - Gm[1, 2], Gm[0, 2] - Gm[2, 0], Gm[1, 0] - Gm[0, 1]))
     torch.testing.assert_close(g[0], expect)
@@ -78,7 +83,7 @@ def test_log_matches_scipy(dtype):
     w = _rotvecs(3000, torch.float64, seed=3, max_angle=math.pi - 1e-6)
     R = torch.from_numpy(Rot.from_rotvec(w.numpy()).as_matrix()).to(dtype)
     ref = torch.from_numpy(Rot.from_matrix(R.double().numpy()).as_rotvec())
-    out = fast.log_rotmat(R).double()
+    out = ops_so3.log(R).double()
     # float32 near pi: the angle itself is only known to ~sqrt(eps)-ish from rounded entries
     atol = 1e-12 if dtype == torch.float64 else 5e-4
     torch.testing.assert_close(out, ref, atol=atol, rtol=0)
@@ -90,38 +95,38 @@ def test_log_sqrt_gradcheck_all_branches(theta):
     # branches extend differently)
     axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
     R = so3.exp(axis / axis.norm() * theta)[None].requires_grad_()
-    assert gradcheck(fast.log_rotmat, (R,))
-    assert gradcheck(fast.sqrt_rotmat, (R,))
+    assert gradcheck(ops_so3.log, (R,))
+    assert gradcheck(ops_so3.sqrt, (R,))
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_log_sqrt_finite_gradient_at_pi(dtype):
     # at exactly pi log jumps (+pi n or -pi n), so only finiteness of value and gradient is asked
     R = so3.rot_x(torch.tensor([math.pi], dtype=dtype)).requires_grad_()
-    for fn in (fast.log_rotmat, fast.sqrt_rotmat):
+    for fn in (ops_so3.log, ops_so3.sqrt):
         out = fn(R)
         (g,) = torch.autograd.grad(out.sum(), R)
         assert torch.isfinite(out).all() and torch.isfinite(g).all()
-    torch.testing.assert_close(fast.log_rotmat(R).abs().detach(),
+    torch.testing.assert_close(ops_so3.log(R).abs().detach(),
                                torch.tensor([[math.pi, 0.0, 0.0]], dtype=dtype))
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_sqrt_equals_half_log_route(dtype):
     R = so3.random_rotation(5000, generator=torch.Generator().manual_seed(4), dtype=dtype)
-    S = fast.sqrt_rotmat(R)
-    ref = fast.exp_rotvec(0.5 * fast.log_rotmat(R))
+    S = ops_so3.sqrt(R)
+    ref = ops_so3.exp(0.5 * ops_so3.log(R))
     torch.testing.assert_close(S, ref, atol=5 * TOL[dtype], rtol=0)
     torch.testing.assert_close(S @ S, R, atol=5 * TOL[dtype], rtol=0)
     # batch shape kept, both branches present
     tr = R.diagonal(dim1=-2, dim2=-1).sum(-1)
     assert (tr > 0).any() and (tr <= 0).any()
-    assert fast.sqrt_rotmat(R.reshape(50, 100, 3, 3)).shape == (50, 100, 3, 3)
+    assert ops_so3.sqrt(R.reshape(50, 100, 3, 3)).shape == (50, 100, 3, 3)
 
 
 def test_half_exp_is_principal_root():
     w = _rotvecs(500, torch.float64, seed=5, max_angle=math.pi - 1e-3)
-    torch.testing.assert_close(fast.half_exp(w), so3.sqrt(so3.exp(w)), atol=1e-11, rtol=0)
+    torch.testing.assert_close(ops_so3.half_exp(w), so3.sqrt(so3.exp(w)), atol=1e-11, rtol=0)
 
 
 # ---------------------------------------------------------------- tet kernel
@@ -141,17 +146,17 @@ def _generic_dd(edge_rot, mesh, frames=None, half_rot=None):
 
 def test_tet_kernel_indices_match_orient():
     mesh, R = _setup(torch.float64)
-    k = fast.tet_kernel(mesh)
+    k = ops_tet.tet_kernel(mesh)
     both = torch.stack((R, R.transpose(-1, -2)), 1).reshape(-1, 3, 3)
     torch.testing.assert_close(both[k.rot_index], orient(R, mesh.tet_edges, mesh.tet_edge_signs))
     th = dnabla.tet_solder_sqrt(R, mesh)  # dense (T, 4, 4, 3)
     H = so3.sqrt(R)
     e = mesh.edges
     vec = mesh.vertices[e[:, 1]] - mesh.vertices[e[:, 0]]
-    edge_th = fast.edge_solder_sqrt(H, vec).reshape(-1, 3)[k.theta_index]
-    for col, (x, y) in enumerate(fast.TetKernel._DIRECTED):
+    edge_th = ops_tet.edge_solder_sqrt(H, vec).reshape(-1, 3)[k.theta_index]
+    for col, (x, y) in enumerate(ops_tet.TetKernel._DIRECTED):
         torch.testing.assert_close(edge_th[:, col], th[:, x, y])
-    assert fast.tet_kernel(mesh) is k  # cached
+    assert ops_tet.tet_kernel(mesh) is k  # cached
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -161,7 +166,7 @@ def test_tet_dd_matches_generic(dtype, with_frames):
     frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(7),
                                  dtype=dtype) if with_frames else None
     ref = _generic_dd(R, mesh, frames)
-    out = fast.tet_dd_solder(R, mesh, frames=frames)
+    out = ops_tet.tet_dd_solder(R, mesh, frames=frames)
     torch.testing.assert_close(out, ref, atol=20 * TOL[dtype], rtol=0)
     # the explicit printed formula on the dense tables agrees too
     wedge = dnabla.wedge_curvature_solder_tet(dnabla.tet_transports(R, mesh),
@@ -175,7 +180,7 @@ def test_tet_dd_with_half_rot_from_params():
     mesh = io.box(3)
     w = 0.4 * torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     R = so3.exp(w)
-    out = fast.tet_dd_solder(R, mesh, half_rot=fast.half_exp(w))
+    out = ops_tet.tet_dd_solder(R, mesh, half_rot=ops_so3.half_exp(w))
     torch.testing.assert_close(out, _generic_dd(R, mesh), atol=1e-13, rtol=0)
 
 
@@ -187,22 +192,22 @@ def test_tet_dd_fused_backward_matches_autograd(with_frames):
                                  dtype=dtype) if with_frames else None
     w = so3.log(R).requires_grad_()
     Gout = torch.randn(mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(9), dtype=dtype)
-    (g_fast,) = torch.autograd.grad((fast.tet_dd_solder(so3.exp(w), mesh, frames=frames) * Gout).sum(), w)
+    (g_fast,) = torch.autograd.grad((ops_tet.tet_dd_solder(so3.exp(w), mesh, frames=frames) * Gout).sum(), w)
     (g_ref,) = torch.autograd.grad((_generic_dd(so3.exp(w), mesh, frames) * Gout).sum(), w)
     torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)
 
 
 def test_tet_dd_fused_gradcheck():
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=4)
-    k = fast.tet_kernel(mesh)
+    k = ops_tet.tet_kernel(mesh)
     Rr = R.clone().requires_grad_()
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64,
                      requires_grad=True)
-    fused = lambda A, t: fast._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)  # noqa: E731
+    fused = lambda A, t: ops_tet._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)  # noqa: E731
 
     def plain(A, t):
         both = torch.stack((A, A.transpose(-1, -2)), 1).reshape(-1, 3, 3)
-        return fast.tet_dd_from_rotations(both[k.rot_index], t.reshape(-1, 3)[k.theta_index])
+        return ops_tet.tet_dd_from_rotations(both[k.rot_index], t.reshape(-1, 3)[k.theta_index])
 
     torch.testing.assert_close(fused(Rr, th), plain(Rr, th), atol=1e-14, rtol=0)
     assert gradcheck(fused, (Rr, th))
@@ -212,7 +217,7 @@ def test_tet_dd_fused_gradcheck():
 def test_exp_matches_numpy_rodrigues_per_element():
     """Per-element reference written with numpy, one rotation at a time."""
     w = _rotvecs(50, torch.float64, seed=11)
-    out = fast.exp_rotvec(w).numpy()
+    out = ops_so3.exp(w).numpy()
     for i, wi in enumerate(w.numpy()):
         t = np.linalg.norm(wi)
         K = np.array([[0, -wi[2], wi[1]], [wi[2], 0, -wi[0]], [-wi[1], wi[0], 0]])
@@ -237,9 +242,11 @@ def _generic_face_curvature(R, mesh, cut, kind):
 @pytest.mark.parametrize("cut,kind", [(-1, "two_prong"), (2, "two_prong"), (1, "two_prong"), (-2, "two_prong"),
                                       (0, "two_prong"), (-1, "holonomy")])
 def test_face_curvature_matches_generic_values_and_gradients(dtype, cut, kind):
+    from torchconn import curvature
+
     mesh, R = _setup(dtype, scale=0.8, seed=5)
     w = so3.log(R).requires_grad_()
-    out = fast.face_curvature_tet(so3.exp(w), mesh, cut, kind)
+    out = curvature.face_curvature(so3.exp(w), mesh, cut, kind)  # routes to ops.curvature
     ref = _generic_face_curvature(so3.exp(w), mesh, cut, kind)
     torch.testing.assert_close(out, ref, atol=5 * TOL[dtype], rtol=0)
     G = torch.randn(out.shape, generator=torch.Generator().manual_seed(6), dtype=dtype)
@@ -251,8 +258,8 @@ def test_face_curvature_matches_generic_values_and_gradients(dtype, cut, kind):
 @pytest.mark.parametrize("kind", [0, 1, 2])
 def test_face_curvature_fused_gradcheck(kind):
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=6)
-    idx = fast._face_index(mesh, R.device)
-    assert gradcheck(lambda A: fast._FaceCurvatureFn.apply(A, idx, kind), (R.clone().requires_grad_(),))
+    idx = ops_curvature._face_index(mesh, R.device)
+    assert gradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, kind), (R.clone().requires_grad_(),))
 
 
 def test_face_curvature_general_rank_uses_matmul_path():
@@ -261,7 +268,7 @@ def test_face_curvature_general_rank_uses_matmul_path():
     mesh = io.box(2)
     R = son.random_rotation(mesh.edges.shape[0], n=4, generator=torch.Generator().manual_seed(1),
                             dtype=torch.float64)
-    torch.testing.assert_close(fast.face_curvature_tet(R, mesh), _generic_face_curvature(R, mesh, -1, "two_prong"))
+    torch.testing.assert_close(ops_curvature.face_curvature(R, mesh), _generic_face_curvature(R, mesh, -1, "two_prong"))
 
 
 @pytest.mark.parametrize("kind", ["sqrt", "naive"])
@@ -274,7 +281,7 @@ def test_face_torsion_matches_generic_loop(kind, with_frames):
     frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(3),
                                  dtype=dtype) if with_frames else None
     w = so3.log(R).requires_grad_()
-    out = fast.face_torsion_tet(so3.exp(w), mesh, kind, frames)
+    out = ops_torsion.face_torsion(so3.exp(w), mesh, kind, frames)
     # generic loop path: a cut given as a tensor is not routed to the fast kernel
     ref = torsion.face_torsion(so3.exp(w), mesh, kind=kind, cut=torch.tensor(-1), frames=frames)
     torch.testing.assert_close(out, ref, atol=1e-13, rtol=0)
@@ -288,10 +295,10 @@ def test_face_curvature_grad_in_output_layout_gradcheck():
     """The output is a (F, 3, 3) view of a component-major (9, F) array; elementwise consumers
     keep that layout in the incoming gradient (no transposed copy in backward): same gradient."""
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=8)
-    idx = fast._face_index(mesh, R.device)
-    assert gradcheck(lambda A: fast._FaceCurvatureFn.apply(A, idx, 0).square(), (R.clone().requires_grad_(),))
+    idx = ops_curvature._face_index(mesh, R.device)
+    assert gradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, 0).square(), (R.clone().requires_grad_(),))
     A = R.clone().requires_grad_()
-    out = fast._FaceCurvatureFn.apply(A, idx, 0)
+    out = ops_curvature._FaceCurvatureFn.apply(A, idx, 0)
     (g_fast,) = torch.autograd.grad(out.square().sum(), A)
     (g_ref,) = torch.autograd.grad(_generic_face_curvature(A, mesh, 0, "holonomy").square().sum(), A)
     torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)
@@ -303,9 +310,9 @@ def test_face_torsion_with_shared_edge_frames_is_identical():
     frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(5), dtype=dtype)
     w = so3.log(R).requires_grad_()
     f = so3.log(frames).requires_grad_()
-    a = fast.face_torsion_tet(so3.exp(w), mesh, "sqrt", so3.exp(f))
+    a = ops_torsion.face_torsion(so3.exp(w), mesh, "sqrt", so3.exp(f))
     Rw = so3.exp(w)
-    b = fast.face_torsion_tet(Rw, mesh, "sqrt", edge_frame_rot=fast.edge_frames(Rw, mesh, so3.exp(f)))
+    b = ops_torsion.face_torsion(Rw, mesh, "sqrt", edge_frame_rot=ops_torsion.edge_frames(Rw, mesh, so3.exp(f)))
     assert torch.equal(a, b)
     G = torch.randn(a.shape, generator=torch.Generator().manual_seed(6), dtype=dtype)
     ga = torch.autograd.grad((a * G).sum(), (w, f))

@@ -1,10 +1,11 @@
-"""torchconn.native: build once, cache, fall back with one clear warning."""
+"""torchconn.ops.native: build once, cache, fall back with one clear warning."""
 import warnings
 
 import pytest
 import torch
 
 from torchconn.ops import native
+from torchconn.ops.backend import can_use_compiled
 
 
 @pytest.fixture
@@ -37,7 +38,7 @@ def test_failed_build_warns_once_and_falls_back(fresh, monkeypatch):
         warnings.simplefilter("error")
         assert native.library("frame_loss") is None  # cached decision, no second warning
     x = torch.zeros(3, 3, dtype=torch.float64)
-    assert not native.available("frame_loss", x)
+    assert not can_use_compiled("frame_loss", x)
 
 
 def test_missing_compiler(fresh, monkeypatch):
@@ -56,20 +57,18 @@ def test_unwritable_cache_falls_back(fresh, monkeypatch, tmp_path):
         assert native.library("frame_loss") is None
 
 
-def test_disabled_by_environment(fresh, monkeypatch):
-    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
-    assert not native.enabled() and native.library("frame_loss") is None
+def test_can_use_compiled_checks_device_and_dtype():
+    import torchconn.ops
 
-
-def test_available_checks_device_and_dtype():
     if native.library("frame_loss") is None:
         pytest.skip("no C compiler on this machine")
     f64, f32 = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float32)
-    assert native.available("frame_loss", f64, f64) and native.available("frame_loss", f32)
-    assert not native.available("frame_loss", f64, f32)  # mixed dtypes
-    assert not native.available("frame_loss", torch.zeros(2, dtype=torch.float16))
-    assert not native.available("frame_loss", torch.zeros(2, device="meta"))
-    assert not native.available("frame_loss")
+    with torchconn.ops.compiled(True):
+        assert can_use_compiled("frame_loss", f64, f64) and can_use_compiled("frame_loss", f32)
+        assert not can_use_compiled("frame_loss", f64, f32)  # mixed dtypes
+        assert not can_use_compiled("frame_loss", torch.zeros(2, dtype=torch.float16))
+        assert not can_use_compiled("frame_loss", torch.zeros(2, device="meta"))
+        assert not can_use_compiled("frame_loss")
     with pytest.raises(ValueError, match="contiguous"):
         native.ptr(torch.zeros(3, 3).t())
 

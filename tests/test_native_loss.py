@@ -1,4 +1,4 @@
-"""The compiled frame-field loss kernel (csrc/frame_loss.c) against the torch path of FrameFieldLoss.
+"""The compiled frame-field loss kernel (csrc/frame_loss.c, torchconn.ops.frame_loss) against the torch path of FrameFieldLoss.
 
 Layers: values and gradients (through so3.exp parameters) equal the torch path to round-off on
 a small box and on a shared mesh, float32 and float64, every term alone and together, both
@@ -10,10 +10,12 @@ fallback and errors.
 import pytest
 import torch
 
+import torchconn.ops
 from torchconn import io, so3
 from torchconn.ops import native
+from torchconn.ops.frame_loss import COMPILED_TERMS, frame_loss_terms
 from torchconn.frames import octahedral
-from torchconn.frames.loss import FrameFieldLoss, TERMS, _NATIVE_TERMS, _native_frame_loss
+from torchconn.frames.loss import FrameFieldLoss, TERMS
 from torchconn.tolerances import get_eps
 
 from conftest import data_path
@@ -22,6 +24,24 @@ pytestmark = pytest.mark.skipif(native.library("frame_loss") is None,
                                 reason="no C compiler (or TORCHCONN_NATIVE=0): the compiled kernel cannot be built")
 
 ALL = {k: 1.0 for k in TERMS}
+
+
+@pytest.fixture(autouse=True)
+def _compiled_on():
+    with torchconn.ops.compiled(True):
+        yield
+
+
+def _torch_path(loss):
+    """``loss`` evaluated with the compiled kernels switched off (the torch terms)."""
+    def call(R, F):
+        with torchconn.ops.compiled(False):
+            return loss(R, F)
+    return call
+
+
+def _applies(mesh, R, F, weights=ALL):
+    return frame_loss_terms(R, F, mesh, octahedral.group(torch.float64), weights, 2.0, 1e-3) is not None
 
 
 def _params(mesh, dtype, seed=0, scale=0.15):
@@ -42,8 +62,10 @@ def _run(loss, w, phi, key="total"):
 
 def _compare(mesh, weights, dtype, power, key="total", seed=0):
     kw = dict(smooth_power=power, align_kind="angle")
-    a = _run(FrameFieldLoss(mesh, weights, native=True, **kw), *_params(mesh, dtype, seed), key=key)
-    b = _run(FrameFieldLoss(mesh, weights, native=False, **kw), *_params(mesh, dtype, seed), key=key)
+    w, phi = _params(mesh, dtype, seed)
+    assert _applies(mesh, so3.exp(w), so3.exp(phi), weights)
+    a = _run(FrameFieldLoss(mesh, weights, **kw), w, phi, key=key)
+    b = _run(_torch_path(FrameFieldLoss(mesh, weights, **kw)), w, phi, key=key)
     tol = 1e-12 if dtype == torch.float64 else 2e-5
     assert a[0].keys() == b[0].keys()
     for k in a[0]:
@@ -80,9 +102,9 @@ def test_matches_torch_path_on_shared_mesh():
 
 def test_gradcheck_through_exp_params():
     mesh = io.box(1)
-    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0}, smooth_power=1.0,
-                          native=True)
+    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0}, smooth_power=1.0)
     w, phi = _params(mesh, torch.float64, seed=5, scale=0.3)
+    assert _applies(mesh, so3.exp(w), so3.exp(phi))
 
     def f(w, phi):
         return loss(so3.exp(w), so3.exp(phi))["total"]
@@ -93,8 +115,8 @@ def test_gradcheck_through_exp_params():
 def test_no_grad_values_and_torsion_mask():
     mesh = io.box(2)
     w, phi = _params(mesh, torch.float64, seed=1, scale=1.5)  # large: many relabeled edges
-    a = FrameFieldLoss(mesh, ALL, native=True)
-    b = FrameFieldLoss(mesh, ALL, native=False)
+    a = FrameFieldLoss(mesh, ALL)
+    b = _torch_path(FrameFieldLoss(mesh, ALL))
     with torch.no_grad():
         va, vb = a(so3.exp(w), so3.exp(phi)), b(so3.exp(w), so3.exp(phi))
     for k in va:
@@ -108,8 +130,9 @@ def test_no_unrelabeled_face_gives_zero_torsion():
     z90 = so3.rot_z(torch.tensor(torch.pi / 2, dtype=torch.float64))
     R = z90.expand(E, 3, 3).clone().requires_grad_()
     Fr = torch.eye(3, dtype=torch.float64).expand(V, 3, 3).clone().requires_grad_()
-    out = FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0}, native=True)(R, Fr)
-    ref = FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0}, native=False)(R.detach(), Fr.detach())
+    assert _applies(mesh, R, Fr, {"tie": 1.0, "torsion": 1.0})
+    out = FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0})(R, Fr)
+    ref = _torch_path(FrameFieldLoss(mesh, {"tie": 1.0, "torsion": 1.0}))(R.detach(), Fr.detach())
     assert float(out["torsion"].detach()) == float(ref["torsion"]) == 0.0
     out["total"].backward()
     assert torch.isfinite(R.grad).all() and torch.isfinite(Fr.grad).all()
@@ -117,8 +140,9 @@ def test_no_unrelabeled_face_gives_zero_torsion():
 
 def test_thread_count_only_changes_round_off_and_is_deterministic():
     mesh = io.box(4)
-    loss = FrameFieldLoss(mesh, ALL, smooth_power=1.0, native=True)
+    loss = FrameFieldLoss(mesh, ALL, smooth_power=1.0)
     w, phi = _params(mesh, torch.float64, seed=2)
+    assert _applies(mesh, so3.exp(w), so3.exp(phi))
     old = torch.get_num_threads()
     try:
         res = {}
@@ -135,35 +159,35 @@ def test_thread_count_only_changes_round_off_and_is_deterministic():
         torch.set_num_threads(old)
 
 
-def test_fallback_and_errors(monkeypatch):
+def test_fallback_and_errors():
     mesh = io.box(1)
     w, phi = _params(mesh, torch.float64)
     R, Fr = so3.exp(w), so3.exp(phi)
-    # float16 / wrong shapes: torch path (auto) or a clear error (native=True)
-    with pytest.raises(RuntimeError, match="compiled kernel cannot run"):
-        FrameFieldLoss(mesh, ALL, native=True)(R[:-1], Fr)
-    with pytest.raises(ValueError, match="native"):
-        FrameFieldLoss(mesh, ALL, native="yes")
-    # disabled by the environment: the auto mode falls back to the torch path, same values
+    # float16 / wrong shapes / no compiled term: the kernel does not apply (the torch terms run)
+    assert _applies(mesh, R, Fr)
+    assert not _applies(mesh, R[:-1], Fr)
+    assert not _applies(mesh, R.half(), Fr.half())
+    assert not _applies(mesh, R, Fr, {"align": 1.0})
+    with pytest.raises(TypeError):
+        FrameFieldLoss(mesh, ALL, native=True)  # the kernel is chosen by the switch, not by a flag
+    # switched off: the loss falls back to the torch path, same values
     auto = FrameFieldLoss(mesh, ALL)
     v_native = float(auto(R, Fr)["total"])
-    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
-    assert not native.available("frame_loss", R, Fr)
-    assert abs(float(auto(R, Fr)["total"]) - v_native) <= 1e-12
-    with pytest.raises(RuntimeError, match="compiled kernel cannot run"):
-        FrameFieldLoss(mesh, ALL, native=True)(R, Fr)
+    with torchconn.ops.compiled(False):
+        assert not torchconn.ops.can_use_compiled("frame_loss", R, Fr)
+        assert not _applies(mesh, R, Fr)
+        assert abs(float(auto(R, Fr)["total"]) - v_native) <= 1e-12
 
 
 def test_group_table_order_is_checked():
     mesh = io.box(1)
-    loss = FrameFieldLoss(mesh, ALL, native=True)
     w, phi = _params(mesh, torch.float64)
-    buf = loss._native_buffers(torch.float64)
-    assert torch.equal(buf["group"], octahedral.group(torch.float64).reshape(24, 9))
-    buf["group"] = buf["group"].flip(0).contiguous()  # another order of the same group
+    R, Fr = so3.exp(w), so3.exp(phi)
+    group = octahedral.group(torch.float64)
+    assert frame_loss_terms(R, Fr, mesh, group, ALL, 2.0, 1e-3) is not None
     with pytest.raises(RuntimeError, match="score table"):
-        _native_frame_loss(loss, so3.exp(w), so3.exp(phi), 1 | 2 | 4 | 8, [1.0] * 4)
+        frame_loss_terms(R, Fr, mesh, group.flip(0), ALL, 2.0, 1e-3)  # another order of the same group
 
 
 def test_terms_constant_lists_the_kernel_terms():
-    assert set(_NATIVE_TERMS) <= set(TERMS) and get_eps("identity", torch.float64) > 0
+    assert set(COMPILED_TERMS) <= set(TERMS) and get_eps("identity", torch.float64) > 0

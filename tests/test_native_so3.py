@@ -1,6 +1,6 @@
-"""Compiled SO(3) kernels (torchconn/csrc/so3.c) against the torch path of torchconn.fast.
+"""Compiled SO(3) kernels (torchconn/ops/csrc/so3.c) against the torch path of torchconn.ops.so3.
 
-The torch code (``native=False``) is the reference: same branches, same thresholds, so the
+The torch code (switch off: ``torchconn.ops.compiled(False)``) is the reference: same branches, same thresholds, so the
 two agree to round-off in values (float32 1e-6, float64 1e-12) and in gradients, including at
 the singular points θ = 0 and θ = π. Skipped only when no C compiler is found.
 """
@@ -13,27 +13,37 @@ import pytest
 import torch
 from torch.autograd import gradcheck, gradgradcheck
 
+import torchconn.ops
 from torchconn import so3
-from torchconn.ops import fast
 from torchconn.ops import native
+from torchconn.ops import so3 as ops_so3
 from torchconn.tolerances import get_eps
 
 DTYPES = [torch.float32, torch.float64]
 VAL_TOL = {torch.float32: 1e-6, torch.float64: 1e-12}
 MAPS = ["exp", "log", "sqrt"]
-FN = {"exp": fast.exp_rotvec, "log": fast.log_rotmat, "sqrt": fast.sqrt_rotmat}
+FN = {"exp": ops_so3.exp, "log": ops_so3.log, "sqrt": ops_so3.sqrt}
 
 
 @pytest.fixture(autouse=True)
 def _native_built(monkeypatch):
     if native._compiler() is None:
         pytest.skip("no C compiler found ($CC, cc, gcc, clang): torchconn/csrc/so3.c cannot be built")
-    monkeypatch.delenv("TORCHCONN_NATIVE", raising=False)
     assert native.library("so3") is not None, "torchconn/csrc/so3.c did not build or load"
+    with torchconn.ops.compiled(True):
+        yield
 
 
 def _is_native(out: torch.Tensor) -> bool:
-    return out.grad_fn is not None and "_NativeMapFn" in out.grad_fn.name()
+    return out.grad_fn is not None and "_CompiledMapFn" in out.grad_fn.name()
+
+
+def _with(fn, compiled: bool):
+    """``fn`` called with the compiled kernels switched on (the default here) or off (torch)."""
+    def call(x):
+        with torchconn.ops.compiled(compiled):
+            return fn(x)
+    return call
 
 
 def _unit(v):
@@ -78,9 +88,9 @@ def _inputs(kind, dtype, n=10_000, seed=0):
     return R.to(dtype)
 
 
-def _grad(fn, x, G, **kw):
+def _grad(fn, x, G):
     x = x.detach().clone().requires_grad_()
-    out = fn(x, **kw)
+    out = fn(x)
     (g,) = torch.autograd.grad((out * G).sum(), x)
     return out.detach(), g, out
 
@@ -93,7 +103,7 @@ def _grad(fn, x, G, **kw):
 def test_values_match_torch_path(kind, dtype):
     x = _inputs(kind, dtype)
     fn = FN[kind]
-    a, b = fn(x, native=True), fn(x, native=False)
+    a, b = fn(x), _with(fn, False)(x)
     assert torch.isfinite(a).all()
     torch.testing.assert_close(a, b, atol=VAL_TOL[dtype], rtol=0)
 
@@ -102,7 +112,7 @@ def test_values_match_torch_path(kind, dtype):
 def test_log_at_pi_same_branch_and_sign(dtype):
     # at exactly π both signs are logarithms; the C path makes the torch path's choice
     R = _rotation_pi(AXES).to(dtype)
-    a, b = fast.log_rotmat(R, native=True), fast.log_rotmat(R, native=False)
+    a, b = ops_so3.log(R), _with(ops_so3.log, False)(R)
     torch.testing.assert_close(a, b, atol=VAL_TOL[dtype], rtol=0)
     torch.testing.assert_close(a.norm(dim=-1), torch.full((len(AXES),), math.pi, dtype=dtype),
                                atol=10 * VAL_TOL[dtype], rtol=0)
@@ -111,9 +121,9 @@ def test_log_at_pi_same_branch_and_sign(dtype):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_exp_log_roundtrip_native(dtype):
     w = _rotvecs(5000, dtype, seed=3, max_angle=math.pi - 1e-3)
-    torch.testing.assert_close(fast.log_rotmat(fast.exp_rotvec(w)), w, atol=50 * VAL_TOL[dtype], rtol=0)
-    R = fast.exp_rotvec(w)
-    S = fast.sqrt_rotmat(R)
+    torch.testing.assert_close(ops_so3.log(ops_so3.exp(w)), w, atol=50 * VAL_TOL[dtype], rtol=0)
+    R = ops_so3.exp(w)
+    S = ops_so3.sqrt(R)
     torch.testing.assert_close(S @ S, R, atol=5 * VAL_TOL[dtype], rtol=0)
 
 
@@ -123,18 +133,18 @@ def test_batch_shapes_empty_and_noncontiguous(kind):
     fn = FN[kind]
     x = _inputs(kind, dtype, n=40)[:40]
     batched = x.reshape(2, 4, 5, *x.shape[1:])
-    out = fn(batched, native=True)
+    out = fn(batched)
     tail = (3,) if kind == "log" else (3, 3)
     assert out.shape == (2, 4, 5, *tail)
-    torch.testing.assert_close(out.reshape(40, *tail), fn(x, native=True), atol=0, rtol=0)
+    torch.testing.assert_close(out.reshape(40, *tail), fn(x), atol=0, rtol=0)
     # non-contiguous input (a transposed batch)
     nc = batched.transpose(0, 2)
     assert not nc.is_contiguous()
-    torch.testing.assert_close(fn(nc, native=True), fn(nc, native=False), atol=VAL_TOL[dtype], rtol=0)
+    torch.testing.assert_close(fn(nc), _with(fn, False)(nc), atol=VAL_TOL[dtype], rtol=0)
     # empty batches, forward and backward
     for shape in [(0,), (2, 0)]:
         e = torch.zeros(*shape, *x.shape[1:], dtype=dtype, requires_grad=True)
-        oe = fn(e, native=True)
+        oe = fn(e)
         assert oe.shape == (*shape, *tail)
         (ge,) = torch.autograd.grad(oe.sum(), e)
         assert ge.shape == e.shape
@@ -142,9 +152,9 @@ def test_batch_shapes_empty_and_noncontiguous(kind):
 
 def test_bad_shapes_still_raise():
     with pytest.raises(ValueError):
-        fast.exp_rotvec(torch.zeros(4, 2), native=True)
+        ops_so3.exp(torch.zeros(4, 2))
     with pytest.raises(ValueError):
-        fast.log_rotmat(torch.zeros(4, 3), native=True)
+        ops_so3.log(torch.zeros(4, 3))
 
 
 def test_threads_do_not_change_results():
@@ -152,9 +162,9 @@ def test_threads_do_not_change_results():
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        a = [FN[k](x if k != "exp" else x[:, 0], native=True) for k in MAPS]
+        a = [FN[k](x if k != "exp" else x[:, 0]) for k in MAPS]
         torch.set_num_threads(2)
-        b = [FN[k](x if k != "exp" else x[:, 0], native=True) for k in MAPS]
+        b = [FN[k](x if k != "exp" else x[:, 0]) for k in MAPS]
     finally:
         torch.set_num_threads(before)
     for u, v in zip(a, b):
@@ -170,12 +180,12 @@ def test_gradients_match_torch_path(kind, dtype):
     x = _inputs(kind, dtype)
     fn = FN[kind]
     G = torch.randn(fn(x).shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    _, g_n, out = _grad(fn, x, G.to(dtype), native=True)
-    _, g_t, _ = _grad(fn, x, G.to(dtype), native=False)
+    _, g_n, out = _grad(fn, x, G.to(dtype))
+    _, g_t, _ = _grad(_with(fn, False), x, G.to(dtype))
     assert _is_native(out)
     assert torch.isfinite(g_n).all()
     # both paths against the float64 torch path: the C backward is as accurate as the torch one
-    _, g_64, _ = _grad(fn, x.double(), G, native=False)
+    _, g_64, _ = _grad(_with(fn, False), x.double(), G)
     err_n = (g_n.double() - g_64).abs().max()
     err_t = (g_t.double() - g_64).abs().max()
     scale = g_64.abs().max()
@@ -197,8 +207,8 @@ def test_gradients_match_torch_path(kind, dtype):
 def test_exp_gradcheck_native(scale):
     g = torch.Generator().manual_seed(2)
     w = (torch.randn(6, 3, generator=g, dtype=torch.float64) * scale).requires_grad_()
-    assert _is_native(fast.exp_rotvec(w, native=True))
-    assert gradcheck(lambda x: fast.exp_rotvec(x, native=True), (w,))
+    assert _is_native(ops_so3.exp(w))
+    assert gradcheck(ops_so3.exp, (w,))
 
 
 @pytest.mark.parametrize("theta", [0.0, 1e-5, 0.5, 1.4, 1.8, 2.5, math.pi - 1e-3])
@@ -208,8 +218,8 @@ def test_log_sqrt_gradcheck_native(theta):
     axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
     R = so3.exp(axis / axis.norm() * theta)[None].requires_grad_()
     for kind in ("log", "sqrt"):
-        assert _is_native(FN[kind](R, native=True))
-        assert gradcheck(lambda x: FN[kind](x, native=True), (R,))
+        assert _is_native(FN[kind](R))
+        assert gradcheck(FN[kind], (R,))
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -224,8 +234,8 @@ def test_gradients_finite_and_equal_at_0_and_pi(dtype):
                          G[..., 0]),
                         ("sqrt", torch.cat([torch.eye(3, dtype=dtype)[None], _rotation_pi(AXES[[0, 3, 4]]).to(dtype)]),
                          G)]:
-        v_n, g_n, out = _grad(FN[kind], x, Gk, native=True)
-        v_t, g_t, _ = _grad(FN[kind], x, Gk, native=False)
+        v_n, g_n, out = _grad(FN[kind], x, Gk)
+        v_t, g_t, _ = _grad(_with(FN[kind], False), x, Gk)
         assert _is_native(out)
         assert torch.isfinite(v_n).all() and torch.isfinite(g_n).all(), kind
         torch.testing.assert_close(v_n, v_t, atol=tol, rtol=0)
@@ -237,14 +247,14 @@ def test_double_backward_uses_torch_path():
     g = torch.Generator().manual_seed(6)
     w = (torch.randn(5, 3, generator=g, dtype=torch.float64) * 1.2).requires_grad_()
     R = so3.exp(w.detach())[:3].clone().requires_grad_()
-    assert gradgradcheck(lambda x: fast.exp_rotvec(x, native=True), (w,))
-    assert gradgradcheck(lambda x: fast.log_rotmat(x, native=True), (R,))
-    assert gradgradcheck(lambda x: fast.sqrt_rotmat(x, native=True), (R,))
+    assert gradgradcheck(ops_so3.exp, (w,))
+    assert gradgradcheck(ops_so3.log, (R,))
+    assert gradgradcheck(ops_so3.sqrt, (R,))
     # and equals the torch path's second derivative
     for kind, x in (("exp", w), ("log", R), ("sqrt", R)):
         outs = []
         for nat in (True, False):
-            (g1,) = torch.autograd.grad(FN[kind](x, native=nat).square().sum(), x, create_graph=True)
+            (g1,) = torch.autograd.grad(_with(FN[kind], nat)(x).square().sum(), x, create_graph=True)
             (g2,) = torch.autograd.grad(g1.square().sum(), x)
             outs.append(g2)
         torch.testing.assert_close(outs[0], outs[1], atol=1e-10, rtol=0)
@@ -260,18 +270,16 @@ def test_default_routes_to_native_on_cpu_float():
     assert _is_native(so3.sqrt(so3.exp(w)))
 
 
-def test_disabled_native_uses_torch(monkeypatch):
-    monkeypatch.setenv("TORCHCONN_NATIVE", "0")
-    monkeypatch.setattr(native, "_LIBS", {})  # no cached library: library() must answer None
-    assert native.library("so3") is None
+def test_switch_off_uses_torch():
     w = _rotvecs(100, torch.float64, seed=7).requires_grad_()
     for kind, x in (("exp", w), ("log", so3.exp(w)), ("sqrt", so3.exp(w))):
-        out = FN[kind](x)
+        with torchconn.ops.compiled(False):
+            out = FN[kind](x)
         assert not _is_native(out)
-        assert torch.equal(out, FN[kind](x, native=False))
+        on = FN[kind](x)
+        assert _is_native(on)
+        torch.testing.assert_close(out, on, atol=VAL_TOL[torch.float64], rtol=0)
         out.sum().backward()
-        with pytest.raises(RuntimeError, match="native so3 kernels unavailable"):
-            FN[kind](x, native=True)
 
 
 def test_no_compiler_warns_and_falls_back(monkeypatch):
@@ -281,25 +289,25 @@ def test_no_compiler_warns_and_falls_back(monkeypatch):
     w = _rotvecs(20, torch.float32, seed=8)
     with pytest.warns(RuntimeWarning, match="no C compiler"):
         out = so3.exp(w)
-    torch.testing.assert_close(out, fast.exp_rotvec(w, native=False), atol=0, rtol=0)
+    torch.testing.assert_close(out, _with(ops_so3.exp, False)(w), atol=0, rtol=0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_other_dtypes_use_torch(dtype):
     w = _rotvecs(20, torch.float32, seed=9).to(dtype).requires_grad_()
-    out = fast.exp_rotvec(w)
+    out = ops_so3.exp(w)
     assert out.dtype == dtype and not _is_native(out)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "native unavailable" warning for a dtype it never handles
-        fast.exp_rotvec(w.detach())
+        ops_so3.exp(w.detach())
 
 
 def test_vmap_uses_torch_path():
     w = _rotvecs(8, torch.float64, seed=10)
-    out = torch.func.vmap(fast.exp_rotvec)(w)
-    torch.testing.assert_close(out, fast.exp_rotvec(w, native=False), atol=0, rtol=0)
+    out = torch.func.vmap(ops_so3.exp)(w)
+    torch.testing.assert_close(out, _with(ops_so3.exp, False)(w), atol=0, rtol=0)
     R = so3.exp(w)
-    torch.testing.assert_close(torch.func.vmap(fast.log_rotmat)(R), fast.log_rotmat(R, native=False),
+    torch.testing.assert_close(torch.func.vmap(ops_so3.log)(R), _with(ops_so3.log, False)(R),
                                atol=0, rtol=0)
 
 
@@ -310,8 +318,8 @@ def test_jacobian_vectorized_and_jacrev(kind):
     w = _rotvecs(4, torch.float64, seed=11, max_angle=3.0)
     x = w if kind == "exp" else so3.exp(w)
     fn = FN[kind]
-    ref = torch.autograd.functional.jacobian(lambda y: fn(y, native=False), x)
+    ref = torch.autograd.functional.jacobian(_with(fn, False), x)
     for vec in (False, True):
-        J = torch.autograd.functional.jacobian(lambda y: fn(y, native=True), x, vectorize=vec)
+        J = torch.autograd.functional.jacobian(fn, x, vectorize=vec)
         torch.testing.assert_close(J, ref, atol=1e-12, rtol=0)
     torch.testing.assert_close(torch.func.jacrev(fn)(x), ref, atol=1e-12, rtol=0)

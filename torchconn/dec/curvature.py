@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..ops import fast as _fast
+from ..ops import curvature as _ops_curvature
 from .transport import orient, path_product
 
 __all__ = [
@@ -322,12 +322,10 @@ def face_curvature(edge_rot: Any, cells: Any, cut: int = -1, kind: str = "two_pr
     if kind not in ("two_prong", "holonomy"):
         raise ValueError(f"face_curvature: kind must be 'two_prong' or 'holonomy', got {kind!r}")
     R = _edge_rot_of(edge_rot)
-    if _fast.is_tet_mesh(cells) and (kind == "holonomy" or (type(cut) is int and -3 <= cut <= 2)):
-        # sorted triangles [a<b<c]: the written-out products of torchconn.fast (same values)
-        E = int(cells.edges.shape[0])
-        if R.shape[0] < E:
-            raise ValueError(f"face_curvature: edge index {E - 1} out of range for {R.shape[0]} edge rotations")
-        return _fast.face_curvature_tet(R, cells, cut=cut, kind=kind)
+    # sorted triangles [a<b<c]: the written-out products of the op (same values), else None
+    fused = _ops_curvature.face_curvature(R, cells, cut=cut, kind=kind)
+    if fused is not None:
+        return fused
     F, groups = face_loops(cells)
     n = R.shape[-1]
     out = R.new_zeros(F, n, n) if groups[0][0] is not None else None

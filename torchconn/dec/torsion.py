@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from ..ops import fast as _fast
+from ..ops import torsion as _ops_torsion
 from ..lie import so3
 from .curvature import _check_loop_rot, _edge_rot_of, _normalize_cut, _prefix_products, _suffix_products, face_loops
 from .transport import orient
@@ -204,9 +204,10 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
         raise ValueError(f"face_torsion: vertices of dimension {V.shape[-1]} do not match rotations of size {n}")
     if frames is not None and frames.shape != (V.shape[0], n, n):
         raise ValueError(f"face_torsion: frames must have shape {(V.shape[0], n, n)}, got {tuple(frames.shape)}")
-    if _fast.is_tet_mesh(cells) and type(cut) is int and cut in (-1, 2) and R.shape[0] == cells.edges.shape[0]:
-        # sorted triangles [a<b<c], cut c: per-edge solder form + one product (torchconn.fast)
-        return _fast.face_torsion_tet(R, cells, kind, None if frames is None else frames.to(R))
+    # sorted triangles [a<b<c], cut c: per-edge solder form + one product (the op), else None
+    fused = _ops_torsion.face_torsion(R, cells, kind, frames, cut=cut)
+    if fused is not None:
+        return fused
     if frames is not None:
         e = cells.edges.to(R.device)
         R = frames[e[:, 0]] @ R @ frames[e[:, 1]].transpose(-1, -2)  # ambient connection

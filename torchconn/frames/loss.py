@@ -51,8 +51,8 @@ from typing import Mapping
 
 import torch
 
-from ..ops import fast as _fast
-from ..ops import native
+from ..ops import frame_loss as _ops_frame_loss
+from ..ops import torsion as _ops_torsion
 from . import octahedral
 from .constraints import BoundaryConstraint
 
@@ -166,81 +166,6 @@ def axis_angle_loss(frames: torch.Tensor, normals: torch.Tensor, eps: float = 1e
     return (2.0 * torch.asin(half)).mean() - 2.0 * math.asin(0.5 * eps)
 
 
-#: Terms computed by the compiled kernel ``csrc/frame_loss.c`` (in this order), with their flag bits.
-_NATIVE_TERMS = ("smooth", "tie", "flat", "torsion")
-
-
-class _NativeFrameLossFn(torch.autograd.Function):
-    """``(edge_rot (E,3,3), frames (V,3,3)) -> (4,)`` values of smooth, tie, flat, torsion (compiled).
-
-    ``csrc/frame_loss.c`` computes the four means *and* the gradient of their weighted sum
-    ``sum_k w_k term_k`` (``w`` = the loss weights) in one sweep over the edges and faces (the
-    terms are scalar means, so the gradient is known in the forward pass). The backward scales
-    that saved gradient when the incoming weights are proportional to ``w`` (the usual
-    ``out["total"].backward()``) and otherwise re-runs the kernel with the incoming weights, so
-    any combination of the returned terms differentiates exactly. Same values as the torch path
-    to round-off (a term that is off returns 0). The √R of the torsion term is the closed form
-    ``I + (A - Aᵀ)/(4c) + (A + Aᵀ - 2I)/(4(1+c))``, ``c = cos(angle/2)``, equal to
-    :func:`torchconn.so3.sqrt` on rotations; its gradient agrees with the torch path along
-    rotations (the tangent directions a parametrization through ``so3.exp`` sees), not for
-    arbitrary off-manifold perturbations of the matrices. First-order only (``once_differentiable``).
-    """
-
-    @staticmethod
-    def forward(ctx, edge_rot, frames, loss, flags, wts):
-        grad = bool(flags & 16)
-        sums, gR, gF = _native_frame_loss(loss, edge_rot, frames, flags, wts)
-        if grad:
-            ctx.save_for_backward(edge_rot, frames, gR, gF)
-            ctx.loss, ctx.flags, ctx.wts = loss, flags, wts
-        return sums[:4].to(edge_rot.dtype)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, g):
-        edge_rot, frames, gR, gF = ctx.saved_tensors
-        gv = [float(x) for x in g.to(torch.float64)]
-        on = [b for b in range(4) if ctx.flags & (1 << b)]
-        ref = next((b for b in on if ctx.wts[b] != 0.0), None)
-        scale = gv[ref] / ctx.wts[ref] if ref is not None else 0.0
-        tol = 1e-12 if edge_rot.dtype == torch.float64 else 1e-6
-        if all(abs(gv[b] - scale * ctx.wts[b]) <= tol * max(abs(gv[b]), abs(scale * ctx.wts[b])) for b in on):
-            dR, dF = (gR, gF) if scale == 1.0 else (gR * scale, gF * scale)
-        else:  # another combination of the terms: one more sweep with the incoming weights
-            _, dR, dF = _native_frame_loss(ctx.loss, edge_rot, frames, ctx.flags, gv)
-        return (dR if ctx.needs_input_grad[0] else None, dF if ctx.needs_input_grad[1] else None,
-                None, None, None)
-
-
-def _native_frame_loss(loss, edge_rot: torch.Tensor, frames: torch.Tensor, flags: int, wts):
-    """Run ``csrc/frame_loss.c``: ``(sums (5,) float64, gR (E,3,3) | None, gF (V,3,3) | None)``."""
-    import ctypes
-
-    dt = edge_rot.dtype
-    E, V, F = edge_rot.shape[0], frames.shape[0], loss.mesh.faces.shape[0]
-    nt = max(1, torch.get_num_threads())
-    grad = bool(flags & 16)
-    buf = loss._native_buffers(dt)
-    ws = loss._native_workspace(dt, E, V, nt if grad else 1)
-    sums = torch.zeros(5, dtype=torch.float64)
-    w64 = torch.tensor([float(x) for x in wts] + [0.0] * (4 - len(wts)), dtype=torch.float64)
-    gR = edge_rot.new_empty(E, 3, 3) if grad else None
-    gF = frames.new_empty(V, 3, 3) if grad else None
-    vp, long_, int_, dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_double
-    fn = native.function("frame_loss", "frame_loss_f64" if dt == torch.float64 else "frame_loss_f32",
-                         [long_, long_, long_, int_] + [vp] * 7 + [int_, dbl, dbl] + [vp] * 8, ctypes.c_int)
-    P, nul = native.ptr, ctypes.c_void_p(None)
-    status = fn(ctypes.c_long(E), ctypes.c_long(V), ctypes.c_long(F), ctypes.c_int(nt),
-       P(edge_rot), P(frames), P(buf["edges"]), P(buf["fidx"]), P(buf["vec"]), P(buf["area"]), P(buf["group"]),
-       ctypes.c_int(flags), ctypes.c_double(loss.smooth_power), ctypes.c_double(loss.smooth_eps),
-       P(w64), P(sums), P(gR) if grad else nul, P(gF) if grad else nul, P(ws["work"]),
-       P(ws["theta"]), P(ws["gtheta"]), P(ws["unrel"]))
-    if status != 0:
-        raise RuntimeError(f"csrc/frame_loss.c returned {status}: its octahedral score table does not match "
-                           "torchconn.octahedral.group()")
-    return sums, gR, gF
-
-
 class FrameFieldLoss:
     """All terms of the frame-field objective on one mesh; topology gathered once.
 
@@ -254,21 +179,20 @@ class FrameFieldLoss:
         smooth_power, smooth_eps: ``rho`` of the ``smooth`` and ``tie`` terms.
         align_kind: ``"quartic"`` (:func:`normal_alignment_loss`) or ``"angle"``
             (:func:`axis_angle_loss` with ``align_eps``) for the ``align`` and ``feature`` terms.
-        native: use the compiled kernel ``csrc/frame_loss.c`` (:mod:`torchconn.native`) for the
-            ``smooth``, ``tie``, ``flat`` and ``torsion`` terms: ``None`` (default) = whenever it
-            applies (a ``TetMesh``, CPU float32/float64 ``(E, 3, 3)`` / ``(V, 3, 3)`` inputs of one
-            dtype, a C compiler), ``False`` = always the torch path (needed for higher-order
-            gradients: the compiled path is first-order), ``True`` = require it (error if it
-            cannot run). Both paths give the same values and, along rotations, the same gradients.
 
     Call with ``(edge_rot (E,3,3), frames (V,3,3))``; returns a dict of the unweighted terms
     (0-dim tensors) plus ``"total" = sum_k w_k term_k``. Terms with zero weight are skipped
     (not computed) except that ``tie`` always runs when ``torsion`` is on (it supplies the mask).
+    The ``smooth``, ``tie``, ``flat`` and ``torsion`` terms run in the compiled kernel
+    :func:`torchconn.ops.frame_loss.frame_loss_terms` where it applies (a ``TetMesh``, CPU
+    float32/float64 inputs, the switch :func:`torchconn.ops.compiled` on); it is first order,
+    so higher-order gradients need the switch off. Both paths give the same values and, along
+    rotations, the same gradients.
     """
 
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
                  smooth_power: float = 2.0, smooth_eps: float = 1e-3, align_kind: str = "quartic",
-                 align_eps: float = 1e-3, native: bool | None = None):
+                 align_eps: float = 1e-3):
         unknown = set(weights) - set(TERMS)
         if unknown:
             raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS)}")
@@ -279,10 +203,6 @@ class FrameFieldLoss:
             raise ValueError(f"align_kind must be one of {list(ALIGN_KINDS)} and align_eps > 0, got "
                              f"{align_kind!r}, {align_eps}")
         self.align_kind, self.align_eps = align_kind, float(align_eps)
-        if native not in (None, True, False):
-            raise ValueError(f"native must be None, True or False, got {native!r}")
-        self.native = native
-        self._native_cache: dict = {}
         self.mesh = mesh
         self.weights = {k: float(weights.get(k, 0.0)) for k in TERMS}
         bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
@@ -301,25 +221,18 @@ class FrameFieldLoss:
 
         mesh, w = self.mesh, self.weights
         out: dict[str, torch.Tensor] = {}
-        if self._use_native(edge_rot, frames):
-            flags = sum(1 << b for b, k in enumerate(_NATIVE_TERMS) if w[k])
-            if w["torsion"]:
-                flags |= 2  # the torsion mask comes from the tie matching (as in the torch path)
-            if torch.is_grad_enabled() and (edge_rot.requires_grad or frames.requires_grad):
-                flags |= 16
-            wts = [w[k] if flags & (1 << b) else 0.0 for b, k in enumerate(_NATIVE_TERMS)]
-            vals = _NativeFrameLossFn.apply(edge_rot.contiguous(), frames.contiguous(), self, flags, wts)
-            for b, k in enumerate(_NATIVE_TERMS):
-                if flags & (1 << b):
-                    out[k] = vals[b]
+        compiled = _ops_frame_loss.frame_loss_terms(edge_rot, frames, mesh, octahedral.group(torch.float64), w,
+                                                    self.smooth_power, self.smooth_eps)
+        if compiled is not None:
+            out.update(compiled)
             return self._finish(out, frames)
         if w["smooth"]:
             out["smooth"] = smoothness_loss(edge_rot, self.smooth_power, self.smooth_eps)
         unrel = shared = None
         if w["tie"] or w["torsion"]:
-            if _fast.is_tet_mesh(mesh) and edge_rot.dim() == 3 and edge_rot.shape[-1] == 3:
-                # F_i, F_i R_ij, F_j gathered/formed once for the tie and torsion terms
-                shared = _fast.edge_frames(edge_rot, mesh, frames)
+            # F_i, F_i R_ij, F_j gathered/formed once for the tie and torsion terms (tet meshes)
+            shared = _ops_torsion.edge_frames(edge_rot, mesh, frames)
+            if shared is not None:
                 out["tie"], unrel = _tie_from(shared[1], shared[2], self.smooth_power, self.smooth_eps)
             else:
                 out["tie"], unrel = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
@@ -329,7 +242,7 @@ class FrameFieldLoss:
             out["flat"] = symmetric_flatness_loss(hol + eye)
         if w["torsion"]:
             if shared is not None:  # == torsion.face_torsion(edge_rot, mesh, "sqrt", frames=frames)
-                tor = _fast.face_torsion_tet(edge_rot, mesh, "sqrt", edge_frame_rot=shared)  # (F, 3)
+                tor = _ops_torsion.face_torsion(edge_rot, mesh, "sqrt", edge_frame_rot=shared)  # (F, 3)
             else:
                 tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
             face_ok = unrel[mesh.face_edges].all(-1)
@@ -352,46 +265,6 @@ class FrameFieldLoss:
                 total = total + w[k] * v
         out["total"] = total
         return out
-
-    def _use_native(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> bool:
-        if self.native is False or not any(self.weights[k] for k in _NATIVE_TERMS):
-            return False
-        ok = (_fast.is_tet_mesh(self.mesh) and edge_rot.dim() == 3 and tuple(edge_rot.shape[1:]) == (3, 3)
-              and frames.dim() == 3 and tuple(frames.shape[1:]) == (3, 3)
-              and edge_rot.shape[0] == self.mesh.edges.shape[0] and frames.shape[0] == self.mesh.n_vertices
-              and native.available("frame_loss", edge_rot, frames))
-        if self.native is True and not ok:
-            raise RuntimeError("FrameFieldLoss(native=True): the compiled kernel cannot run here (needs a TetMesh, "
-                               "CPU float32/float64 (E,3,3) edge rotations and (V,3,3) frames of one dtype, and a "
-                               f"C compiler; got {tuple(edge_rot.shape)} {edge_rot.dtype} on {edge_rot.device}, "
-                               f"{tuple(frames.shape)} {frames.dtype})")
-        return ok
-
-    def _native_buffers(self, dtype: torch.dtype) -> dict[str, torch.Tensor]:
-        """Index and geometry tables of ``csrc/frame_loss.c`` for ``dtype`` (built once, CPU)."""
-        if dtype not in self._native_cache:
-            mesh = self.mesh
-            e = mesh.edges.to("cpu", torch.int64).contiguous()
-            verts = mesh.vertices.to("cpu", torch.float64)
-            self._native_cache[dtype] = {
-                "edges": e,
-                "fidx": mesh.face_edges.to("cpu", torch.int64)[:, [2, 0, 1]].contiguous(),  # ab, bc, ac
-                "vec": (verts[e[:, 1]] - verts[e[:, 0]]).to(dtype).contiguous(),
-                "area": self.face_area.to("cpu", dtype).contiguous(),
-                "group": octahedral.group(torch.float64).reshape(24, 9).contiguous(),
-            }
-        return self._native_cache[dtype]
-
-    def _native_workspace(self, dtype: torch.dtype, E: int, V: int, nt: int) -> dict[str, torch.Tensor]:
-        """Scratch buffers of ``csrc/frame_loss.c`` (kept between calls: no page faults per step)."""
-        key = ("ws", dtype)
-        need = max(0, nt - 1) * (12 * E + 9 * V)
-        ws = self._native_cache.get(key)
-        if ws is None or ws["work"].numel() < max(need, 1) or ws["theta"].shape[0] != E:
-            ws = {"work": torch.empty(max(need, 1), dtype=dtype), "theta": torch.empty(E, 3, dtype=dtype),
-                  "gtheta": torch.empty(E, 3, dtype=dtype), "unrel": torch.empty(E, dtype=torch.uint8)}
-            self._native_cache[key] = ws
-        return ws
 
     def _align(self, frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
         if self.align_kind == "angle":

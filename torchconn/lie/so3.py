@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from ..ops import fast as _fast
+from ..ops import so3 as _ops_so3
 from ._validate import check_rotation as _check_rotation_n
 
 __all__ = [
@@ -82,8 +82,8 @@ def exp(omega: torch.Tensor) -> torch.Tensor:
     """
     if omega.dim() < 1 or omega.shape[-1:] != (3,):
         raise ValueError(f"exp expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
-    # entries written out, closed-form backward (torchconn.fast; same value as I + A K + B K²)
-    return _fast.exp_rotvec(omega)
+    # entries written out, closed-form backward, or compiled (torchconn.ops.so3.exp; same value as I + A K + B K²)
+    return _ops_so3.exp(omega)
 
 
 def log(R: torch.Tensor) -> torch.Tensor:
@@ -107,8 +107,8 @@ def log(R: torch.Tensor) -> torch.Tensor:
     The input is not validated (see :func:`check_rotation`).
     """
     _check_mat3(R, "log")
-    # the three branches evaluated entrywise with safe-where (torchconn.fast.log_rotmat)
-    return _fast.log_rotmat(R)
+    # the three branches evaluated entrywise with safe-where, or compiled (torchconn.ops.so3.log)
+    return _ops_so3.log(R)
 
 
 def sqrt(R: torch.Tensor) -> torch.Tensor:
@@ -118,10 +118,10 @@ def sqrt(R: torch.Tensor) -> torch.Tensor:
     ``sqrt(R) @ sqrt(R) == R``; at angle exactly pi the branch follows :func:`log`.
     Differentiable. Computed by the quaternion half-angle identity
     ``((1 + s) I + R + (R - R^T)/s) / (2 + s)``, ``s = sqrt(1 + tr R)``, below 120 degrees and as
-    ``exp(log(R)/2)`` above (:func:`torchconn.fast.sqrt_rotmat`): same value to round-off.
+    ``exp(log(R)/2)`` above (:func:`torchconn.ops.so3.sqrt`): same value to round-off.
     """
     _check_mat3(R, "sqrt")
-    return _fast.sqrt_rotmat(R)
+    return _ops_so3.sqrt(R)
 
 
 def _safe_norm(x: torch.Tensor, dims) -> torch.Tensor:

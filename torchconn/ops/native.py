@@ -1,23 +1,19 @@
-"""Compiled CPU kernels (issue 6): C sources in ``torchconn/csrc`` built once with the system C compiler.
+"""Loader of the compiled CPU kernels: C sources in ``torchconn/ops/csrc`` built once with the system compiler.
 
-The fused torch kernels of :mod:`torchconn.fast` are limited by what eager torch can express:
-every 3x3 product over a million edges is a separate pass over memory. The hottest loops (the
-frame-field loss, the SO(3) maps) are therefore also written as plain C loops over elements,
-OpenMP-parallel, computing values *and* their gradients in one sweep. They are compiled on
-first use with ``cc -O3 -fopenmp -march=native`` (no torch headers, no Python headers: the
-shared library takes raw pointers and is loaded with :mod:`ctypes`), cached under
-``$TORCHCONN_CACHE`` (default ``~/.cache/torchconn``) by a hash of the source, the compiler
-command and the CPU, and written atomically (compiled to a temporary name, then renamed), so
-concurrent processes never load a half-written library.
+The fused torch kernels are limited by what eager torch can express: every 3x3 product over a
+million edges is a separate pass over memory. The hottest loops (the frame-field loss, the
+SO(3) maps) are therefore also written as plain C loops over elements, OpenMP-parallel,
+computing values *and* their gradients in one sweep. They are compiled on first use with
+``cc -O3 -fopenmp -march=native`` (no torch headers, no Python headers: the shared library
+takes raw pointers and is loaded with :mod:`ctypes`), cached under ``$TORCHCONN_CACHE``
+(default ``~/.cache/torchconn``) by a hash of the source, the compiler command and the CPU, and
+written atomically (compiled to a temporary name, then renamed), so concurrent processes never
+load a half-written library.
 
-Every caller keeps the torch path as the reference and the fallback: :func:`library` returns
-``None`` (after one :class:`RuntimeWarning` naming the reason) when
-
-* ``TORCHCONN_NATIVE=0`` is set in the environment,
-* no C compiler is found (``$CC``, ``cc``, ``gcc``, ``clang``), or the build fails,
-
-and the callers use native kernels only for contiguous CPU float32/float64 tensors. The
-tests check every native kernel against the torch path (values and float64 gradients).
+:func:`library` returns ``None`` (after one :class:`RuntimeWarning` naming the reason) when no
+C compiler is found (``$CC``, ``cc``, ``gcc``, ``clang``) or the build fails; whether an op
+uses a library at all is decided by :func:`torchconn.ops.backend.can_use_compiled` (the
+global switch, devices and dtypes). The torch kernels are the reference and the fallback.
 
 Threads: each call passes ``torch.get_num_threads()`` to OpenMP's ``num_threads`` clause, so
 ``torch.set_num_threads`` governs both.
@@ -37,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["library", "available", "enabled", "function", "ptr", "CSRC"]
+__all__ = ["library", "function", "ptr", "CSRC"]
 
 #: Folder of the C sources.
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -45,11 +41,6 @@ _FLAGS = ["-O3", "-fopenmp", "-march=native", "-fPIC", "-shared", "-std=c99", "-
 _LOCK = threading.Lock()
 _LIBS: dict[str, ctypes.CDLL | None] = {}
 _WARNED: set[str] = set()
-
-
-def enabled() -> bool:
-    """``False`` when ``TORCHCONN_NATIVE`` is ``0``/``false``/``off`` (the torch paths are used)."""
-    return os.environ.get("TORCHCONN_NATIVE", "1").strip().lower() not in ("0", "false", "off", "no")
 
 
 def _compiler() -> str | None:
@@ -79,7 +70,7 @@ def _cache_dir() -> Path:
 def _warn_once(name: str, msg: str) -> None:
     if name not in _WARNED:
         _WARNED.add(name)
-        warnings.warn(f"torchconn.native: {msg}; using the torch kernels", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"torchconn.ops.native: {msg}; using the torch kernels", RuntimeWarning, stacklevel=3)
 
 
 def _build(name: str) -> ctypes.CDLL | None:
@@ -116,27 +107,10 @@ def _build(name: str) -> ctypes.CDLL | None:
 
 def library(name: str) -> ctypes.CDLL | None:
     """The compiled ``csrc/<name>.c`` (built on first use, cached), or ``None`` (see module doc)."""
-    if not enabled():
-        return None
     with _LOCK:
         if name not in _LIBS:
             _LIBS[name] = _build(name)
         return _LIBS[name]
-
-
-def available(name: str, *tensors: torch.Tensor) -> bool:
-    """Whether ``csrc/<name>.c`` can run on ``tensors``: all on the CPU, float32 or float64, one dtype.
-
-    ``False`` while ``torch.compile`` traces (the callers then record their torch code).
-    """
-    if not tensors or torch.compiler.is_compiling():  # traced (fake) tensors have no data for C
-        return False
-    dt = tensors[0].dtype
-    if dt not in (torch.float32, torch.float64):
-        return False
-    if any(t.device.type != "cpu" or t.dtype != dt for t in tensors):
-        return False
-    return library(name) is not None
 
 
 def function(name: str, symbol: str, argtypes: list, restype=None):
@@ -148,7 +122,7 @@ def function(name: str, symbol: str, argtypes: list, restype=None):
     """
     lib = library(name)
     if lib is None:
-        raise RuntimeError(f"torchconn.native: csrc/{name}.c is not available (see the warning above)")
+        raise RuntimeError(f"torchconn.ops.native: csrc/{name}.c is not available (see the warning above)")
     fn = getattr(lib, symbol)
     fn.argtypes, fn.restype = argtypes, restype
     return fn

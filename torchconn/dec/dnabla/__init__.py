@@ -36,7 +36,6 @@ from .tet import (
     averaged_dd_solder,
     behs21_dd_solder,
     wedge_solder,
-    curvature_2form,
 )
 from .primal_dual import (
     primal_dual_face,
@@ -76,7 +75,6 @@ __all__ = [
     "averaged_dd_solder",
     "behs21_dd_solder",
     "wedge_solder",
-    "curvature_2form",
     "primal_dual_face",
     "primal_dual_tet",
     "primal_dual_dd",

@@ -46,8 +46,8 @@ Operators (CONVENTIONS §1, errata 1, 2, 4, 5, 6, 8)
   :func:`primal_dual_wedge` -- Defs. 4.1-4.2 on the generalized dual complex.
 * Mesh wrappers over a :class:`torchconn.mesh.TetMesh` (all tets at once):
   :func:`tet_transports`, :func:`tet_solder_sqrt`, :func:`averaged_dd_solder`,
-  :func:`behs21_dd_solder`, :func:`wedge_solder`, :func:`curvature_2form`,
-  :func:`primal_dual_dd_mesh`, :func:`primal_dual_wedge_mesh`.
+  :func:`behs21_dd_solder`, :func:`wedge_solder`, :func:`primal_dual_dd_mesh`,
+  :func:`primal_dual_wedge_mesh`.
 """
 from __future__ import annotations
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import torch
 
+from ...ops import tet as _ops_tet
 from ..transport import dense_simplex_transports, orient
 from .simplex import (
-    ListForm, _check_T, averaged, behs21, connection_form, distinct_tuples, faces_of, solder_form, solder_form_sqrt,
-    unsymmetrized_vector,
+    ListForm, _check_T, averaged, behs21, distinct_tuples, faces_of, solder_form, solder_form_sqrt,
 )
 
 __all__ = [
@@ -25,7 +25,6 @@ __all__ = [
     "averaged_dd_solder",
     "behs21_dd_solder",
     "wedge_solder",
-    "curvature_2form",
 ]
 
 # ----------------------------------------------------------------------------- tet formulas
@@ -203,27 +202,25 @@ def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None)
 
     Report Def. 5.2 twice (CONVENTIONS §1); arguments as in :func:`tet_solder_sqrt`. Divide by
     the tet volume to compare with the smooth ``Ω∧θ``. For ``n = 3`` this is evaluated by the
-    fused closed form :func:`torchconn.fast.tet_dd_solder` (the Ch. 5 tet formula, equal to
+    fused closed form :func:`torchconn.ops.tet.tet_dd_solder` (the Ch. 5 tet formula, equal to
     the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
     generic operators.
     """
-    if _fast_ok(edge_rot, mesh, frames, half_rot, "averaged_dd_solder"):
-        from ...ops.fast import tet_dd_solder
-        return tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    _check_dd_args(edge_rot, mesh, frames, half_rot, "averaged_dd_solder")
+    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    if fused is not None:
+        return fused
     T = tet_transports(edge_rot, mesh)
     return averaged_dd_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
 
 
-def _fast_ok(edge_rot, mesh, frames, half_rot, fn) -> bool:
-    """Whether the fused n = 3 tet kernel applies (after the same argument checks as the generic path)."""
+def _check_dd_args(edge_rot, mesh, frames, half_rot, fn) -> None:
+    """The argument checks of :func:`averaged_dd_solder` and :func:`wedge_solder` (every rank)."""
     _check_mesh_rot(edge_rot, mesh, fn)
-    if edge_rot.shape[-1] != 3 or mesh.vertices.shape[-1] != 3:
-        return False
     if half_rot is not None and half_rot.shape != edge_rot.shape:
         raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
     if frames is not None:
         _check_frames(frames, mesh, edge_rot, fn)
-    return True
 
 
 def behs21_dd_solder(edge_rot: torch.Tensor, mesh, frames=None) -> torch.Tensor:
@@ -236,25 +233,11 @@ def wedge_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> to
     """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(T, n)`` at ``tets[t,0]``.
 
     For ``n = 3`` evaluated by the fused regrouping of the same formula
-    (:func:`torchconn.fast.tet_dd_solder`); other ranks use the dense tables.
+    (:func:`torchconn.ops.tet.tet_dd_solder`); other ranks use the dense tables.
     """
-    if _fast_ok(edge_rot, mesh, frames, half_rot, "wedge_solder"):
-        from ...ops.fast import tet_dd_solder
-        return tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    _check_dd_args(edge_rot, mesh, frames, half_rot, "wedge_solder")
+    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    if fused is not None:
+        return fused
     T = tet_transports(edge_rot, mesh)
     return wedge_curvature_solder_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
-
-
-def curvature_2form(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
-    """Curvature ``⟨Ω,[abc]⟩_a^c = R_ab R_bc - R_ac`` on every face ``[a<b<c]``: ``(F, n, n)``.
-
-    Computed as ``𝔡∇w`` (vector version, matrix values column-wise) on the face template;
-    evaluation ``a = faces[f,0]``, cut ``c = faces[f,2]``.
-    """
-    fn = "curvature_2form"
-    _check_mesh_rot(edge_rot, mesh, fn)
-    fe = mesh.face_edges.to(edge_rot.device)
-    # pair_list(3) = (01, 02, 12) = (ab, ac, bc) = face_edges slots (2, 1, 0); all canonical (a<b<c)
-    T = dense_simplex_transports(edge_rot[fe[:, [2, 1, 0]]], 3)
-    tri = torch.tensor([[0, 1, 2]], dtype=torch.long, device=edge_rot.device)
-    return unsymmetrized_vector(T, connection_form(T), tri, matrix_values=True).squeeze(-3)

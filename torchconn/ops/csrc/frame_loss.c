@@ -1,5 +1,5 @@
 /* Fused value-and-gradient kernel of the frame-field loss terms smooth, tie, flat, torsion
- * (torchconn/losses.py, FrameFieldLoss; issue 6).
+ * (torchconn/frames/loss.py FrameFieldLoss, dispatched by torchconn/ops/frame_loss.py; issue 6).
  *
  * One sweep over the edges, one over the faces, one more over the edges: every per-element
  * 3x3 product is formed in registers, gradients are computed in the same sweep as the values

@@ -1,7 +1,7 @@
 /* SO(3) maps exp / log / sqrt and their backward passes (issue 6; loaded by
- * torchconn/native.py, routed from torchconn/fast.py).
+ * torchconn/ops/native.py, dispatched by torchconn/ops/so3.py).
  *
- * Every element kernel mirrors a torch reference of torchconn/fast.py operation by operation,
+ * Every element kernel mirrors a torch reference of torchconn/ops/so3.py operation by operation,
  * in the same dtype and the same order of operations, so that the two paths agree to round-off
  * and take the same branch decisions (compiled with -std=c99, hence -ffp-contract=off: no FMA
  * contraction that the torch kernels would not do either):
