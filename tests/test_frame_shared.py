@@ -171,7 +171,7 @@ def test_optimize_lowers_the_loss_and_records_the_history(cyl):
     bc = BoundaryConstraint.from_mesh(cyl)
     F0 = sh.sh_frame_field(cyl, n_smooth_iters=0)
     weights = {"smooth": 1.0, "tie": 2.0, "align": 10.0, "feature": 1.0}
-    loss = FrameFieldLoss(cyl, weights, smooth_power=1.0, align_kind="angle", native=False)
+    loss = FrameFieldLoss(cyl, weights, smooth_power=1.0, align_kind="angle")
     model = FrameFieldModel(cyl, F0, "vertex", bc)
     opt, sched = make_optimizer(model.parameters(), "adam", lr=0.02, steps=20)
     seen = []

@@ -104,8 +104,10 @@ def sqrt(loop_rot: torch.Tensor, loop_half_rot: torch.Tensor, loop_points: torch
     ``R_ij -> G_i R_ij G_j^T`` and then ``Theta -> G_{x0} Theta``.
 
     Args:
-        loop_rot: ``(..., m, n, n)``; loop_half_rot: ``(..., m, n, n)``; loop_points ``(..., m, n)``;
-        cut as in :func:`two_prong`.
+        loop_rot: ``(..., m, n, n)`` loop transports ``R_{x_k x_{k+1}}``.
+        loop_half_rot: ``(..., m, n, n)`` half transports ``H_k``.
+        loop_points: ``(..., m, n)`` the loop's vertices.
+        cut: as in :func:`two_prong`.
 
     Returns:
         ``(..., n)`` in the fiber of ``x0``.
