@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from ..lie import so3, son
+from ..mesh.base import lookup_edges
 from .transport import dense_simplex_transports, orient, pair_list, path_product
 from ..tolerances import get_eps
 
@@ -232,47 +233,23 @@ class Connection:
             sign ``+1`` where ``i < j``, ``== (j, i)`` with sign ``-1`` otherwise.
 
         Raises:
-            ValueError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
+            TypeError: non-integer indices.
+            MeshError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
                 and out-of-range vertices).
 
-        This is a topology-level lookup (``searchsorted`` on keys ``min*V + max``) that checks
-        every pair and therefore synchronizes with the device; operators on meshes should use
-        precomputed ``(edge_idx, edge_sign)`` buffers with :meth:`oriented` instead.
+        The lookup of :func:`torchconn.mesh.base.lookup_edges` (``searchsorted`` on keys
+        ``min*V + max``): it checks every pair and therefore synchronizes with the device;
+        operators on meshes should use precomputed ``(edge_idx, edge_sign)`` buffers with
+        :meth:`oriented` instead.
         """
-        dev = self.edges.device
-        i = torch.as_tensor(i, device=dev)
-        j = torch.as_tensor(j, device=dev)
-        if i.is_floating_point() or j.is_floating_point():
-            raise TypeError("vertex indices must be integer tensors")
-        i, j = torch.broadcast_tensors(i.long(), j.long())
-        V = self.n_vertices
-        lo, hi = torch.minimum(i, j), torch.maximum(i, j)
-        key = lo * V + hi
         sorted_keys, perm = self._get_lookup()
-        E = sorted_keys.numel()
-        valid = (lo >= 0) & (hi < V) & (lo != hi)
-        if E == 0:
-            found = torch.zeros_like(valid)
-            pos = torch.zeros_like(key)
-        else:
-            pos = torch.searchsorted(sorted_keys, key).clamp(max=E - 1)
-            found = valid & (sorted_keys[pos] == key)
-        if not bool(found.all()):
-            bad = torch.nonzero(~found.reshape(-1)).flatten()
-            pairs = torch.stack((i.reshape(-1)[bad], j.reshape(-1)[bad]), 1)
-            raise ValueError(
-                f"{bad.numel()} vertex pairs are not edges of the connection: "
-                f"{_list_some(pairs[:_MAX_LISTED].tolist(), bad.numel())}"
-            )
-        idx = perm[pos] if E else pos
-        sign = torch.where(i < j, torch.ones_like(i), -torch.ones_like(i))
-        return idx, sign
+        return lookup_edges(sorted_keys, self.n_vertices, i, j, perm=perm, owner="connection")
 
     def transport(self, i: Any, j: Any) -> torch.Tensor:
         """``R_ij`` for batches of vertex pairs: ``i, j (S)`` -> ``(S, n, n)``.
 
         Fiber at ``v_j`` -> fiber at ``v_i``: ``edge_rot[e]`` for a canonical pair, its transpose
-        for ``i > j``. Raises ``ValueError`` naming the pairs that are not edges.
+        for ``i > j``. Raises :class:`~torchconn.mesh.MeshError` naming the pairs that are not edges.
         """
         idx, sign = self.edge_index(i, j)
         return orient(self.edge_rot, idx, sign)

@@ -18,7 +18,7 @@ from .errors import MeshError, _few, _few_rows
 if TYPE_CHECKING:
     from .tet import TetMesh
 
-__all__ = ["CellComplex", "tet_mesh_as_cell_complex"]
+__all__ = ["CellComplex", "tet_mesh_as_cell_complex", "face_groups_from_buffers"]
 
 
 def _group_buffer(m: int, field: str) -> str:
