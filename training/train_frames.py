@@ -198,7 +198,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import bianchi, io as tio, so3
 from torchconn.frames import octahedral
-from torchconn.dec.connection import ConnectionField
+from torchconn.nn import ConnectionField
 from torchconn.frames.metrics import METRIC_KEYS, edge_class_breakdown, frame_metrics
 from torchconn.frames.polish import polish_frames
 from torchconn.frames.propagate import comb_frames, propagate_frames, spanning_tree

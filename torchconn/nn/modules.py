@@ -5,7 +5,7 @@ are registered as *buffers*, so ``module.to(device)`` / ``module.double()`` move
 forward pass never recomputes topology. ``forward`` takes the connection as
 
 * a :class:`~torchconn.connection.Connection` (its ``edge_rot`` is used),
-* a :class:`~torchconn.connection.ConnectionField` (called to get the connection — gradients
+* a :class:`~torchconn.nn.ConnectionField` (called to get the connection — gradients
   flow to its skew parameters), or
 * a plain ``(E, n, n)`` tensor of edge rotations ``R_ij`` of the canonical edges ``(i<j)``.
 
