@@ -17,7 +17,8 @@ from pathlib import Path
 import torch
 
 from torchconn import io
-from torchconn.dec.connection import Connection, ConnectionField
+from torchconn.dec.connection import Connection
+from torchconn.nn import ConnectionField
 from torchconn.nn import AveragedCovariantD, Curvature
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

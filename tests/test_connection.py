@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchconn import so3, son
-from torchconn.dec.connection import Connection, ConnectionField
+from torchconn.dec.connection import Connection
+from torchconn.nn import ConnectionField
 from torchconn.dec.smooth import ReportConnection
 from torchconn.tolerances import get_eps
 

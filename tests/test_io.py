@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import torchconn.mesh.io as tio
+from torchconn.mesh import builtin
 from torchconn.mesh.io import (ball, box, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh,
                           tetrahedralize, torus)
 from torchconn.mesh import MeshError, TetMesh
@@ -153,7 +154,7 @@ def test_polygon_surface_obj(tmp_path):
 
 
 def _sphere_surface():
-    V, F = tio._primitive("create_sphere", radius=1.0, subdiv=1)
+    V, F = builtin._primitive("create_sphere", radius=1.0, subdiv=1)
     return V, F
 
 

@@ -12,7 +12,7 @@ import torch
 
 from torchconn.mesh.io import ball, box, load_tet_mesh, torus
 from torchconn.mesh import CellComplex, MeshError, TetMesh, tet_mesh_as_cell_complex
-from torchconn.dec.transport import pair_list
+from torchconn.mesh.simplex import pair_list
 
 from conftest import data_path
 
@@ -161,7 +161,7 @@ def test_edge_index(small_ball):
     idx, sign = m.edge_index(t[:, 0], t[:, 3])
     assert torch.equal(idx, m.tet_edges[:, 2]) and torch.equal(sign, m.tet_edge_signs[:, 2])
     far = int(torch.argmax(m.vertices[:, 0])), int(torch.argmin(m.vertices[:, 0]))
-    with pytest.raises(MeshError, match=rf"\({far[0]}, {far[1]}\)"):
+    with pytest.raises(MeshError, match=rf"not edges of the TetMesh: \[\[{far[0]}, {far[1]}\]\]"):
         m.edge_index(torch.tensor([0, far[0]]), torch.tensor([int(e[0, 1]), far[1]]))
     with pytest.raises(MeshError, match="not edges"):
         m.edge_index(torch.tensor([3]), torch.tensor([3]))

@@ -6,8 +6,8 @@ import torch
 
 from torchconn import curvature, dnabla, io, so3, torsion
 from torchconn.dec.bianchi import BianchiError
-from torchconn.dec.connection import Connection, ConnectionField
-from torchconn.nn import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, MeshBuffers, Torsion
+from torchconn.dec.connection import Connection
+from torchconn.nn import AveragedCovariantD, BianchiCheck, ConnectionField, CovariantD, Curvature, MeshBuffers, Torsion
 
 
 @pytest.fixture(scope="module")

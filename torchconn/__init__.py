@@ -23,14 +23,14 @@ import importlib
 from . import dec, lie, mesh, nn, ops, tolerances
 from .dec import bianchi, chains, connection, curvature, dnabla, smooth, torsion, transport
 from .dec.bianchi import BianchiError
-from .dec.connection import Connection, ConnectionField
+from .dec.connection import Connection
 from .dec.smooth import FunctionConnection, ReportConnection, SmoothConnection, evaluate_2form, unit_normal
 from .lie import so3, son
 from .mesh import (
     CellComplex, FaceGroup, MeshError, TetMesh, ball, box, cylinder, io, load_mesh, load_polygon_surface, load_surface,
     load_tet_mesh, tet_mesh_as_cell_complex, tetrahedralize, torus,
 )
-from .nn import AveragedCovariantD, BianchiCheck, CovariantD, Curvature, Torsion
+from .nn import AveragedCovariantD, BianchiCheck, ConnectionField, CovariantD, Curvature, Torsion
 from .tolerances import get_eps
 
 __version__ = "0.1.0"

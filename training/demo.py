@@ -15,8 +15,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from torchconn import io
-from torchconn.dec.connection import Connection, ConnectionField
-from torchconn.nn import AveragedCovariantD, BianchiCheck, Curvature, Torsion
+from torchconn.dec.connection import Connection
+from torchconn.nn import AveragedCovariantD, BianchiCheck, ConnectionField, Curvature, Torsion
 
 BUILTINS = {"ball": io.ball, "box": None, "cylinder": io.cylinder, "torus": io.torus}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}

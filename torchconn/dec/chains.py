@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..mesh import CellComplex
 from .curvature import _edge_rot_of, two_prong
 from .transport import orient
 
@@ -47,8 +48,8 @@ class _Faces:
 
     def __init__(self, cx: Any, only: list[int] | None = None):
         """All faces, or only those listed in ``only`` (the others stay empty tuples)."""
-        if not hasattr(cx, "face_groups"):
-            raise ValueError(f"expected a CellComplex with face_groups, got {type(cx).__name__}")
+        if not isinstance(cx, CellComplex):
+            raise ValueError(f"expected a CellComplex, got {type(cx).__name__}")
         F = sum(int(g.face_ids.numel()) for g in cx.face_groups.values())
         self.n_faces = F
         self.loops: list[tuple[int, ...]] = [()] * F

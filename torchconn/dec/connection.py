@@ -14,8 +14,9 @@ Conventions (CONVENTIONS §1)
 * Half transport ``√R_ij`` (report Sec. 3.3): principal square root, the transport from the
   edge midpoint to ``v_i``.
 
-:class:`Connection` is a plain container of tensors (functional level); :class:`ConnectionField`
-is the ``nn.Module`` parametrization ``edge_rot = exp(hat(params))`` used for optimization.
+:class:`Connection` is a plain container of tensors (functional level); the ``nn.Module``
+parametrization ``edge_rot = exp(hat(params))`` used for optimization is
+:class:`torchconn.nn.ConnectionField`.
 """
 from __future__ import annotations
 
@@ -24,10 +25,11 @@ from typing import Any
 import torch
 
 from ..lie import so3, son
+from ..mesh.base import lookup_edges
 from .transport import dense_simplex_transports, orient, pair_list, path_product
 from ..tolerances import get_eps
 
-__all__ = ["Connection", "ConnectionField"]
+__all__ = ["Connection"]
 
 _MAX_LISTED = 10
 
@@ -232,47 +234,23 @@ class Connection:
             sign ``+1`` where ``i < j``, ``== (j, i)`` with sign ``-1`` otherwise.
 
         Raises:
-            ValueError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
+            TypeError: non-integer indices.
+            MeshError: naming the pairs ``(i, j)`` that are not edges (including ``i == j``
                 and out-of-range vertices).
 
-        This is a topology-level lookup (``searchsorted`` on keys ``min*V + max``) that checks
-        every pair and therefore synchronizes with the device; operators on meshes should use
-        precomputed ``(edge_idx, edge_sign)`` buffers with :meth:`oriented` instead.
+        The lookup of :func:`torchconn.mesh.base.lookup_edges` (``searchsorted`` on keys
+        ``min*V + max``): it checks every pair and therefore synchronizes with the device;
+        operators on meshes should use precomputed ``(edge_idx, edge_sign)`` buffers with
+        :meth:`oriented` instead.
         """
-        dev = self.edges.device
-        i = torch.as_tensor(i, device=dev)
-        j = torch.as_tensor(j, device=dev)
-        if i.is_floating_point() or j.is_floating_point():
-            raise TypeError("vertex indices must be integer tensors")
-        i, j = torch.broadcast_tensors(i.long(), j.long())
-        V = self.n_vertices
-        lo, hi = torch.minimum(i, j), torch.maximum(i, j)
-        key = lo * V + hi
         sorted_keys, perm = self._get_lookup()
-        E = sorted_keys.numel()
-        valid = (lo >= 0) & (hi < V) & (lo != hi)
-        if E == 0:
-            found = torch.zeros_like(valid)
-            pos = torch.zeros_like(key)
-        else:
-            pos = torch.searchsorted(sorted_keys, key).clamp(max=E - 1)
-            found = valid & (sorted_keys[pos] == key)
-        if not bool(found.all()):
-            bad = torch.nonzero(~found.reshape(-1)).flatten()
-            pairs = torch.stack((i.reshape(-1)[bad], j.reshape(-1)[bad]), 1)
-            raise ValueError(
-                f"{bad.numel()} vertex pairs are not edges of the connection: "
-                f"{_list_some(pairs[:_MAX_LISTED].tolist(), bad.numel())}"
-            )
-        idx = perm[pos] if E else pos
-        sign = torch.where(i < j, torch.ones_like(i), -torch.ones_like(i))
-        return idx, sign
+        return lookup_edges(sorted_keys, self.n_vertices, i, j, perm=perm, owner="connection")
 
     def transport(self, i: Any, j: Any) -> torch.Tensor:
         """``R_ij`` for batches of vertex pairs: ``i, j (S)`` -> ``(S, n, n)``.
 
         Fiber at ``v_j`` -> fiber at ``v_i``: ``edge_rot[e]`` for a canonical pair, its transpose
-        for ``i > j``. Raises ``ValueError`` naming the pairs that are not edges.
+        for ``i > j``. Raises :class:`~torchconn.mesh.MeshError` naming the pairs that are not edges.
         """
         idx, sign = self.edge_index(i, j)
         return orient(self.edge_rot, idx, sign)
@@ -479,98 +457,3 @@ class Connection:
     def smooth_on_mesh(cls, mesh, smooth, method: str = "midpoint", steps: int = 512) -> "Connection":
         """:meth:`from_smooth` on ``mesh.vertices`` / ``mesh.edges``."""
         return cls.from_smooth(mesh.vertices, mesh.edges, smooth, method=method, steps=steps, n_vertices=mesh.n_vertices)
-
-
-class ConnectionField(torch.nn.Module):
-    """Learnable connection: ``edge_rot = exp(hat(params))``, one skew vector per edge.
-
-    Args:
-        edges: ``(E, 2)`` canonical edges (stored as a buffer).
-        n_vertices: ``V``.
-        n: rank (default 3).
-        init: ``None`` (identity, ``params = 0``), a :class:`Connection` on the same edges, a
-            ``(E, n(n-1)/2)`` parameter tensor, or a ``(E, n, n)`` rotation tensor. Rotations
-            are converted by the principal logarithm (``|params| <= pi``; at angle exactly pi
-            either sign of the axis may be returned — both exponentiate to the same rotation).
-        dtype, device: of the parameters (default: those of ``init`` when it is a tensor or a
-            connection, else the default dtype).
-
-    ``forward()`` returns a :class:`Connection` whose ``edge_rot`` is differentiable in
-    ``params`` (Rodrigues for ``n = 3``, :func:`son.exp_params` otherwise; finite gradients at
-    ``params = 0``). Parameter order: :func:`so3.hat` for ``n = 3``, :func:`son.hat` otherwise.
-    """
-
-    def __init__(
-        self,
-        edges: Any,
-        n_vertices: int,
-        n: int = 3,
-        init: Any = None,
-        dtype: torch.dtype | None = None,
-        device=None,
-    ):
-        super().__init__()
-        if isinstance(init, Connection):
-            dtype = dtype or init.dtype
-            device = device if device is not None else init.device
-        elif isinstance(init, torch.Tensor):
-            dtype = dtype or (init.dtype if init.is_floating_point() else None)
-            device = device if device is not None else init.device
-        dtype = dtype or torch.get_default_dtype()
-        edges = _as_edges(edges, device=device)
-        sorted_keys, perm = _check_edges(edges, n_vertices)
-        E, m = edges.shape[0], son.dim(n)
-        self.n = int(n)
-        self.n_vertices = int(n_vertices)
-        self.register_buffer("edges", edges)
-        # edge lookup of :meth:`Connection.transport`, built once (rebuilt after load_state_dict)
-        self.register_buffer("_sorted_keys", sorted_keys, persistent=False)
-        self.register_buffer("_perm", perm, persistent=False)
-        self.register_load_state_dict_post_hook(ConnectionField._rebuild_lookup)
-
-        if init is None:
-            params = torch.zeros(E, m, dtype=dtype, device=edges.device)
-        elif isinstance(init, Connection):
-            if init.n != n:
-                raise ValueError(f"init connection has rank {init.n}, field has n={n}")
-            if init.edges.shape != edges.shape or not torch.equal(init.edges.to(edges.device), edges):
-                raise ValueError("init connection is defined on different edges than the field")
-            params = _log_params(init.edge_rot.detach().to(dtype=dtype, device=edges.device))
-        elif isinstance(init, torch.Tensor):
-            t = init.detach().to(dtype=dtype, device=edges.device)
-            if t.shape == (E, m):
-                params = t.clone()
-            elif t.shape == (E, n, n):
-                params = _log_params(t)
-            else:
-                raise ValueError(
-                    f"init tensor must have shape (E, {m}) (parameters) or (E, {n}, {n}) "
-                    f"(rotations) with E={E}, got {tuple(t.shape)}"
-                )
-        else:
-            raise TypeError(f"init must be None, a Connection or a tensor, got {type(init).__name__}")
-        self.params = torch.nn.Parameter(params)
-
-    @staticmethod
-    def _rebuild_lookup(module: "ConnectionField", incompatible_keys) -> None:
-        """Re-validate loaded edges and rebuild the lookup buffers (load_state_dict post-hook)."""
-        keys, perm = _check_edges(module.edges, module.n_vertices)
-        module._sorted_keys = keys
-        module._perm = perm
-
-    @classmethod
-    def from_connection(cls, conn: Connection) -> "ConnectionField":
-        """Field with ``exp(params) == conn.edge_rot`` (principal log, see class docstring)."""
-        return cls(conn.edges, conn.n_vertices, n=conn.n, init=conn)
-
-    def edge_rotations(self) -> torch.Tensor:
-        """``exp(hat(params))`` -> ``(E, n, n)`` rotations ``R_ij`` of the canonical edges."""
-        return _exp_params(self.params, self.n)
-
-    def forward(self) -> Connection:
-        """The current :class:`Connection` (differentiable in ``params``)."""
-        R = self.edge_rotations()
-        return Connection._trusted(R, self.edges, self.n_vertices, (self._sorted_keys, self._perm))
-
-    def extra_repr(self) -> str:
-        return f"n={self.n}, n_vertices={self.n_vertices}, n_edges={self.edges.shape[0]}"

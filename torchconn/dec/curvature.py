@@ -280,25 +280,27 @@ def _edge_rot_of(edge_rot: Any) -> torch.Tensor:
 def face_loops(cells: Any) -> tuple[int, list[tuple[torch.Tensor | None, torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Faces of a mesh as groups of edge loops: ``(F, [(face_ids, loop_edges, loop_signs, loops), ...])``.
 
-    * ``CellComplex`` (has ``face_groups``): one entry per face size ``m``.
-    * ``TetMesh`` (has ``faces``, ``face_edges``, ``face_edge_signs``): the sorted faces
+    * ``CellComplex`` (``kind == "cells"``): one entry per face size ``m``.
+    * ``TetMesh`` (``kind == "tet"``): the sorted faces
       ``[a<b<c]`` with loop ``a -> b -> c -> a``; edges ``ab, bc, ca`` are ``face_edges[:, [2, 0, 1]]``
       with the incidence signs of ``d[abc] = [bc] - [ac] + [ab]`` (``+1, +1, -1``: ``c -> a``
       runs against the canonical edge ``(a, c)``).
-    ``face_ids`` is ``None`` when the faces are already in global order.
+    ``face_ids`` is ``None`` when the faces are already in global order. The mesh kind is read
+    from ``kind`` (not ``isinstance``) so that :class:`torchconn.nn.MeshBuffers` is accepted.
     """
-    if hasattr(cells, "face_groups"):
+    kind = getattr(cells, "kind", None)
+    if kind == "cells":
         groups = []
         F = 0
         for m, g in sorted(cells.face_groups.items()):
             groups.append((g.face_ids, g.loop_edges, g.loop_signs, g.loops))
             F += int(g.face_ids.numel())
         return F, groups
-    if hasattr(cells, "face_edges") and hasattr(cells, "face_edge_signs") and hasattr(cells, "faces"):
+    if kind == "tet":
         perm = [2, 0, 1]
         return int(cells.faces.shape[0]), [(None, cells.face_edges[:, perm], cells.face_edge_signs[:, perm], cells.faces)]
     raise ValueError(
-        f"expected a CellComplex (face_groups) or a TetMesh (faces, face_edges, face_edge_signs), got {type(cells).__name__}"
+        f"expected a CellComplex or a TetMesh (kind 'cells' or 'tet'), got {type(cells).__name__}"
     )
 
 

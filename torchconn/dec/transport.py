@@ -7,15 +7,15 @@ an index and a sign: sign ``+1`` means the cell traverses it as stored (``i -> j
 other way, in which case the transport is the transpose.
 
 Local pair order of a simplex with ``s`` vertices ``(x_0, ..., x_{s-1})`` is lexicographic:
-``(0,1), (0,2), ..., (0,s-1), (1,2), ..., (s-2,s-1)``; :func:`pair_list` returns it. For a tet
+``(0,1), (0,2), ..., (0,s-1), (1,2), ..., (s-2,s-1)``; :func:`pair_list` (defined in
+:mod:`torchconn.mesh.simplex`, re-exported here) returns it. For a tet
 that is ``01, 02, 03, 12, 13, 23``, the order of ``TetMesh.tet_edges``.
 """
 from __future__ import annotations
 
-import itertools
-from functools import lru_cache
-
 import torch
+
+from ..mesh.simplex import pair_list
 
 __all__ = ["pair_list", "orient", "path_product", "dense_simplex_transports", "transpose"]
 
@@ -23,12 +23,6 @@ __all__ = ["pair_list", "orient", "path_product", "dense_simplex_transports", "t
 def transpose(R: torch.Tensor) -> torch.Tensor:
     """Swap the last two dims (the inverse of a rotation)."""
     return R.transpose(-1, -2)
-
-
-@lru_cache(maxsize=None)
-def pair_list(s: int) -> tuple[tuple[int, int], ...]:
-    """Lexicographic list of local vertex pairs ``(i, j)``, ``i < j < s``."""
-    return tuple(itertools.combinations(range(s), 2))
 
 
 def orient(edge_rot: torch.Tensor, edge_idx: torch.Tensor, edge_sign: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..dec.connection import ConnectionField
+from ..nn import ConnectionField
 from ..lie import so3
 from . import octahedral
 from .constraints import BoundaryConstraint
@@ -41,7 +41,7 @@ class FrameFieldModel(torch.nn.Module):
     (:func:`~torchconn.frames.propagate.comb_frames`), so that the matched connection is in one
     gauge on the tree (``R_ij ~ I`` there) and face holonomies are near ``I`` on regular faces
     and near a non-identity element of O only around singular curves; the connection
-    (:class:`~torchconn.dec.connection.ConnectionField`) starts at :func:`matched_connection`.
+    (:class:`~torchconn.nn.ConnectionField`) starts at :func:`matched_connection`.
 
     Args:
         mesh: ``TetMesh``.

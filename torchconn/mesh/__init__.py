@@ -3,14 +3,23 @@
 Topology (edges ``i<j``, faces, incidence with signs, boundary) is built once as integer
 buffers when a mesh is constructed; operators read those buffers and never recompute or
 differentiate through them. Shapes and orientations: ``docs/architecture.md``.
+
+Modules: :mod:`.base` (:class:`MeshBase`, what both complexes share: edge lookup, face loops,
+buffers, device moves, the ``require`` cache), :mod:`.tet`, :mod:`.cells`, :mod:`.simplex`
+(local simplex templates), :mod:`.errors`, :mod:`.io` (files), :mod:`.builtin` (meshes
+without files).
 """
-from . import io
-from .complex import CellComplex, FaceGroup, MeshError, TetMesh, tet_mesh_as_cell_complex
-from .io import ball, box, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh, tetrahedralize, torus
+from . import builtin, io, simplex
+from .base import FaceGroup, MeshBase
+from .builtin import ball, box, cylinder, tetrahedralize, torus
+from .cells import CellComplex, tet_mesh_as_cell_complex
+from .errors import MeshError
+from .io import load_mesh, load_polygon_surface, load_surface, load_tet_mesh
+from .tet import TetMesh
 
 __all__ = [
-    "io",
-    "MeshError", "TetMesh", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
+    "io", "builtin", "simplex",
+    "MeshError", "MeshBase", "TetMesh", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
     "box", "ball", "cylinder", "torus",
 ]

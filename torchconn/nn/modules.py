@@ -5,7 +5,7 @@ are registered as *buffers*, so ``module.to(device)`` / ``module.double()`` move
 forward pass never recomputes topology. ``forward`` takes the connection as
 
 * a :class:`~torchconn.connection.Connection` (its ``edge_rot`` is used),
-* a :class:`~torchconn.connection.ConnectionField` (called to get the connection — gradients
+* a :class:`~torchconn.nn.ConnectionField` (called to get the connection — gradients
   flow to its skew parameters), or
 * a plain ``(E, n, n)`` tensor of edge rotations ``R_ij`` of the canonical edges ``(i<j)``.
 
@@ -33,7 +33,8 @@ from ..dec import bianchi as _bianchi
 from ..dec import curvature as _curvature
 from ..dec import dnabla as _dnabla
 from ..dec import torsion as _torsion
-from ..mesh import FaceGroup
+from ..mesh import CellComplex, FaceGroup, TetMesh
+from ..mesh.cells import face_groups_from_buffers
 
 __all__ = [
     "edge_rotations",
@@ -44,21 +45,6 @@ __all__ = [
     "CovariantD",
     "BianchiCheck",
 ]
-
-# TetMesh buffers the operators read (docs/architecture.md).
-_TET_BUFFERS = (
-    "vertices",
-    "tets",
-    "edges",
-    "faces",
-    "face_edges",
-    "face_edge_signs",
-    "tet_edges",
-    "tet_edge_signs",
-    "tet_faces",
-    "tet_face_signs",
-)
-
 
 def edge_rotations(connection: Any) -> torch.Tensor:
     """``(E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor."""
@@ -79,44 +65,31 @@ def edge_rotations(connection: Any) -> torch.Tensor:
 class MeshBuffers(nn.Module):
     """The topology (and vertex positions) of a ``TetMesh`` or ``CellComplex`` as module buffers.
 
-    The module itself duck-types as the mesh for the functional operators: it exposes the
-    attributes they read (``vertices``, ``edges``, ``faces``, ``face_edges``, ``tet_edges``, ...
-    for a tet mesh; ``vertices``, ``edges``, ``face_groups`` for a cell complex), and they follow
-    ``.to(device/dtype)`` of any parent module. Nothing is recomputed.
+    Every tensor the mesh owns (:meth:`torchconn.mesh.MeshBase.buffers`: integer topology and
+    float geometry) is registered under its mesh attribute name, so the module duck-types as
+    the mesh for the functional operators (``vertices``, ``edges``, ``faces``, ``face_edges``,
+    ``tet_edges``, ... of a tet mesh; ``vertices``, ``edges``, ``face_groups`` of a cell
+    complex; ``kind`` as the mesh's) and follows ``.to(device/dtype)`` of any parent module.
+    Nothing is recomputed.
+
+    Raises:
+        TypeError: ``mesh`` is neither a :class:`TetMesh` nor a :class:`CellComplex`.
     """
 
     def __init__(self, mesh: Any):
         super().__init__()
-        self.kind = "cell_complex" if hasattr(mesh, "face_groups") else "tet_mesh"
-        if self.kind == "tet_mesh":
-            missing = [k for k in _TET_BUFFERS if not hasattr(mesh, k)]
-            if missing:
-                raise TypeError(f"MeshBuffers: {type(mesh).__name__} lacks the TetMesh buffers {missing}")
-            for k in _TET_BUFFERS:
-                self.register_buffer(k, getattr(mesh, k).clone())
-        else:
-            self.register_buffer("vertices", mesh.vertices.clone())
-            self.register_buffer("edges", mesh.edges.clone())
-            self._sizes = sorted(mesh.face_groups)
-            for m in self._sizes:
-                g = mesh.face_groups[m]
-                for field in ("loops", "loop_edges", "loop_signs", "face_ids"):
-                    self.register_buffer(f"_g{m}_{field}", getattr(g, field).clone())
+        if not isinstance(mesh, (TetMesh, CellComplex)):
+            raise TypeError(f"MeshBuffers needs a TetMesh or a CellComplex, got {type(mesh).__name__}")
+        self.kind = mesh.kind
+        for name, t in mesh.buffers().items():
+            self.register_buffer(name, t.clone())
 
     @property
     def face_groups(self) -> dict[int, FaceGroup]:
         """Face groups of a cell complex rebuilt from the buffers (no copy)."""
-        if self.kind != "cell_complex":
+        if self.kind != CellComplex.kind:
             raise AttributeError("face_groups exists only for a CellComplex")
-        return {
-            m: FaceGroup(
-                loops=getattr(self, f"_g{m}_loops"),
-                loop_edges=getattr(self, f"_g{m}_loop_edges"),
-                loop_signs=getattr(self, f"_g{m}_loop_signs"),
-                face_ids=getattr(self, f"_g{m}_face_ids"),
-            )
-            for m in self._sizes
-        }
+        return face_groups_from_buffers(dict(self.named_buffers(recurse=False)))
 
     @property
     def n_vertices(self) -> int:
@@ -212,7 +185,7 @@ class CovariantD(nn.Module):
         super().__init__()
         if variant not in self._FUNCS:
             raise ValueError(f"CovariantD: variant must be one of {sorted(self._FUNCS)}, got {variant!r}")
-        if not hasattr(mesh, "tets"):
+        if not isinstance(mesh, TetMesh):
             raise TypeError(f"CovariantD needs a TetMesh, got {type(mesh).__name__}")
         self.mesh = MeshBuffers(mesh)
         self.variant = variant
@@ -243,7 +216,7 @@ class BianchiCheck(nn.Module):
 
     def __init__(self, mesh: Any, atol: float | None = None):
         super().__init__()
-        if not hasattr(mesh, "tets"):
+        if not isinstance(mesh, TetMesh):
             raise TypeError(f"BianchiCheck needs a TetMesh, got {type(mesh).__name__}")
         self.mesh = MeshBuffers(mesh)
         self.atol = atol

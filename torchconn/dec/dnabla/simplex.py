@@ -57,6 +57,7 @@ from functools import lru_cache
 
 import torch
 
+from ...mesh.simplex import FACE_EDGE_SIGNS, TET_FACE_SIGNS, TET_FACES
 
 __all__ = [
     "all_tuples",
@@ -80,12 +81,6 @@ __all__ = [
 
 # ----------------------------------------------------------------------------- templates
 
-#: Local faces of a tet: face ``k`` is opposite local vertex ``k``, vertices ascending.
-TET_FACES = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
-#: Incidence of face ``k`` in ``∂[0123] = [123] - [023] + [013] - [012]``.
-TET_FACE_SIGNS = (1, -1, 1, -1)
-#: Incidence of the edge opposite slot ``m`` of ``[p<q<r]`` in ``∂[pqr] = [qr] - [pr] + [pq]``.
-FACE_EDGE_SIGNS = (1, -1, 1)
 
 
 @lru_cache(maxsize=None)

@@ -1,0 +1,108 @@
+"""Learnable connection: :class:`ConnectionField`, the ``nn.Module`` parametrization
+``edge_rot = exp(hat(params))`` of a :class:`~torchconn.dec.connection.Connection` (report Sec. 3.1;
+conventions of :mod:`torchconn.dec.connection`)."""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ..dec.connection import Connection, _as_edges, _check_edges, _exp_params, _log_params
+from ..lie import son
+
+__all__ = ["ConnectionField"]
+
+
+class ConnectionField(torch.nn.Module):
+    """Learnable connection: ``edge_rot = exp(hat(params))``, one skew vector per edge.
+
+    Args:
+        edges: ``(E, 2)`` canonical edges (stored as a buffer).
+        n_vertices: ``V``.
+        n: rank (default 3).
+        init: ``None`` (identity, ``params = 0``), a :class:`Connection` on the same edges, a
+            ``(E, n(n-1)/2)`` parameter tensor, or a ``(E, n, n)`` rotation tensor. Rotations
+            are converted by the principal logarithm (``|params| <= pi``; at angle exactly pi
+            either sign of the axis may be returned — both exponentiate to the same rotation).
+        dtype, device: of the parameters (default: those of ``init`` when it is a tensor or a
+            connection, else the default dtype).
+
+    ``forward()`` returns a :class:`Connection` whose ``edge_rot`` is differentiable in
+    ``params`` (Rodrigues for ``n = 3``, :func:`son.exp_params` otherwise; finite gradients at
+    ``params = 0``). Parameter order: :func:`so3.hat` for ``n = 3``, :func:`son.hat` otherwise.
+    """
+
+    def __init__(
+        self,
+        edges: Any,
+        n_vertices: int,
+        n: int = 3,
+        init: Any = None,
+        dtype: torch.dtype | None = None,
+        device=None,
+    ):
+        super().__init__()
+        if isinstance(init, Connection):
+            dtype = dtype or init.dtype
+            device = device if device is not None else init.device
+        elif isinstance(init, torch.Tensor):
+            dtype = dtype or (init.dtype if init.is_floating_point() else None)
+            device = device if device is not None else init.device
+        dtype = dtype or torch.get_default_dtype()
+        edges = _as_edges(edges, device=device)
+        sorted_keys, perm = _check_edges(edges, n_vertices)
+        E, m = edges.shape[0], son.dim(n)
+        self.n = int(n)
+        self.n_vertices = int(n_vertices)
+        self.register_buffer("edges", edges)
+        # edge lookup of :meth:`Connection.transport`, built once (rebuilt after load_state_dict)
+        self.register_buffer("_sorted_keys", sorted_keys, persistent=False)
+        self.register_buffer("_perm", perm, persistent=False)
+        self.register_load_state_dict_post_hook(ConnectionField._rebuild_lookup)
+
+        if init is None:
+            params = torch.zeros(E, m, dtype=dtype, device=edges.device)
+        elif isinstance(init, Connection):
+            if init.n != n:
+                raise ValueError(f"init connection has rank {init.n}, field has n={n}")
+            if init.edges.shape != edges.shape or not torch.equal(init.edges.to(edges.device), edges):
+                raise ValueError("init connection is defined on different edges than the field")
+            params = _log_params(init.edge_rot.detach().to(dtype=dtype, device=edges.device))
+        elif isinstance(init, torch.Tensor):
+            t = init.detach().to(dtype=dtype, device=edges.device)
+            if t.shape == (E, m):
+                params = t.clone()
+            elif t.shape == (E, n, n):
+                params = _log_params(t)
+            else:
+                raise ValueError(
+                    f"init tensor must have shape (E, {m}) (parameters) or (E, {n}, {n}) "
+                    f"(rotations) with E={E}, got {tuple(t.shape)}"
+                )
+        else:
+            raise TypeError(f"init must be None, a Connection or a tensor, got {type(init).__name__}")
+        self.params = torch.nn.Parameter(params)
+
+    @staticmethod
+    def _rebuild_lookup(module: "ConnectionField", incompatible_keys) -> None:
+        """Re-validate loaded edges and rebuild the lookup buffers (load_state_dict post-hook)."""
+        keys, perm = _check_edges(module.edges, module.n_vertices)
+        module._sorted_keys = keys
+        module._perm = perm
+
+    @classmethod
+    def from_connection(cls, conn: Connection) -> "ConnectionField":
+        """Field with ``exp(params) == conn.edge_rot`` (principal log, see class docstring)."""
+        return cls(conn.edges, conn.n_vertices, n=conn.n, init=conn)
+
+    def edge_rotations(self) -> torch.Tensor:
+        """``exp(hat(params))`` -> ``(E, n, n)`` rotations ``R_ij`` of the canonical edges."""
+        return _exp_params(self.params, self.n)
+
+    def forward(self) -> Connection:
+        """The current :class:`Connection` (differentiable in ``params``)."""
+        R = self.edge_rotations()
+        return Connection._trusted(R, self.edges, self.n_vertices, (self._sorted_keys, self._perm))
+
+    def extra_repr(self) -> str:
+        return f"n={self.n}, n_vertices={self.n_vertices}, n_edges={self.edges.shape[0]}"
