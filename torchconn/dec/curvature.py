@@ -285,6 +285,7 @@ def face_loops(cells: Any) -> tuple[int, list[tuple[torch.Tensor | None, torch.T
       ``[a<b<c]`` with loop ``a -> b -> c -> a``; edges ``ab, bc, ca`` are ``face_edges[:, [2, 0, 1]]``
       with the incidence signs of ``d[abc] = [bc] - [ac] + [ab]`` (``+1, +1, -1``: ``c -> a``
       runs against the canonical edge ``(a, c)``).
+
     ``face_ids`` is ``None`` when the faces are already in global order. The mesh kind is read
     from ``kind`` (not ``isinstance``) so that :class:`torchconn.nn.MeshBuffers` is accepted.
     """

@@ -46,10 +46,9 @@ class CellComplex(MeshBase):
             ``cell_faces (N,)``, ``cell_face_signs (N,)``, ``cell_offsets (C+1,)``.
         dtype, device: of the geometry (default those of ``vertices``).
 
-    Attributes:
-        ``vertices (V,3)``, ``edges (E,2)`` canonical (``i<j``, rows sorted),
-        ``face_groups: dict[int, FaceGroup]`` keyed by face size ``m``,
-        ``face_sizes (F,)``, ``edge_face_count (E,)`` number of faces using each edge.
+    Buffers: ``vertices (V,3)``, ``edges (E,2)`` canonical (``i<j``, rows sorted),
+    ``face_groups`` (a dict of :class:`FaceGroup` keyed by face size ``m``),
+    ``face_sizes (F,)``, ``edge_face_count (E,)`` number of faces using each edge.
 
     Validation at construction (raises :class:`MeshError` naming indices): wrong shapes, no
     faces, NaN/inf coordinates, indices out of range, faces with fewer than 3 vertices, faces

@@ -4,23 +4,19 @@ Each module is built once from a mesh; the mesh's integer topology (and its vert
 are registered as *buffers*, so ``module.to(device)`` / ``module.double()`` move them and the
 forward pass never recomputes topology. ``forward`` takes the connection as
 
-* a :class:`~torchconn.connection.Connection` (its ``edge_rot`` is used),
+* a :class:`~torchconn.dec.connection.Connection` (its ``edge_rot`` is used),
 * a :class:`~torchconn.nn.ConnectionField` (called to get the connection — gradients
   flow to its skew parameters), or
 * a plain ``(E, n, n)`` tensor of edge rotations ``R_ij`` of the canonical edges ``(i<j)``.
 
 All modules compute exactly what the functional operators compute (they call them):
 
-====================== ============================================ =========================
-module                 value                                        report
-====================== ============================================ =========================
-:class:`Curvature`     ``(F, n, n)`` per face, two-prong / holonomy Sec. 3.2, (3.2.1)
-:class:`Torsion`       ``(F, n)`` per face, √R or naive             Def. 3.2
-:class:`AveragedCovariantD` ``(T, n)`` ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet   Def. 5.2, end of Ch. 5
-:class:`CovariantD`    ``(T, n)`` d∇d∇θ with variant averaged /     Ch. 4, Defs. 5.1-5.2
-                       behs21 / wedge
-:class:`BianchiCheck`  dict of max residuals; raises BianchiError   Sec. 2.4, 3.6, Ch. 5
-====================== ============================================ =========================
+* :class:`Curvature` -- ``(F, n, n)`` per face, two-prong or holonomy (Sec. 3.2, (3.2.1));
+* :class:`Torsion` -- ``(F, n)`` per face, √R or naive (Def. 3.2);
+* :class:`AveragedCovariantD` -- ``(T, n)``, ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2, end of Ch. 5);
+* :class:`CovariantD` -- ``(T, n)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
+  Defs. 5.1-5.2);
+* :class:`BianchiCheck` -- dict of max residuals; raises ``BianchiError`` (Sec. 2.4, 3.6, Ch. 5).
 """
 from __future__ import annotations
 

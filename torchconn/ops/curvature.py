@@ -18,10 +18,11 @@ __all__ = ["face_curvature"]
 
 
 def _sorted_triangles(mesh) -> bool:
-    """A tet-mesh-like object: sorted faces ``[a<b<c]`` with ``face_edges`` (duck-typed; a
-    ``CellComplex`` has ``face_groups`` instead)."""
-    return (not hasattr(mesh, "face_groups") and hasattr(mesh, "faces") and hasattr(mesh, "face_edges")
-            and torch.is_tensor(mesh.faces) and mesh.faces.ndim == 2 and mesh.faces.shape[1] == 3)
+    """A tet mesh (or its ``nn.MeshBuffers``): sorted faces ``[a<b<c]`` with ``face_edges``.
+
+    Read from the mesh's ``kind`` attribute (:class:`torchconn.mesh.base.MeshBase`): ops sits
+    below the mesh layer and does not import its classes."""
+    return getattr(mesh, "kind", None) == "tet"
 
 
 def _face_rots(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
