@@ -11,7 +11,7 @@ from torchconn import io, so3
 from torchconn.frames import octahedral, sh
 from torchconn.frames.constraints import BoundaryConstraint
 from torchconn.frames.loss import FrameFieldLoss
-from torchconn.frames.metrics import boundary_face_normals, feature_vertices
+from torchconn.frames.constraints import boundary_face_normals, feature_vertices
 from torchconn.frames.model import FrameFieldModel, matched_connection
 from torchconn.frames.param import constrained_frames, constrained_rotation_vector
 from torchconn.frames.solver import (NonFiniteLossError, cosine_factor, make_optimizer, new_history,

@@ -14,8 +14,8 @@ parallel propagation), :mod:`.model` (matched connection, trainable model), :mod
 0
 """
 from . import propagate
-from .constraints import BoundaryConstraint
-from .metrics import METRIC_KEYS, axis_alignment_angle, feature_edges, feature_vertices, frame_metrics
+from .constraints import BoundaryConstraint, feature_edges, feature_vertices
+from .metrics import METRIC_KEYS, axis_alignment_angle, frame_metrics
 from .sh import (
     boundary_constraint,
     frame_to_sh,

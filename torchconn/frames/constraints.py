@@ -4,7 +4,7 @@ Every frame-field component (the SH baseline, the loss, the polish, the metrics,
 constrains the same boundary data:
 
 * **feature vertices**: endpoints of the sharp boundary edges
-  (:func:`torchconn.frames.metrics.feature_edges`: the two boundary-face normals differ by more
+  (:func:`feature_edges`: the two boundary-face normals differ by more
   than ``feature_angle_deg``);
 * **aligned vertices**: the other boundary vertices, each with its area-weighted unit vertex
   normal ``n_i`` (``mesh.boundary_vertex_normals``); a frame there must have an axis ``±n_i``
@@ -19,11 +19,12 @@ dtype/device.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
-__all__ = ["BoundaryConstraint"]
+__all__ = ["BoundaryConstraint", "boundary_face_normals", "feature_edges", "feature_vertices"]
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,6 @@ class BoundaryConstraint:
 
     @classmethod
     def _build(cls, mesh, angle: float) -> "BoundaryConstraint":
-        from .metrics import boundary_face_normals, feature_vertices
 
         V = mesh.vertices.shape[0]
         dtype, dev = mesh.vertices.dtype, mesh.vertices.device
@@ -98,3 +98,55 @@ class BoundaryConstraint:
             pair_faces=pair_faces,
             pair_normals=boundary_face_normals(mesh).to(dtype)[pair_faces],
         )
+
+
+def _require(mesh, *names: str) -> None:
+    missing = [n for n in names if not hasattr(mesh, n)]
+    if missing:
+        raise TypeError(f"expected a TetMesh; {type(mesh).__name__} lacks {missing}")
+
+
+def boundary_face_normals(mesh) -> torch.Tensor:
+    """Outward unit normals ``(B, 3)`` of ``mesh.boundary_faces``."""
+    _require(mesh, "vertices", "boundary_faces")
+    p = mesh.vertices[mesh.boundary_faces]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
+
+
+def feature_edges(mesh, angle_deg: float = 30.0) -> torch.Tensor:
+    """Sharp boundary edges ``(K, 2)`` long (rows ``i < j``, sorted lexicographically).
+
+    A boundary edge is sharp when the normals of its two boundary faces make an angle larger
+    than ``angle_deg``. Boundary edges not shared by exactly two boundary faces (non-manifold
+    boundary) are ignored.
+    """
+    _require(mesh, "vertices", "boundary_faces")
+    if not 0.0 <= angle_deg <= 180.0:
+        raise ValueError(f"angle_deg must lie in [0, 180], got {angle_deg}")
+    bf = mesh.boundary_faces
+    device = bf.device
+    nf = boundary_face_normals(mesh)
+    half = torch.cat([bf[:, [1, 2]], bf[:, [2, 0]], bf[:, [0, 1]]], 0)  # (3B, 2) directed edges
+    face_of = torch.arange(bf.shape[0], device=device).repeat(3)
+    und = half.sort(dim=1).values
+    V = mesh.vertices.shape[0]
+    key = und[:, 0] * V + und[:, 1]
+    ukey, inv, cnt = torch.unique(key, return_inverse=True, return_counts=True)
+    # the two faces of each boundary edge: sort half-edges by edge key, then take pairs
+    order = torch.argsort(inv, stable=True)
+    start = torch.cumsum(cnt, 0) - cnt
+    two = cnt == 2
+    f0 = face_of[order[start[two]]]
+    f1 = face_of[order[start[two] + 1]]
+    n0, n1 = nf[f0], nf[f1]
+    # angle between normals via atan2 (accurate for small and large angles)
+    ang = torch.atan2(torch.linalg.cross(n0, n1, dim=-1).norm(dim=-1), (n0 * n1).sum(-1))
+    sharp = ang > math.radians(angle_deg)
+    k = ukey[two][sharp]
+    return torch.stack([k // V, k % V], dim=1)
+
+
+def feature_vertices(mesh, angle_deg: float = 30.0) -> torch.Tensor:
+    """Sorted endpoints ``(Vf,)`` long of :func:`feature_edges`."""
+    return torch.unique(feature_edges(mesh, angle_deg).reshape(-1))

@@ -31,7 +31,7 @@ import torch
 
 from ..lie import so3
 from . import octahedral
-from .constraints import BoundaryConstraint
+from .constraints import BoundaryConstraint, _require, feature_edges, feature_vertices
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
            "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
@@ -48,58 +48,6 @@ METRIC_KEYS = (
     "n_singular_faces",
     "n_tets_one_singular_face",
 )
-
-
-def _require(mesh, *names: str) -> None:
-    missing = [n for n in names if not hasattr(mesh, n)]
-    if missing:
-        raise TypeError(f"expected a TetMesh; {type(mesh).__name__} lacks {missing}")
-
-
-def boundary_face_normals(mesh) -> torch.Tensor:
-    """Outward unit normals ``(B, 3)`` of ``mesh.boundary_faces``."""
-    _require(mesh, "vertices", "boundary_faces")
-    p = mesh.vertices[mesh.boundary_faces]
-    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
-
-
-def feature_edges(mesh, angle_deg: float = 30.0) -> torch.Tensor:
-    """Sharp boundary edges ``(K, 2)`` long (rows ``i < j``, sorted lexicographically).
-
-    A boundary edge is sharp when the normals of its two boundary faces make an angle larger
-    than ``angle_deg``. Boundary edges not shared by exactly two boundary faces (non-manifold
-    boundary) are ignored.
-    """
-    _require(mesh, "vertices", "boundary_faces")
-    if not 0.0 <= angle_deg <= 180.0:
-        raise ValueError(f"angle_deg must lie in [0, 180], got {angle_deg}")
-    bf = mesh.boundary_faces
-    device = bf.device
-    nf = boundary_face_normals(mesh)
-    half = torch.cat([bf[:, [1, 2]], bf[:, [2, 0]], bf[:, [0, 1]]], 0)  # (3B, 2) directed edges
-    face_of = torch.arange(bf.shape[0], device=device).repeat(3)
-    und = half.sort(dim=1).values
-    V = mesh.vertices.shape[0]
-    key = und[:, 0] * V + und[:, 1]
-    ukey, inv, cnt = torch.unique(key, return_inverse=True, return_counts=True)
-    # the two faces of each boundary edge: sort half-edges by edge key, then take pairs
-    order = torch.argsort(inv, stable=True)
-    start = torch.cumsum(cnt, 0) - cnt
-    two = cnt == 2
-    f0 = face_of[order[start[two]]]
-    f1 = face_of[order[start[two] + 1]]
-    n0, n1 = nf[f0], nf[f1]
-    # angle between normals via atan2 (accurate for small and large angles)
-    ang = torch.atan2(torch.linalg.cross(n0, n1, dim=-1).norm(dim=-1), (n0 * n1).sum(-1))
-    sharp = ang > math.radians(angle_deg)
-    k = ukey[two][sharp]
-    return torch.stack([k // V, k % V], dim=1)
-
-
-def feature_vertices(mesh, angle_deg: float = 30.0) -> torch.Tensor:
-    """Sorted endpoints ``(Vf,)`` long of :func:`feature_edges`."""
-    return torch.unique(feature_edges(mesh, angle_deg).reshape(-1))
 
 
 def axis_alignment_angle(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:

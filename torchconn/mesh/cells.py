@@ -6,7 +6,6 @@ raise :class:`MeshError` naming the offending indices.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -14,9 +13,6 @@ import torch
 from ..tolerances import get_eps
 from .base import DEGENERATE_FACTOR, FaceGroup, MeshBase, _as_float_tensor, _as_index_array, _check_finite, _long
 from .errors import MeshError, _few, _few_rows
-
-if TYPE_CHECKING:
-    from .tet import TetMesh
 
 __all__ = ["CellComplex", "tet_mesh_as_cell_complex", "face_groups_from_buffers"]
 
@@ -329,7 +325,7 @@ class CellComplex(MeshBase):
                 torch.as_tensor(pe[o], dtype=torch.long, device=dev))
 
 
-def tet_mesh_as_cell_complex(mesh: "TetMesh") -> CellComplex:
+def tet_mesh_as_cell_complex(mesh: MeshBase) -> CellComplex:
     """All triangles and tets of ``mesh`` as a :class:`CellComplex`.
 
     Faces are the mesh's ``faces`` in order (loop ``a -> b -> c`` of the sorted triangle, so
