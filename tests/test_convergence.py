@@ -1,4 +1,4 @@
-"""The report's convergence claims (Secs. 3.4, 4, 5; CONVENTIONS §3), measured in process.
+"""The report's convergence claims (Secs. 3.4, 4, 5; docs/conventions.md §3), measured in process.
 
 The full float64 study (4 cases x 13 levels x 11 quantities) is a few hundred tiny cells and
 runs in well under a second; every claim is asserted per case:
@@ -90,7 +90,7 @@ def test_case_cells_follow_conventions():
 
 
 def _explicit_triangle(smooth: SmoothConnection, p: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-    """Slow per-triangle reference written out term by term (CONVENTIONS §1, §3)."""
+    """Slow per-triangle reference written out term by term (docs/conventions.md §1, §3)."""
     R = lambda i, j: smooth.midpoint_transport(p[i], p[j])  # noqa: E731
     H = lambda i, j: smooth.half_transport(p[i], p[j])  # noqa: E731
     th = lambda i, j: p[j] - p[i]  # noqa: E731

@@ -506,7 +506,7 @@ def test_bad_input_raises(gen):
 # ----------------------------------------------------------------------------- convergence (Ch. 5)
 
 def test_averaged_dd_converges_linearly_behs21_does_not():
-    """Case D of CONVENTIONS §3 (report Fig. 5.1): d∇d∇θ / vol -> Ω∧θ = (0, 0, -xy) at vertex 0."""
+    """Case D of docs/conventions.md §3 (report Fig. 5.1): d∇d∇θ / vol -> Ω∧θ = (0, 0, -xy) at vertex 0."""
     import numpy as np
 
     from torchconn import smooth

@@ -216,7 +216,7 @@ def _rz(t):
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
-# the four parameter sets of CONVENTIONS §3
+# the four parameter sets of docs/conventions.md §3
 EULER_CASES = [(1.3, 1.1, -1.6), (1.7, 2.1, -2.6), (2.3, -1.1, 2.0), (-2.2, 2.1, 1.7)]
 
 

@@ -13,7 +13,7 @@ Outputs in ``output_dir`` (default: Hydra's run directory), all written atomical
 * ``convergence.csv`` -- ``case,quantity,level,h,error``, one row per case × quantity × level
   of the main series (floats with full precision, ``repr``);
 * ``slopes.csv`` -- ``case,quantity,slope``: least-squares slope of ``log error`` against
-  ``log h`` over ``fit_levels`` (CONVENTIONS §3: 7..12);
+  ``log h`` over ``fit_levels`` (docs/conventions.md §3: 7..12);
 * ``convergence_<case>.png`` -- log-log error plots in the style of Figs. 3.3-3.6, 4.3, 5.1,
   fitted slopes in the legend;
 * ``variants/<name>/`` -- the same three kinds of files for each entry of ``variants``
@@ -309,7 +309,7 @@ def train(cfg) -> dict:
         files += [str(out / "mesh_convergence.csv"), str(out / "mesh_slopes.csv")]
 
     # ------------------------------------------------------------------ summary.md
-    md = ["# Convergence study (report Secs. 3.4, 4, 5; CONVENTIONS §3)", ""]
+    md = ["# Convergence study (report Secs. 3.4, 4, 5; docs/conventions.md §3)", ""]
     md += [f"- connection: `{s['connection']}` ({type(smooth).__name__}); dtype: `{s['dtype']}`",
            f"- main series: transports `{s['transport']}`, reference point `{s['reference_point']}`, "
            f"levels 0..{s['levels'] - 1}, slope fit over levels {main_res.settings['fit_levels']}",

@@ -3,11 +3,11 @@
 Everything the Hydra entry point ``training/convergence.py`` writes to disk is computed here,
 so that a notebook can call the same functions:
 
-* :func:`case_cells` builds the level-``n`` triangles and tets of CONVENTIONS §3
+* :func:`case_cells` builds the level-``n`` triangles and tets of docs/conventions.md §3
   (``P_n = v + 2^{-n} Rot · base``, vertex 0 at ``v``, ``h = 2^{-n}``) for all cases and levels
   at once, as one ``(C, L, 3|4, 3)`` batch.
 * :func:`triangle_quantities` / :func:`tet_quantities` evaluate every discrete quantity of
-  CONVENTIONS §3 on a batch of cells together with its smooth reference value.
+  docs/conventions.md §3 on a batch of cells together with its smooth reference value.
 * :func:`convergence_errors`, :func:`fit_slope` and :func:`study` turn them into the error
   tables and least-squares slopes behind the report's Figs. 3.3-3.6, 4.3 and 5.1.
 * :func:`mesh_convergence` repeats the per-cell measurement on a refined tetrahedral ball
@@ -72,7 +72,7 @@ __all__ = [
 ]
 
 # ----------------------------------------------------------------------------- set-up (§3)
-#: Parameter sets of CONVENTIONS §3: ``case -> ((alpha, beta, gamma), v)``, rotation
+#: Parameter sets of docs/conventions.md §3: ``case -> ((alpha, beta, gamma), v)``, rotation
 #: ``R = Rx(alpha) Ry(beta) Rz(gamma)`` (report Sec. 3.4), shift ``v`` of vertex 0.
 CASES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
     "A": ((1.3, 1.1, -1.6), (3.3, 1.6, -0.3)),  # Fig. 3.3
@@ -82,7 +82,7 @@ CASES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] 
 }
 
 
-#: The report's claim per quantity (CONVENTIONS §3 "expected outcome"): ``True`` = converges
+#: The report's claim per quantity (docs/conventions.md §3 "expected outcome"): ``True`` = converges
 #: linearly (tested as slope >= 0.9), ``False`` = does not converge (slope <= 0.2).
 CLAIMS: dict[str, bool] = {q: q not in ("torsion_naive", "torsion_naive_loop", "ddtheta_behs") for q in QUANTITIES}
 
@@ -174,7 +174,7 @@ def case_cells(
     dtype: torch.dtype = torch.float64,
     device=None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Level-``n`` cells of CONVENTIONS §3 for all ``cases`` × ``levels`` in one batch.
+    """Level-``n`` cells of docs/conventions.md §3 for all ``cases`` × ``levels`` in one batch.
 
     ``P_n = v + 2^{-n} Rot · base`` with ``Rot = euler_xyz(α, β, γ)`` (report Sec. 3.4: the
     triangle is rotated, then shifted so that vertex 0 sits at ``v``; each level halves it).
@@ -242,7 +242,7 @@ def convergence_errors(
 
 
 def fit_slope(h: torch.Tensor, err: torch.Tensor, levels: Sequence[int] | None = None, all_levels: Sequence[int] | None = None) -> torch.Tensor:
-    """Least-squares slope of ``log err`` against ``log h`` (CONVENTIONS §3).
+    """Least-squares slope of ``log err`` against ``log h`` (docs/conventions.md §3).
 
     Args:
         h: ``(L,)`` mesh sizes.
@@ -325,7 +325,7 @@ def study(
 ) -> StudyResult:
     """One complete convergence study (report Figs. 3.3-3.6, 4.3, 5.1), all in one batch.
 
-    ``fit_levels`` are the levels entering the slope fit (CONVENTIONS §3: 7..12); levels
+    ``fit_levels`` are the levels entering the slope fit (docs/conventions.md §3: 7..12); levels
     outside the computed range are ignored, and when fewer than two remain the fit uses the
     last ``min(6, L)`` computed levels (reduced studies, e.g. 4 levels in the CLI test).
     """

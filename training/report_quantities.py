@@ -4,7 +4,7 @@ Pure, batched functions on cells given by their vertex rows (report Secs. 3.3-3.
 :mod:`training.experiments` builds the cells and turns these values into errors and slopes.
 
 
-Quantities (CONVENTIONS §3; evaluation vertex 0 and cut vertex 2 unless named)
+Quantities (docs/conventions.md §3; evaluation vertex 0 and cut vertex 2 unless named)
 ------------------------------------------------------------------------------
 Triangle ``[v0 v1 v2]`` — the discrete value divided by the triangle area is compared with the
 smooth 2-form at the reference point evaluated on the unit normal of ``[v0 v1 v2]``:
@@ -28,7 +28,7 @@ report's connection): ``ddtheta_behs`` (BEHS21 ``𝔡∇𝔡∇θ`` with plain `
 ``ddtheta_averaged`` (``𝔡∇ Alt 𝔡∇ Alt θ̃``, Def. 5.2, Fig. 5.1), ``ddtheta_primal_dual``
 (Def. 4.2 applied twice, Fig. 4.3).
 
-Transports (CONVENTIONS §3). ``transport="midpoint"`` (the report's main series): the edge
+Transports (docs/conventions.md §3). ``transport="midpoint"`` (the report's main series): the edge
 rotations ``R_ij`` and the barycenter segment transports ``R_{c,c_e}``, ``R_{c_t,c_f}`` are
 ``exp(ω_m[b - a])`` of their straight segment ``a -> b``; the half transports are
 ``√R_ij = exp(½ ω_m[v_j - v_i])`` with ``ω_m`` at the *edge* midpoint.
@@ -67,7 +67,7 @@ __all__ = [
     "cell_error",
 ]
 
-# ----------------------------------------------------------------------------- names (CONVENTIONS §3)
+# ----------------------------------------------------------------------------- names (docs/conventions.md §3)
 TRIANGLE_QUANTITIES: tuple[str, ...] = (
     "torsion_naive",
     "torsion_naive_loop",
@@ -93,7 +93,7 @@ def segment_transport(smooth: SmoothConnection, a: torch.Tensor, b: torch.Tensor
 
 def half_edge_transport(smooth: SmoothConnection, a: torch.Tensor, b: torch.Tensor, method: str, steps: int) -> torch.Tensor:
     """``√R_ab`` (edge midpoint -> ``a``): midpoint ``exp(½ ω_m[b - a])`` with ``m`` the *edge*
-    midpoint (report Sec. 3.3, CONVENTIONS §3), or for ``path_ordered`` the principal square
+    midpoint (report Sec. 3.3, docs/conventions.md §3), or for ``path_ordered`` the principal square
     root ``so3.sqrt(R_ab)`` of the path-ordered edge transport -- the same rule a discrete
     connection uses, and the one that keeps ``√R_ba = √R_ab^T`` and ``R_ba θ̃_ab = -θ̃_ba``."""
     if method == "midpoint":
@@ -189,7 +189,7 @@ def _pair_transports(smooth: SmoothConnection, pts: torch.Tensor, transport: str
     """Dense table ``T[..., i, j] = R_{x_i x_j}`` of a simplex -> ``(..., s, s, n, n)``.
 
     Only the pairs ``i < j`` of :func:`torchconn.transport.pair_list` are integrated; the table
-    is completed by ``R_ji = R_ij^T`` (CONVENTIONS §1), exactly, also for path-ordered transports.
+    is completed by ``R_ji = R_ij^T`` (docs/conventions.md §1), exactly, also for path-ordered transports.
     """
     pairs = pair_list(pts.shape[-2])
     i = torch.tensor([p[0] for p in pairs], device=pts.device)
@@ -288,7 +288,7 @@ def _primal_dual_ddtheta(smooth: SmoothConnection, tet: torch.Tensor, transport:
 def cell_error(quantity: str, value: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """Error of one quantity per cell: Frobenius norm of ``value - reference`` for the
     (matrix-valued) curvatures, Euclidean norm for the vector-valued torsions and ``d∇d∇θ``
-    (CONVENTIONS §3) -> batch shape."""
+    (docs/conventions.md §3) -> batch shape."""
     d = value - reference
     if quantity.startswith("curvature"):
         return torch.linalg.matrix_norm(d)

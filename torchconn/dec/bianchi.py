@@ -1,6 +1,6 @@
 """Differential and algebraic Bianchi identities as residuals, and a one-call check.
 
-* Differential (report Ch. 5, CONVENTIONS §1): with ``Ω = 𝔡∇w`` (``w = R - I`` as a vector
+* Differential (report Ch. 5, docs/conventions.md §1): with ``Ω = 𝔡∇w`` (``w = R - I`` as a vector
   1-form with matrix values, :func:`torchconn.dnabla.connection_form`),
   ``⟨𝔡∇Ω,[abcd]⟩_a^d = R_ab(R_bc R_cd - R_bd) - (R_ac R_cd - R_ad) + (R_ab R_bd - R_ad)
   - (R_ab R_bc - R_ac) R_cd = 0`` exactly. :func:`differential_residual` computes it through the

@@ -1,9 +1,9 @@
-"""Curvature over a contractible 2-chain, face by face (report Sec. 3.6; CONVENTIONS §1 last bullet).
+"""Curvature over a contractible 2-chain, face by face (report Sec. 3.6; docs/conventions.md §1 last bullet).
 
 The report grows the region over a dual spanning tree and adds each new face through a
 shared edge, re-expressing the running value with pre-/post-multiplied boundary transports
-and summing by (3.2.2). A depth-first traversal does not keep the region a disk (CONVENTIONS
-erratum); this module uses a **shelling order** instead: every new face meets the current
+and summing by (3.2.2). A depth-first traversal does not keep the region a disk
+(docs/conventions.md §1, last bullet); this module uses a **shelling order** instead: every new face meets the current
 region along one contiguous boundary arc ``a -> ... -> b`` (one or more edges) and its other
 vertices are new, so the region stays a disk with a simple boundary cycle. The merge is
 

@@ -1,6 +1,6 @@
 """Discrete metric connections: one rotation per canonical edge (report Sec. 3.1).
 
-Conventions (CONVENTIONS §1)
+Conventions (docs/conventions.md §1)
 ----------------------------
 * ``edges (E, 2)`` are canonical: ``edges[e] = (i, j)`` with ``i < j``, unique rows.
 * ``edge_rot[e] = R_ij ∈ SO(n)`` maps the coordinates of a vector at ``v_j`` (frame ``F_j``) to
@@ -8,7 +8,7 @@ Conventions (CONVENTIONS §1)
 * A path product ``T(p0, ..., pk) = R_{p0p1} ... R_{p(k-1)pk}`` maps the fiber at ``pk`` to the
   fiber at ``p0`` (:meth:`Connection.path`).
 * Connection 1-form ``w_ij = R_ij - I`` (eq. 3.1.2), with ``R_ij w_ji = -w_ij``.
-* Gauge (eq. 2.1.2; CONVENTIONS §1): new frames ``F'_i = F_i G_iᵀ`` change coordinates by
+* Gauge (eq. 2.1.2; docs/conventions.md §1): new frames ``F'_i = F_i G_iᵀ`` change coordinates by
   ``x' = G_i x`` and the transports by ``R'_ij = G_i R_ij G_jᵀ``; applying ``G1`` then ``G2``
   equals applying ``G2 G1`` (:meth:`Connection.gauge`).
 * Half transport ``√R_ij`` (report Sec. 3.3): principal square root, the transport from the
@@ -256,7 +256,7 @@ class Connection:
         return orient(self.edge_rot, idx, sign)
 
     def path(self, vertices: Any) -> torch.Tensor:
-        """Path product ``T(p0..pk) = R_{p0p1} ... R_{p(k-1)pk}`` (CONVENTIONS §1).
+        """Path product ``T(p0..pk) = R_{p0p1} ... R_{p(k-1)pk}`` (docs/conventions.md §1).
 
         Args:
             vertices: ``(..., k+1)`` integer vertex sequences; consecutive vertices must be edges.
@@ -308,7 +308,7 @@ class Connection:
         return self.edge_rot - torch.eye(self.n, dtype=self.dtype, device=self.device)
 
     def gauge(self, G: torch.Tensor, *, validate: bool = False) -> "Connection":
-        """Gauge transform ``R'_ij = G_i R_ij G_jᵀ`` (eq. 2.1.2; CONVENTIONS §1).
+        """Gauge transform ``R'_ij = G_i R_ij G_jᵀ`` (eq. 2.1.2; docs/conventions.md §1).
 
         Args:
             G: ``(V, n, n)`` rotations, ``G_i`` the change of coordinates ``x' = G_i x`` at ``v_i``.
@@ -328,7 +328,7 @@ class Connection:
         return self._replace(R)
 
     def half(self) -> "Connection":
-        """Half transports ``√R_ij = exp(½ log R_ij)`` per edge (report Sec. 3.3; CONVENTIONS §1).
+        """Half transports ``√R_ij = exp(½ log R_ij)`` per edge (report Sec. 3.3; docs/conventions.md §1).
 
         Edge midpoint -> ``v_i``. Uses :func:`so3.sqrt` for ``n = 3`` and
         ``son.sqrt`` otherwise (principal branch: angles ``< pi``).
@@ -400,7 +400,7 @@ class Connection:
 
         ``R_ij`` = transport of the straight segment ``v_i -> v_j`` (fiber at ``v_j`` -> ``v_i``):
         ``"midpoint"`` = ``exp(ω_m[v_j - v_i])`` (report Sec. 3.4, the main series) or
-        ``"path_ordered"`` (CONVENTIONS §1, ``steps`` Magnus sub-steps).
+        ``"path_ordered"`` (docs/conventions.md §1, ``steps`` Magnus sub-steps).
 
         Args:
             vertices: ``(V, 3)`` positions (their dtype/device are used).

@@ -1,4 +1,4 @@
-"""Discrete curvature of a connection on polygons (report Sec. 3.2; CONVENTIONS §1).
+"""Discrete curvature of a connection on polygons (report Sec. 3.2; docs/conventions.md §1).
 
 Conventions
 -----------
@@ -152,7 +152,7 @@ def holonomy(loop_rot: torch.Tensor) -> torch.Tensor:
 def two_prong(loop_rot: torch.Tensor, cut: Any = -1) -> torch.Tensor:
     """Two-prong curvature ``<Omega, f>_{x0}^{x_c} = T(gamma1) - T(gamma2)`` (report Sec. 3.2).
 
-    ``gamma1 = x0 -> x1 -> ... -> x_c``, ``gamma2 = x0 -> x_{m-1} -> ... -> x_c`` (CONVENTIONS §1).
+    ``gamma1 = x0 -> x1 -> ... -> x_c``, ``gamma2 = x0 -> x_{m-1} -> ... -> x_c`` (docs/conventions.md §1).
     On a triangle ``[abc]`` with ``cut=2``: ``R_ab R_bc - R_ac``. ``cut=0`` ("cut = evaluation")
     gives the holonomy form (3.2.1). Relation: ``two_prong = holonomy @ T(gamma2)``.
 

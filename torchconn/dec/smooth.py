@@ -1,6 +1,6 @@
 """Smooth connections ``∇ = d + ω`` on R^3 and the transports they induce (report Sec. 3.4).
 
-Conventions (CONVENTIONS §1, §3)
+Conventions (docs/conventions.md §1, §3)
 --------------------------------
 * ``ω`` is an so(n)-valued 1-form written in the *global* coordinate frame of R^3. A subclass
   implements :meth:`SmoothConnection.omega`, returning the three skew matrices
@@ -163,7 +163,7 @@ class SmoothConnection:
 
     # ------------------------------------------------------------------ transports
     def midpoint_transport(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """Midpoint transport ``R_ab = exp(ω_m[b - a])`` (CONVENTIONS §1; report Sec. 3.4).
+        """Midpoint transport ``R_ab = exp(ω_m[b - a])`` (docs/conventions.md §1; report Sec. 3.4).
 
         Args:
             a, b: ``(..., 3)`` segment end points (broadcastable).
@@ -182,7 +182,7 @@ class SmoothConnection:
         return expm_skew(0.5 * self.midpoint_integral(a, b))
 
     def path_ordered_transport(self, a: torch.Tensor, b: torch.Tensor, steps: int = 512) -> torch.Tensor:
-        """Path-ordered transport along the straight segment ``a -> b`` (CONVENTIONS §1).
+        """Path-ordered transport along the straight segment ``a -> b`` (docs/conventions.md §1).
 
         Solves ``dR/dt = R(t) A(t)``, ``A(t) = ω_{γ(t)}[b - a]``, ``R(0) = I``,
         ``γ(t) = (1-t) a + t b``, and returns ``R(1)`` (fiber at ``b`` -> fiber at ``a``).
@@ -300,7 +300,7 @@ class SmoothConnection:
     def torsion_form(self, x: torch.Tensor) -> torch.Tensor:
         """Torsion ``Θ = dθ + ω∧θ`` of the solder form ``θ = (dx, dy, dz)`` at ``x (..., 3)``.
 
-        ``dθ = 0``; ``Θ(e_b, e_c) = ω_b e_c - ω_c e_b`` (report eq. 3.4.1; CONVENTIONS §3).
+        ``dθ = 0``; ``Θ(e_b, e_c) = ω_b e_c - ω_c e_b`` (report eq. 3.4.1; docs/conventions.md §3).
 
         Returns:
             ``(..., 3, 3)``: ``[..., i, f]`` is vector component ``i`` of the coefficient on the
@@ -371,7 +371,7 @@ def _report_generators(dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.
 
 
 class ReportConnection(SmoothConnection):
-    """The report's example (Sec. 3.4; CONVENTIONS §3): ``ω = A (x dz) + B (-y dx - dz)``.
+    """The report's example (Sec. 3.4; docs/conventions.md §3): ``ω = A (x dz) + B (-y dx - dz)``.
 
     ``A = [[0,0,1],[0,0,0],[-1,0,0]]``, ``B = [[0,-1,0],[1,0,0],[0,0,0]]``, rank ``n = 3``, so
     ``ω_x = -y B``, ``ω_y = 0``, ``ω_z = x A - B``. Closed forms (override the numerical ones):

@@ -1,4 +1,4 @@
-"""Discrete torsion of a connection with a solder form (report Sec. 3.3; CONVENTIONS §1, §3).
+"""Discrete torsion of a connection with a solder form (report Sec. 3.3; docs/conventions.md §1, §3).
 
 Conventions
 -----------
@@ -98,7 +98,7 @@ def sqrt(loop_rot: torch.Tensor, loop_half_rot: torch.Tensor, loop_points: torch
 
     ``theta~_{x_k x_{k+1}} = H_k (x_{k+1} - x_k)`` with ``H_k = loop_half_rot[..., k]`` the transport
     from the midpoint of the edge to ``x_k`` (``sqrt(R_{x_k x_{k+1}})`` in the report), and the
-    reverse value ``theta~_{x_{k+1} x_k} = -R_{x_{k+1} x_k} theta~_{x_k x_{k+1}}`` (CONVENTIONS §1,
+    reverse value ``theta~_{x_{k+1} x_k} = -R_{x_{k+1} x_k} theta~_{x_k x_{k+1}}`` (docs/conventions.md §1,
     erratum 9). The edge vector ``x_{k+1} - x_k`` is read in the frame of the edge midpoint; a
     gauge ``G`` at the vertices (midpoint frames kept) acts by ``H_k -> G_{x_k} H_k``,
     ``R_ij -> G_i R_ij G_j^T`` and then ``Theta -> G_{x0} Theta``.
@@ -127,7 +127,7 @@ def barycentric(center_to_edge_rot: torch.Tensor, edge_vectors: torch.Tensor) ->
     Args:
         center_to_edge_rot: ``(..., m, n, n)``, ``R_{c, c_e}``: transport from the midpoint
             ``c_e`` of the ``k``-th loop edge to the face centroid ``c`` (along ``[c, c_e]``).
-            Using the inverse transport converges to ``-Theta`` (CONVENTIONS §1 pitfall).
+            Using the inverse transport converges to ``-Theta`` (docs/conventions.md §1 pitfall).
         edge_vectors: ``(..., m, n)``, ``v_end - v_start`` of the oriented loop edges, in the frame
             of the edge midpoint.
 

@@ -1,6 +1,6 @@
 """Gathering oriented transports from per-edge rotations (the shared primitive of all operators).
 
-Convention (CONVENTIONS §1): ``R_ij`` maps coordinates at ``v_j`` to coordinates at ``v_i``;
+Convention (docs/conventions.md §1): ``R_ij`` maps coordinates at ``v_j`` to coordinates at ``v_i``;
 ``R_ji = R_ij^T``. A connection stores one rotation per *canonically oriented* edge
 ``edges[e] = (i, j)`` with ``i < j``: ``edge_rot[e] = R_ij``. A cell refers to an edge through
 an index and a sign: sign ``+1`` means the cell traverses it as stored (``i -> j``), ``-1`` the

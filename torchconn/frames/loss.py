@@ -1,6 +1,6 @@
 """Losses for octahedral frame fields from a differentiable connection (the ``train_frames`` method).
 
-Conventions (CONVENTIONS §1, :mod:`torchconn.frames.octahedral`):
+Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`):
 
 * ``edge_rot (E, 3, 3)`` holds ``R_ij`` for the canonical edges ``(i, j)``, ``i < j``: it maps
   coordinates at ``v_j`` to coordinates at ``v_i``.

@@ -1,6 +1,6 @@
 """The matched connection of a frame field and the trainable connection + frames model.
 
-Conventions (CONVENTIONS §1, :mod:`torchconn.frames.loss`): ``edge_rot (E, 3, 3)`` holds ``R_ij``
+Conventions (docs/conventions.md §1, :mod:`torchconn.frames.loss`): ``edge_rot (E, 3, 3)`` holds ``R_ij``
 of the canonical edges ``(i, j)``, ``i < j``, mapping coordinates at ``v_j`` to coordinates at
 ``v_i``; ``frames[i][:, k]`` is axis ``k`` at vertex ``i``; ``F_j`` is parallel to ``F_i`` along
 ``(i, j)`` when ``F_j = F_i R_ij``, and cross frames ask for ``F_i R_ij = F_j h_ij``, ``h_ij in O``.

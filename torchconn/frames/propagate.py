@@ -1,6 +1,6 @@
 """Frames from a connection: parallel propagation along a BFS spanning tree of the vertex graph.
 
-Convention (CONVENTIONS §1): ``R_ij`` maps the coordinates of a vector at ``v_j`` to the
+Convention (docs/conventions.md §1): ``R_ij`` maps the coordinates of a vector at ``v_j`` to the
 coordinates of its parallel transport at ``v_i``. A frame ``F (3, 3)`` has its axes as columns
 in world coordinates (``F[:, k]`` is axis ``k``). Coordinates ``X`` at ``j`` describe the world
 vector ``F_j X``; the same vector has coordinates ``R_ij X`` at ``i``, i.e. the world vector

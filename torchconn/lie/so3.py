@@ -7,7 +7,7 @@ Conventions
 * ``exp(omega) = expm(hat(omega))`` (Rodrigues); ``omega`` is the rotation vector
   (axis times angle, right-hand rule). ``log`` is its inverse with angle in ``[0, pi]``.
 * ``sqrt(R) = exp(log(R) / 2)`` is the half transport ``sqrt(R_ij)`` of report Sec. 3.3
-  (CONVENTIONS §1: it maps the edge-midpoint fiber to the fiber at ``v_i``).
+  (docs/conventions.md §1: it maps the edge-midpoint fiber to the fiber at ``v_i``).
 * ``euler_xyz(a, b, c) = Rx(a) @ Ry(b) @ Rz(c)`` (report Sec. 3.4); this equals SciPy's
   *intrinsic* ``Rotation.from_euler("XYZ", [a, b, c])`` (upper-case axes).
 

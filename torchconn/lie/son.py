@@ -2,7 +2,7 @@
 
 Conventions
 -----------
-* Rotations act on column vectors (``y = R @ x``); transports follow CONVENTIONS §1.
+* Rotations act on column vectors (``y = R @ x``); transports follow docs/conventions.md §1.
 * The Lie algebra so(n) (skew ``n x n`` matrices, report Remark 3.4) is parametrized by
   ``m = dim(n) = n(n-1)/2`` numbers. For ``n == 3`` the order is that of :func:`so3.hat`
   (``omega = (x, y, z)``, ``hat(omega) x = omega x x``). For every other ``n`` the parameters

@@ -1,7 +1,7 @@
 """What every complex shares: vertices, canonical edges, one edge lookup, face loops, buffers,
 device moves and the ``require(name, builder)`` cache of derived data.
 
-Conventions (docs/architecture.md, CONVENTIONS §1):
+Conventions (docs/architecture.md, docs/conventions.md §1):
 
 - Edges are stored canonically ``(i, j)`` with ``i < j``, rows sorted lexicographically, so the
   keys ``i * V + j`` are sorted and a vertex pair is found by ``searchsorted``. A cell refers

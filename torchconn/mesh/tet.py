@@ -1,6 +1,6 @@
 """Tetrahedral meshes: :class:`TetMesh`, full oriented incidence built once at construction.
 
-Conventions (docs/architecture.md, CONVENTIONS §1):
+Conventions (docs/architecture.md, docs/conventions.md §1):
 
 - A tet ``[a b c d]`` is positively oriented when ``((b-a) x (c-a)) . (d-a) > 0``.
 - Edges are canonical ``(i, j)``, ``i < j``, rows sorted lexicographically

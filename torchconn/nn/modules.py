@@ -105,7 +105,7 @@ def _check_edges(R: torch.Tensor, mesh: MeshBuffers, who: str) -> None:
 
 
 class Curvature(nn.Module):
-    """Per-face discrete curvature of a connection (report Sec. 3.2; CONVENTIONS §1).
+    """Per-face discrete curvature of a connection (report Sec. 3.2; docs/conventions.md §1).
 
     Args:
         mesh: ``TetMesh`` (sorted faces ``[a<b<c]``, loop ``a -> b -> c``) or ``CellComplex``.

@@ -205,7 +205,7 @@ def half_exp(omega: torch.Tensor) -> torch.Tensor:
     """``√R = exp(ω/2)`` for ``R = exp(ω)``: ``omega (..., 3) -> (..., 3, 3)`` (no logarithm).
 
     The half transport of a connection given by skew parameters (``ConnectionField``); it is
-    the principal root whenever ``|ω| < π`` (CONVENTIONS §1: ``√R_ij = exp(½ ∫ω)``).
+    the principal root whenever ``|ω| < π`` (docs/conventions.md §1: ``√R_ij = exp(½ ∫ω)``).
     """
     return exp(0.5 * omega)
 

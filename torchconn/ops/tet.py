@@ -83,7 +83,7 @@ def edge_solder_sqrt(half_rot: torch.Tensor, edge_vec: torch.Tensor) -> torch.Te
     """Half-transported solder form of both directions of every edge: ``(E, 2, 3)``.
 
     ``[e, 0] = θ̃_ij = √R_ij (v_j - v_i)`` and ``[e, 1] = θ̃_ji = √R_ji (v_i - v_j) =
-    -√R_ijᵀ (v_j - v_i)`` for ``edges[e] = (i, j)`` (report Sec. 3.3, CONVENTIONS §1).
+    -√R_ijᵀ (v_j - v_i)`` for ``edges[e] = (i, j)`` (report Sec. 3.3, docs/conventions.md §1).
 
     Args:
         half_rot: ``(E, 3, 3)`` ``√R_ij``; edge_vec: ``(E, 3)`` ``v_j - v_i``.

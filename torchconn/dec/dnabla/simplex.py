@@ -28,7 +28,7 @@ leading dims (one simplex per batch entry, e.g. all tets of a mesh at once).
   evaluate ``𝔡∇ Alt 𝔡∇ Alt θ̃`` through 12 pairs, 24 triples and 4 faces, never the dense
   ``4^4`` table. The only Python loops are over the few tuples/permutations of the template.
 
-Operators (CONVENTIONS §1, errata 1, 2, 4, 5, 6, 8)
+Operators (docs/conventions.md §1, errata 1, 2, 4, 5, 6, 8)
 ---------------------------------------------------
 * :func:`unsymmetrized_vector` -- corrected Def. 5.1, vector version:
   ``⟨𝔡∇α,[x0..x(k+1)]⟩ = R_{x0x1} α[x1..x(k+1)] + Σ_{j=1}^{k+1} (-1)^j α[s \\ x_j]``.
@@ -270,7 +270,7 @@ def unsymmetrized_vector(T: torch.Tensor, alpha, tuples=None, *,
     """Unsymmetrized covariant exterior derivative of a vector-valued k-form (Def. 5.1, corrected).
 
     ``⟨𝔡∇α, [x0..x(k+1)]⟩_{x0} = R_{x0x1} α[x1..x(k+1)] + Σ_{j=1}^{k+1} (-1)^j α[x0..x̂_j..x(k+1)]``
-    (CONVENTIONS §1), every term in the fiber of ``x0``. Identical to the BEHS21 formula of Ch. 4.
+    (docs/conventions.md §1), every term in the fiber of ``x0``. Identical to the BEHS21 formula of Ch. 4.
 
     Args:
         T: ``(..., s, s, n, n)`` transports, ``T[i, j] = R_{x_i x_j}``.
@@ -383,7 +383,7 @@ def alt_vector(T: torch.Tensor, alpha, tuples=None, *, matrix_values: bool = Fal
 
 
 def alt_lie(T: torch.Tensor, beta, tuples=None) -> torch.Tensor:
-    """Alternation of a Lie-algebra valued k-form, ``k <= 2`` (Ch. 5; CONVENTIONS §1).
+    """Alternation of a Lie-algebra valued k-form, ``k <= 2`` (Ch. 5; docs/conventions.md §1).
 
     * ``k = 0``: the identity.
     * ``k = 1``: ``Alt(β)[x0x1] = ½(β[x0x1]_{x0}^{x1} - R_{x0x1} β[x1x0]_{x1}^{x0} R_{x0x1})``

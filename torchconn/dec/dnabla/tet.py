@@ -81,7 +81,7 @@ def wedge_curvature_solder_tet(T: torch.Tensor, theta_tilde: torch.Tensor) -> to
 
 
 def averaged_dd_tet(T: torch.Tensor, theta_tilde: torch.Tensor) -> torch.Tensor:
-    """``⟨d∇d∇θ, [abcd]⟩_a = 𝔡∇ Alt 𝔡∇ Alt θ̃`` at ``[0123]`` (Def. 5.2 twice, CONVENTIONS §1).
+    """``⟨d∇d∇θ, [abcd]⟩_a = 𝔡∇ Alt 𝔡∇ Alt θ̃`` at ``[0123]`` (Def. 5.2 twice, docs/conventions.md §1).
 
     Computed through the generic operators. ``T (..., 4, 4, n, n)``, ``theta_tilde (..., 4, 4, n)``
     -> ``(..., n)`` in the fiber of local vertex 0. Equals :func:`wedge_curvature_solder_tet` to
@@ -200,7 +200,7 @@ def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) ->
 def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
     """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet: ``(T, n)`` in the fiber of ``tets[t,0]``.
 
-    Report Def. 5.2 twice (CONVENTIONS §1); arguments as in :func:`tet_solder_sqrt`. Divide by
+    Report Def. 5.2 twice (docs/conventions.md §1); arguments as in :func:`tet_solder_sqrt`. Divide by
     the tet volume to compare with the smooth ``Ω∧θ``. For ``n = 3`` this is evaluated by the
     fused closed form :func:`torchconn.ops.tet.tet_dd_solder` (the Ch. 5 tet formula, equal to
     the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
