@@ -27,7 +27,7 @@ Cases
 3. The frame-field loss (:class:`torchconn.frames.loss.FrameFieldLoss`, every term weight 1) at the
    same sizes, forward+backward to connection params and per-vertex frame params, against an
    eager composition of the same terms kept here (:func:`_ref_frame_loss`, generic curvature
-   and torsion). Reported as "not measured" if ``torchconn.losses`` lacks ``FrameFieldLoss``.
+   and torsion). Reported as "not measured" if ``torchconn.frames.loss`` lacks ``FrameFieldLoss``.
    The reference calls the library's single-term functions (``tie_loss``,
    ``symmetric_flatness_loss``, hence ``octahedral.match``), so speed-ups there lower both
    columns; the ratio measures the fused curvature/torsion and the sharing between terms.

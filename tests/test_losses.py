@@ -1,4 +1,4 @@
-"""Frame-field losses (torchconn.losses) and parallel frame propagation (torchconn.frames.propagate)."""
+"""Frame-field losses (torchconn.frames.loss) and parallel frame propagation (torchconn.frames.propagate)."""
 from __future__ import annotations
 
 import math
