@@ -257,7 +257,7 @@ class FrameFieldLoss:
             else:
                 tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
             face_ok = unrel[mesh.face_edges].all(-1)
-            per = (tor**2).sum(-1) / self.face_area
+            per = (tor**2).sum(-1) / self.face_area.to(tor.dtype)  # the mesh follows the inputs' dtype
             n_ok = int(face_ok.sum())
             # mean over face_ok without a boolean-mask gather (and its index_put backward)
             out["torsion"] = torch.where(face_ok, per, 0.0).sum() / n_ok if n_ok else per.sum() * 0.0
