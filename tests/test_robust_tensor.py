@@ -248,3 +248,10 @@ def test_connection_rejects_non_float_edge_rot(mesh):
         Connection(torch.eye(3, dtype=torch.long).expand(98, 3, 3), mesh.edges, mesh.n_vertices)
     with pytest.raises(TypeError, match=r"got ndarray; convert it first"):
         Connection(np.eye(3)[None].repeat(98, 0), mesh.edges, mesh.n_vertices)
+
+
+def test_frame_loss_edge_rot_none_only_for_alignment_terms(mesh, loss, frames):
+    with pytest.raises(TypeError, match=r"edge_rot is None but the terms \['smooth', 'tie', 'flat', 'torsion'\]"):
+        loss(None, frames)
+    align_only = FrameFieldLoss(mesh, {"align": 1.0})
+    assert torch.isfinite(align_only(None, frames)["align"])

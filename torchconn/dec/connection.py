@@ -1,7 +1,7 @@
 """Discrete metric connections: one rotation per canonical edge (report Sec. 3.1).
 
 Conventions (docs/conventions.md §1)
-----------------------------
+------------------------------------
 * ``edges (E, 2)`` are canonical: ``edges[e] = (i, j)`` with ``i < j``, unique rows.
 * ``edge_rot[e] = R_ij ∈ SO(n)`` maps the coordinates of a vector at ``v_j`` (frame ``F_j``) to
   the coordinates of its parallel transport at ``v_i`` (frame ``F_i``); ``R_ji = R_ijᵀ``.

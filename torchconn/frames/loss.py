@@ -189,8 +189,8 @@ class FrameFieldLoss:
     so higher-order gradients need the switch off. Both paths give the same values and, along
     rotations, the same gradients.
 
-    Input checks (every call, no data read, no device sync): ``edge_rot`` and ``frames`` must
-    be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges
+    Input checks (every call, no data read, no device sync): ``edge_rot`` (``None`` is allowed
+    when only ``align``/``feature`` are weighted) and ``frames`` must be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges
     and ``V`` vertices, of one dtype and on one device (``ValueError``/``TypeError`` naming
     the argument, the expected and the given shape, or both dtypes/devices). A mixed pair is
     refused rather than promoted: both are optimization variables, and a silent cast per step
@@ -266,9 +266,15 @@ class FrameFieldLoss:
     def _check_inputs(self, edge_rot, frames) -> None:
         """Types, shapes, dtypes and devices of the call's inputs (class docstring); no sync."""
         E, V = int(self.mesh.edges.shape[0]), int(self.mesh.vertices.shape[0])
-        for name, x, shape, what in (("edge_rot", edge_rot, (E, 3, 3), "one rotation R_ij per mesh edge, "
-                                      "in mesh.edges order"),
-                                     ("frames", frames, (V, 3, 3), "one frame per mesh vertex")):
+        checks = [("edge_rot", edge_rot, (E, 3, 3), "one rotation R_ij per mesh edge, in mesh.edges order"),
+                  ("frames", frames, (V, 3, 3), "one frame per mesh vertex")]
+        if edge_rot is None:  # allowed when only the alignment terms are on (they read the frames only)
+            need = [k for k in ("smooth", "tie", "flat", "torsion") if self.weights[k]]
+            if need:
+                raise TypeError(f"FrameFieldLoss: edge_rot is None but the terms {need} have non-zero weight "
+                                f"and need it; pass the ({E}, 3, 3) edge rotations")
+            checks = checks[1:]
+        for name, x, shape, what in checks:
             if not isinstance(x, torch.Tensor) or not x.is_floating_point():
                 got = f"dtype {x.dtype}" if isinstance(x, torch.Tensor) else type(x).__name__
                 raise TypeError(f"FrameFieldLoss: {name} must be a floating-point tensor, got {got}; "
@@ -276,6 +282,8 @@ class FrameFieldLoss:
             if tuple(x.shape) != shape:
                 raise ValueError(f"FrameFieldLoss: {name} must have shape {shape} ({what}; the mesh has "
                                  f"E={E} edges, V={V} vertices), got {tuple(x.shape)}")
+        if edge_rot is None:
+            return
         if edge_rot.dtype != frames.dtype:
             raise TypeError(f"FrameFieldLoss: edge_rot has dtype {edge_rot.dtype} but frames has dtype "
                             f"{frames.dtype}; pass both in one dtype, e.g. frames.to(edge_rot.dtype)")

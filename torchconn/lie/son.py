@@ -15,7 +15,7 @@ Conventions
   squaring (see :func:`log`).
 
 All functions accept any float dtype and device; constants follow the input. Inputs are
-checked as in :mod:`.so3` (no data read, no sync): a non-tensor (NumPy array, list) or a
+checked as in :mod:`torchconn.lie.so3` (no data read, no sync): a non-tensor (NumPy array, list) or a
 non-floating dtype raises ``TypeError`` naming the function, the argument and the type or
 dtype (convert with ``torch.as_tensor(x, dtype=...)`` first); a wrong shape raises
 ``ValueError``. Values are not validated: :func:`log` and :func:`sqrt` of a non-rotation
