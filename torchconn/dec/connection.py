@@ -1,7 +1,7 @@
 """Discrete metric connections: one rotation per canonical edge (report Sec. 3.1).
 
 Conventions (docs/conventions.md §1)
-----------------------------
+------------------------------------
 * ``edges (E, 2)`` are canonical: ``edges[e] = (i, j)`` with ``i < j``, unique rows.
 * ``edge_rot[e] = R_ij ∈ SO(n)`` maps the coordinates of a vector at ``v_j`` (frame ``F_j``) to
   the coordinates of its parallel transport at ``v_i`` (frame ``F_i``); ``R_ji = R_ijᵀ``.
@@ -126,7 +126,11 @@ class Connection:
 
     def __init__(self, edge_rot: torch.Tensor, edges: Any, n_vertices: int, *, validate: bool = False):
         if not isinstance(edge_rot, torch.Tensor) or not edge_rot.is_floating_point():
-            raise TypeError("edge_rot must be a floating-point tensor of shape (E, n, n)")
+            got = f"dtype {edge_rot.dtype}" if isinstance(edge_rot, torch.Tensor) else type(edge_rot).__name__
+            raise TypeError(
+                f"Connection: edge_rot must be a floating-point tensor of shape (E, n, n), got {got}; "
+                f"convert it first, e.g. torch.as_tensor(edge_rot, dtype=torch.float64)"
+            )
         if edge_rot.dim() != 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
             raise ValueError(f"edge_rot must have shape (E, n, n), got {tuple(edge_rot.shape)}")
         edges = _as_edges(edges, device=edge_rot.device)
@@ -190,36 +194,52 @@ class Connection:
         )
 
     # ------------------------------------------------------------------ validation
-    def check_rotations(self, atol: float | None = None) -> None:
+    def check_rotations(self, atol: float | None = None, *, name: str = "edge_rot") -> None:
         """Raise ``ValueError`` unless every ``edge_rot[e]`` is a rotation.
 
-        Tolerance ``atol`` on ``||Rᵀ R - I||_F`` defaults to ``get_eps("rotation", dtype)``; the
-        message lists the offending edge indices and their vertex pairs, followed by
-        :func:`son.check_rotation`'s description of the defect. Synchronizes.
+        Tolerance ``atol`` on ``||Rᵀ R - I||_F`` defaults to ``get_eps("rotation", dtype)``. The
+        message starts with ``name``, lists the offending edge indices and their vertex pairs,
+        then each defect found with its edge indices: ``non-finite entries (NaN/inf)``, ``not
+        orthogonal`` (with the value of ``||Rᵀ R - I||_F`` at the first one) and ``det -1 (a
+        reflection)``; and says what to do. Synchronizes (explicit validation; not called by
+        the operators).
         """
         if atol is None:
             atol = get_eps("rotation", self.dtype)
         with torch.no_grad():
             R = self.edge_rot.detach()
-            n = self.n
-            eye = torch.eye(n, dtype=R.dtype, device=R.device)
+            work = torch.promote_types(R.dtype, torch.float32)  # det/matrix_norm need >= float32
+            R = R.to(work)
+            eye = torch.eye(self.n, dtype=work, device=R.device)
             finite = torch.isfinite(R).all(-1).all(-1)
             Rs = torch.where(finite[..., None, None], R, eye)
             err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
-            bad = ~finite | (err > atol) | (torch.linalg.det(Rs) < 0)
+            det = torch.linalg.det(Rs)
+            bad_fin = ~finite
+            bad_orth = finite & (err > atol)
+            bad_det = finite & ~bad_orth & (det < 0)
+            bad = bad_fin | bad_orth | bad_det
             if not bool(bad.any()):
                 return
             idx = torch.nonzero(bad).flatten()
             shown = idx[:_MAX_LISTED]
-            detail = ""
-            try:
-                son.check_rotation(R[shown], name=f"edge_rot[{shown.tolist()}]", atol=atol)
-            except ValueError as exc:
-                detail = f"; {exc}"
+            parts = []
+            for mask, label in ((bad_fin, "non-finite entries (NaN/inf)"), (bad_orth, "not orthogonal"),
+                                (bad_det, "det -1 (a reflection)")):
+                e = torch.nonzero(mask).flatten()
+                if e.numel() == 0:
+                    continue
+                first, value = int(e[0]), ""
+                if mask is bad_orth:
+                    value = f" (||R^T R - I||_F = {float(err[first]):.3e} > atol {atol:.1e} at edge {first})"
+                elif mask is bad_det:
+                    value = f" (det = {float(det[first]):.6f} at edge {first})"
+                parts.append(f"{label} at edge indices {_list_some(e[:_MAX_LISTED].tolist(), e.numel())}{value}")
             raise ValueError(
-                f"edge_rot: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
+                f"{name}: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
                 f"indices {_list_some(shown.tolist(), idx.numel())} (vertex pairs "
-                f"{self.edges[shown].tolist()}){detail}"
+                f"{self.edges[shown].tolist()}): " + "; ".join(parts) + ". Pass rotations "
+                f"(orthogonal, det +1), e.g. project them with so3.project_to_rotation"
             )
 
     # ------------------------------------------------------------------ lookups and transports

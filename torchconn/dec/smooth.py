@@ -1,7 +1,7 @@
 """Smooth connections ``∇ = d + ω`` on R^3 and the transports they induce (report Sec. 3.4).
 
 Conventions (docs/conventions.md §1, §3)
---------------------------------
+----------------------------------------
 * ``ω`` is an so(n)-valued 1-form written in the *global* coordinate frame of R^3. A subclass
   implements :meth:`SmoothConnection.omega`, returning the three skew matrices
   ``ω_a(x)``, ``a = x, y, z``, so that ``ω_x[v] = Σ_a v_a ω_a(x)``.

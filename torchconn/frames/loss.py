@@ -188,6 +188,16 @@ class FrameFieldLoss:
     float32/float64 inputs, the switch :func:`torchconn.ops.compiled` on); it is first order,
     so higher-order gradients need the switch off. Both paths give the same values and, along
     rotations, the same gradients.
+
+    Input checks (every call, no data read, no device sync): ``edge_rot`` (``None`` is allowed
+    when only ``align``/``feature`` are weighted) and ``frames`` must be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges
+    and ``V`` vertices, of one dtype and on one device (``ValueError``/``TypeError`` naming
+    the argument, the expected and the given shape, or both dtypes/devices). A mixed pair is
+    refused rather than promoted: both are optimization variables, and a silent cast per step
+    would hide a copy and bypass the compiled kernel. The mesh's geometry follows the dtype of
+    the inputs. *Values* are not validated here (a rotation check would synchronize on every
+    step): NaN entries make the affected terms NaN, which the solver reports by term name, and
+    :func:`torchconn.lie.so3.check_rotation` checks frames explicitly.
     """
 
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
@@ -219,6 +229,7 @@ class FrameFieldLoss:
     def __call__(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> dict[str, torch.Tensor]:
         from ..dec import curvature, torsion
 
+        self._check_inputs(edge_rot, frames)
         mesh, w = self.mesh, self.weights
         out: dict[str, torch.Tensor] = {}
         compiled = _ops_frame_loss.frame_loss_terms(edge_rot, frames, mesh, octahedral.group(torch.float64), w,
@@ -246,11 +257,39 @@ class FrameFieldLoss:
             else:
                 tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
             face_ok = unrel[mesh.face_edges].all(-1)
-            per = (tor**2).sum(-1) / self.face_area
+            per = (tor**2).sum(-1) / self.face_area.to(tor.dtype)  # the mesh follows the inputs' dtype
             n_ok = int(face_ok.sum())
             # mean over face_ok without a boolean-mask gather (and its index_put backward)
             out["torsion"] = torch.where(face_ok, per, 0.0).sum() / n_ok if n_ok else per.sum() * 0.0
         return self._finish(out, frames)
+
+    def _check_inputs(self, edge_rot, frames) -> None:
+        """Types, shapes, dtypes and devices of the call's inputs (class docstring); no sync."""
+        E, V = int(self.mesh.edges.shape[0]), int(self.mesh.vertices.shape[0])
+        checks = [("edge_rot", edge_rot, (E, 3, 3), "one rotation R_ij per mesh edge, in mesh.edges order"),
+                  ("frames", frames, (V, 3, 3), "one frame per mesh vertex")]
+        if edge_rot is None:  # allowed when only the alignment terms are on (they read the frames only)
+            need = [k for k in ("smooth", "tie", "flat", "torsion") if self.weights[k]]
+            if need:
+                raise TypeError(f"FrameFieldLoss: edge_rot is None but the terms {need} have non-zero weight "
+                                f"and need it; pass the ({E}, 3, 3) edge rotations")
+            checks = checks[1:]
+        for name, x, shape, what in checks:
+            if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+                got = f"dtype {x.dtype}" if isinstance(x, torch.Tensor) else type(x).__name__
+                raise TypeError(f"FrameFieldLoss: {name} must be a floating-point tensor, got {got}; "
+                                f"convert it, e.g. torch.as_tensor({name}, dtype=torch.float64)")
+            if tuple(x.shape) != shape:
+                raise ValueError(f"FrameFieldLoss: {name} must have shape {shape} ({what}; the mesh has "
+                                 f"E={E} edges, V={V} vertices), got {tuple(x.shape)}")
+        if edge_rot is None:
+            return
+        if edge_rot.dtype != frames.dtype:
+            raise TypeError(f"FrameFieldLoss: edge_rot has dtype {edge_rot.dtype} but frames has dtype "
+                            f"{frames.dtype}; pass both in one dtype, e.g. frames.to(edge_rot.dtype)")
+        if edge_rot.device != frames.device:
+            raise ValueError(f"FrameFieldLoss: edge_rot is on {edge_rot.device} but frames is on "
+                             f"{frames.device}; move both to one device")
 
     def _finish(self, out: dict[str, torch.Tensor], frames: torch.Tensor) -> dict[str, torch.Tensor]:
         """Add the alignment terms and ``total`` to ``out``."""

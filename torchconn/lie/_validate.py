@@ -5,7 +5,31 @@ import torch
 
 from ..tolerances import get_eps
 
-__all__ = ["check_rotation"]
+__all__ = ["check_rotation", "check_float_tensor"]
+
+
+def check_float_tensor(x, fn: str, arg: str) -> None:
+    """Raise ``TypeError`` unless ``x`` is a real floating-point ``torch.Tensor``.
+
+    The lie functions take tensors only, like the ``torch`` functions they are built from:
+    a NumPy array or a list is not converted (a silent ``torch.as_tensor`` would pick the
+    device and, for lists, the dtype behind the caller's back). Integer, bool and complex
+    dtypes are refused: the Taylor thresholds and tolerances exist for float16, bfloat16,
+    float32 and float64 only. ``fn`` (e.g. ``"so3.exp"``) and ``arg`` (e.g. ``"omega"``) name
+    the call in the message. No data is read (no device sync; fine under ``torch.compile``
+    and ``vmap``).
+    """
+    if not isinstance(x, torch.Tensor):
+        kind = f"{type(x).__module__}.{type(x).__name__}".replace("builtins.", "")
+        raise TypeError(
+            f"{fn}: {arg} must be a torch.Tensor, got {kind}; convert it first, e.g. "
+            f"torch.as_tensor({arg}, dtype=torch.float64)"
+        )
+    if not x.is_floating_point():
+        raise TypeError(
+            f"{fn}: {arg} must be a floating-point tensor, got dtype {x.dtype}; pass a float "
+            f"tensor, e.g. {arg}.to(torch.float64) or {arg}.to(torch.get_default_dtype())"
+        )
 
 
 def _check_square(K: torch.Tensor, fn: str) -> int:
@@ -27,9 +51,8 @@ def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) 
     (``()`` for an unbatched matrix) with the defect value. Synchronizes with the device
     (explicit validation, keep it out of hot paths). Returns ``None``.
     """
+    check_float_tensor(R, "check_rotation", name)
     n = _check_square(R, "check_rotation")
-    if not R.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {R.dtype}")
     if atol is None:
         atol = get_eps("rotation", R.dtype)
     with torch.no_grad():

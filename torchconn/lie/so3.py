@@ -11,7 +11,28 @@ Conventions
 * ``euler_xyz(a, b, c) = Rx(a) @ Ry(b) @ Rz(c)`` (report Sec. 3.4); this equals SciPy's
   *intrinsic* ``Rotation.from_euler("XYZ", [a, b, c])`` (upper-case axes).
 
-All functions accept any float dtype and device; constants follow the input. Thresholds of
+Input types
+-----------
+All functions take ``torch.Tensor`` s of a floating dtype (float16, bfloat16, float32, float64)
+on any device; constants follow the input. Anything else raises ``TypeError`` naming the
+function, the argument and the type or dtype: a NumPy array or a list is *not* converted
+(``torch`` functions do not convert either, and a hidden ``torch.as_tensor`` would choose the
+device, and for lists the dtype, for the caller: call ``torch.as_tensor(x, dtype=...)``
+first), and integer, bool or complex tensors are refused (the Taylor thresholds of
+:func:`torchconn.tolerances.get_eps` exist only for the float dtypes). Shapes are checked
+(``ValueError`` naming the expected and the given shape). These checks read no data: no device
+sync, fine under ``torch.compile`` and ``vmap``.
+
+Values are *not* checked: :func:`log`, :func:`sqrt` and :func:`angle` assume rotations and
+are garbage-in, garbage-out otherwise (see :func:`log`). Rotations are validated where they
+enter the library (:class:`torchconn.nn.ConnectionField` ``init``,
+``Connection(..., validate=True)``), or explicitly with :func:`check_rotation`, which
+synchronizes. There is deliberately no ``check=`` flag on the maps themselves: a math function
+used inside training steps, ``torch.compile`` and ``vmap`` must not hide a data-dependent
+``.item()`` (STYLE: validity checks that sync are explicit), and a flag that changes whether a
+function can raise would make every call site choose.
+
+Thresholds of
 the Taylor and near-pi branches come from :func:`torchconn.tolerances.get_eps`; the unused
 branch of every ``torch.where`` gets a harmless input ("safe-where") so that values *and*
 gradients are finite at angle 0 and at angle pi. No ``acos(trace)`` is used anywhere.
@@ -21,6 +42,7 @@ from __future__ import annotations
 import torch
 
 from ..ops import so3 as _ops_so3
+from ._validate import check_float_tensor as _check_float
 from ._validate import check_rotation as _check_rotation_n
 
 __all__ = [
@@ -41,9 +63,16 @@ __all__ = [
 ]
 
 
-def _check_mat3(R: torch.Tensor, fn: str) -> None:
+def _check_mat3(R: torch.Tensor, fn: str, arg: str = "R") -> None:
+    _check_float(R, f"so3.{fn}", arg)
     if R.dim() < 2 or R.shape[-2:] != (3, 3):
-        raise ValueError(f"{fn} expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+        raise ValueError(f"so3.{fn} expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+
+
+def _check_vec3(omega: torch.Tensor, fn: str) -> None:
+    _check_float(omega, f"so3.{fn}", "omega")
+    if omega.dim() < 1 or omega.shape[-1:] != (3,):
+        raise ValueError(f"so3.{fn} expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
 
 
 def hat(omega: torch.Tensor) -> torch.Tensor:
@@ -51,8 +80,7 @@ def hat(omega: torch.Tensor) -> torch.Tensor:
 
     ``hat((x, y, z)) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]``.
     """
-    if omega.dim() < 1 or omega.shape[-1:] != (3,):
-        raise ValueError(f"hat expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
+    _check_vec3(omega, "hat")
     x, y, z = omega.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack(
@@ -66,7 +94,7 @@ def vee(K: torch.Tensor) -> torch.Tensor:
     Uses the antisymmetric part ``(K - K^T)/2``, so it is the projection for non-skew input.
     For a rotation by angle ``t`` about the unit axis ``n``, ``vee(R) = sin(t) n``.
     """
-    _check_mat3(K, "vee")
+    _check_mat3(K, "vee", "K")
     return 0.5 * torch.stack(
         (K[..., 2, 1] - K[..., 1, 2], K[..., 0, 2] - K[..., 2, 0], K[..., 1, 0] - K[..., 0, 1]), -1
     )
@@ -80,8 +108,7 @@ def exp(omega: torch.Tensor) -> torch.Tensor:
     below the dtype's ``small_angle`` threshold keep value and gradient finite (and exact to
     round-off) at ``omega = 0``. Differentiable.
     """
-    if omega.dim() < 1 or omega.shape[-1:] != (3,):
-        raise ValueError(f"exp expects a tensor of shape (..., 3), got {tuple(omega.shape)}")
+    _check_vec3(omega, "exp")
     # entries written out, closed-form backward, or compiled (torchconn.ops.so3.exp; same value as I + A K + B K²)
     return _ops_so3.exp(omega)
 
@@ -104,7 +131,15 @@ def log(R: torch.Tensor) -> torch.Tensor:
 
     At exactly ``t = pi`` the skew part vanishes and the sign of the axis is arbitrary (both
     ``+pi n`` and ``-pi n`` are logarithms). Differentiable, with finite gradients at 0 and pi.
-    The input is not validated (see :func:`check_rotation`).
+
+    Non-rotations: the values are not validated (no device sync; see the module docstring).
+    For a finite matrix that is not a rotation (a reflection ``det = -1``, a scaled or sheared
+    matrix, the zero matrix) the result is a finite vector with ``|omega| <= pi`` that means
+    nothing: ``exp(log(M)) != M`` and it is *not* the logarithm of the nearest rotation
+    (``log(-R)`` for a rotation ``R`` is an arbitrary-looking vector, ``log(2 I) = 0``,
+    ``log(0) = (pi, 0, 0)``). NaN or inf entries give NaN in that batch element only. Check
+    first with :func:`check_rotation` (explicit, synchronizes; names the bad batch index) or
+    project with :func:`project_to_rotation`.
     """
     _check_mat3(R, "log")
     # the three branches evaluated entrywise with safe-where, or compiled (torchconn.ops.so3.log)
@@ -119,6 +154,7 @@ def sqrt(R: torch.Tensor) -> torch.Tensor:
     Differentiable. Computed by the quaternion half-angle identity
     ``((1 + s) I + R + (R - R^T)/s) / (2 + s)``, ``s = sqrt(1 + tr R)``, below 120 degrees and as
     ``exp(log(R)/2)`` above (:func:`torchconn.ops.so3.sqrt`): same value to round-off.
+    Values are not validated: for non-rotations the result is as meaningless as :func:`log`'s.
     """
     _check_mat3(R, "sqrt")
     return _ops_so3.sqrt(R)
@@ -147,8 +183,8 @@ def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     ``angle(R1^T R2)`` (atan2 form, accurate at 0 and pi; ``2 asin(|R1 - R2|_F / (2 sqrt 2))``
     would lose half the digits near pi). Broadcasts over batch dims.
     """
-    _check_mat3(R1, "geodesic_distance")
-    _check_mat3(R2, "geodesic_distance")
+    _check_mat3(R1, "geodesic_distance", "R1")
+    _check_mat3(R2, "geodesic_distance", "R2")
     return angle(R1.transpose(-1, -2) @ R2)
 
 
@@ -237,7 +273,7 @@ def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) 
     ``det R < 0``; the message names the first offending batch index). ``atol`` defaults to
     ``get_eps("rotation", R.dtype)``. Synchronizes with the device (explicit validation).
     """
-    _check_mat3(R, "check_rotation")
+    _check_mat3(R, "check_rotation", name)
     _check_rotation_n(R, name=name, atol=atol)
 
 
@@ -248,7 +284,7 @@ def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
     the determinant fixed to +1). Differentiable where the singular values of ``M`` are
     distinct (SVD backward is undefined for repeated singular values, e.g. ``M = I``).
     """
-    _check_mat3(M, "project_to_rotation")
+    _check_mat3(M, "project_to_rotation", "M")
     U, _, Vh = torch.linalg.svd(M)
     d = torch.linalg.det(U @ Vh)
     ones = torch.ones_like(d)

@@ -14,7 +14,13 @@ Conventions
   ``n = 2`` (atan2) and ``n = 3`` (:func:`so3.log`); for ``n >= 4`` it uses inverse scaling and
   squaring (see :func:`log`).
 
-All functions accept any float dtype and device; constants follow the input.
+All functions accept any float dtype and device; constants follow the input. Inputs are
+checked as in :mod:`torchconn.lie.so3` (no data read, no sync): a non-tensor (NumPy array, list) or a
+non-floating dtype raises ``TypeError`` naming the function, the argument and the type or
+dtype (convert with ``torch.as_tensor(x, dtype=...)`` first); a wrong shape raises
+``ValueError``. Values are not validated: :func:`log` and :func:`sqrt` of a non-rotation
+return a meaningless (finite, or NaN near angle pi for ``n >= 4``) result; check explicitly
+with :func:`check_rotation` (synchronizes).
 """
 from __future__ import annotations
 
@@ -25,6 +31,7 @@ import torch
 
 from . import so3
 from ..tolerances import get_eps
+from ._validate import check_float_tensor as _check_float
 from ._validate import check_rotation
 
 __all__ = [
@@ -56,9 +63,10 @@ def _basis(n: int, like: torch.Tensor) -> torch.Tensor:
     return _basis_cpu(n).to(dtype=like.dtype, device=like.device)
 
 
-def _check_square(K: torch.Tensor, fn: str) -> int:
+def _check_square(K: torch.Tensor, fn: str, arg: str = "R") -> int:
+    _check_float(K, f"son.{fn}", arg)
     if K.dim() < 2 or K.shape[-1] != K.shape[-2]:
-        raise ValueError(f"{fn} expects a tensor of shape (..., n, n), got {tuple(K.shape)}")
+        raise ValueError(f"son.{fn} expects a tensor of shape (..., n, n), got {tuple(K.shape)}")
     return K.shape[-1]
 
 
@@ -69,6 +77,7 @@ def hat(params: torch.Tensor, n: int) -> torch.Tensor:
     ``K[j, i] = p``, ``K[i, j] = -p`` otherwise (module docstring). Linear, differentiable.
     """
     m = dim(n)
+    _check_float(params, "son.hat", "params")
     if params.dim() < 1 or params.shape[-1] != m:
         raise ValueError(
             f"hat for n={n} expects params of shape (..., {m}), got {tuple(params.shape)}"
@@ -82,7 +91,7 @@ def vee(K: torch.Tensor) -> torch.Tensor:
 
     Uses ``(K - K^T)/2``, so it is the orthogonal projection for non-skew input.
     """
-    n = _check_square(K, "vee")
+    n = _check_square(K, "vee", "K")
     m = dim(n)
     E = _basis(n, K)
     # <E_a, E_a>_F = 2 and <E_a, K> = <E_a, skew(K)>
@@ -97,7 +106,7 @@ def exp(K: torch.Tensor) -> torch.Tensor:
     ``(K - K^T)/2`` (report Remark 3.4: the exponential of a skew matrix lies in SO(n)).
     Differentiable, finite gradients at ``K = 0``.
     """
-    n = _check_square(K, "exp")
+    n = _check_square(K, "exp", "K")
     if n == 1:
         return torch.ones_like(K)
     if n == 2:

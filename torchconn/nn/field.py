@@ -9,6 +9,7 @@ import torch
 
 from ..dec.connection import Connection, _as_edges, _check_edges, _exp_params, _log_params
 from ..lie import son
+from ..tolerances import get_eps
 
 __all__ = ["ConnectionField"]
 
@@ -23,7 +24,9 @@ class ConnectionField(torch.nn.Module):
         init: ``None`` (identity, ``params = 0``), a :class:`Connection` on the same edges, a
             ``(E, n(n-1)/2)`` parameter tensor, or a ``(E, n, n)`` rotation tensor. Rotations
             are converted by the principal logarithm (``|params| <= pi``; at angle exactly pi
-            either sign of the axis may be returned — both exponentiate to the same rotation).
+            either sign of the axis may be returned — both exponentiate to the same rotation)
+            after a check that they are rotations (``ValueError`` naming the edge indices of
+            NaN/inf, non-orthogonal or ``det -1`` matrices); parameters must be finite.
         dtype, device: of the parameters (default: those of ``init`` when it is a tensor or a
             connection, else the default dtype).
 
@@ -67,21 +70,48 @@ class ConnectionField(torch.nn.Module):
                 raise ValueError(f"init connection has rank {init.n}, field has n={n}")
             if init.edges.shape != edges.shape or not torch.equal(init.edges.to(edges.device), edges):
                 raise ValueError("init connection is defined on different edges than the field")
-            params = _log_params(init.edge_rot.detach().to(dtype=dtype, device=edges.device))
+            params = self._log_checked(init.edge_rot.detach().to(dtype=dtype, device=edges.device),
+                                       edges, (sorted_keys, perm), "ConnectionField init (Connection)")
         elif isinstance(init, torch.Tensor):
             t = init.detach().to(dtype=dtype, device=edges.device)
             if t.shape == (E, m):
+                finite = torch.isfinite(t).all(-1)
+                if not bool(finite.all()):
+                    bad = torch.nonzero(~finite).flatten()
+                    raise ValueError(
+                        f"ConnectionField init: parameters (E, {m}) have non-finite entries (NaN/inf) at "
+                        f"edge indices {bad[:10].tolist()}{' ...' if bad.numel() > 10 else ''} "
+                        f"({bad.numel()} of {E} edges); pass finite skew parameters"
+                    )
                 params = t.clone()
             elif t.shape == (E, n, n):
-                params = _log_params(t)
+                params = self._log_checked(t, edges, (sorted_keys, perm), "ConnectionField init")
             else:
                 raise ValueError(
                     f"init tensor must have shape (E, {m}) (parameters) or (E, {n}, {n}) "
                     f"(rotations) with E={E}, got {tuple(t.shape)}"
                 )
         else:
-            raise TypeError(f"init must be None, a Connection or a tensor, got {type(init).__name__}")
+            raise TypeError(
+                f"init must be None, a Connection or a tensor, got {type(init).__name__}; convert an "
+                f"array first, e.g. torch.as_tensor(init, dtype=torch.float64)"
+            )
         self.params = torch.nn.Parameter(params)
+
+    def _log_checked(self, R: torch.Tensor, edges: torch.Tensor, lookup, name: str) -> torch.Tensor:
+        """Principal-log parameters of ``R (E, n, n)`` after checking that they are rotations.
+
+        The logarithm is meaningless (and can be NaN) for reflections, non-orthogonal or
+        non-finite matrices (:func:`torchconn.lie.so3.log`), so the init rotations are
+        validated here, once, where they enter the library: ``ValueError`` naming the edge
+        indices and the defect (:meth:`Connection.check_rotations`). The tolerance is the
+        float32 one of ``get_eps("rotation")`` (or the dtype's, if looser): rotations saved in
+        single precision and cast to float64 are accepted, and their log is that of the
+        nearest rotation to first order. Synchronizes (one-time setup).
+        """
+        atol = max(get_eps("rotation", R.dtype), get_eps("rotation", torch.float32))
+        Connection._trusted(R, edges, self.n_vertices, lookup).check_rotations(atol=atol, name=name)
+        return _log_params(R)
 
     @staticmethod
     def _rebuild_lookup(module: "ConnectionField", incompatible_keys) -> None:

@@ -17,6 +17,22 @@ All modules compute exactly what the functional operators compute (they call the
 * :class:`CovariantD` -- ``(T, n)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
   Defs. 5.1-5.2);
 * :class:`BianchiCheck` -- dict of max residuals; raises ``BianchiError`` (Sec. 2.4, 3.6, Ch. 5).
+
+Inputs (checked at ``forward``, reading no data, so no device sync):
+
+* the connection must give a floating ``(E, n, n)`` tensor with ``E`` the mesh's edge count
+  (``TypeError`` for a NumPy array or an integer tensor, ``ValueError`` naming the expected and
+  given shapes); :class:`Torsion`, :class:`CovariantD` and :class:`BianchiCheck` need ``n = 3``
+  (the solder form lives in R^3), :class:`Curvature` takes any rank;
+* ``frames`` must be ``None`` or a floating ``(V, n, n)`` tensor;
+* dtypes: the result has the dtype (and device) of the edge rotations. The mesh's vertex
+  positions and ``frames`` are cast to it, so a float32 connection on a float64 mesh (or
+  with float64 frames) computes in float32: the connection is the variable, the mesh is data.
+* values are not validated: NaN/inf rotations give NaN in the faces/tets that use them and
+  nowhere else (a math op propagates NaN; check rotations explicitly with
+  ``Connection.check_rotations``), except :class:`BianchiCheck`, a diagnostic that syncs
+  anyway, which raises ``BianchiError`` naming the NaN term (``differential`` or
+  ``algebraic``) and the tets.
 """
 from __future__ import annotations
 
@@ -42,19 +58,25 @@ __all__ = [
     "BianchiCheck",
 ]
 
-def edge_rotations(connection: Any) -> torch.Tensor:
-    """``(E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor."""
-    if isinstance(connection, torch.Tensor):
-        if connection.ndim != 3 or connection.shape[-1] != connection.shape[-2]:
-            raise ValueError(f"edge rotations must have shape (E, n, n), got {tuple(connection.shape)}")
-        return connection
+def edge_rotations(connection: Any, who: str = "edge_rotations") -> torch.Tensor:
+    """``(E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor.
+
+    Raises ``TypeError`` (anything else, e.g. a NumPy array; a non-floating tensor) or
+    ``ValueError`` (not ``(E, n, n)``), each message starting with ``who``. Reads no data.
+    """
     if isinstance(connection, nn.Module):
         connection = connection()
-    R = getattr(connection, "edge_rot", None)
+    R = connection if isinstance(connection, torch.Tensor) else getattr(connection, "edge_rot", None)
     if not isinstance(R, torch.Tensor):
         raise TypeError(
-            f"expected a Connection, a ConnectionField or an (E, n, n) tensor, got {type(connection).__name__}"
+            f"{who}: expected a Connection, a ConnectionField or an (E, n, n) tensor, got "
+            f"{type(connection).__name__}; convert an array first, e.g. torch.as_tensor(R, dtype=torch.float64)"
         )
+    if not R.is_floating_point():
+        raise TypeError(f"{who}: edge rotations must be a floating-point tensor, got dtype {R.dtype}; "
+                        f"pass e.g. R.to(torch.float64)")
+    if R.ndim != 3 or R.shape[-1] != R.shape[-2]:
+        raise ValueError(f"{who}: edge rotations must have shape (E, n, n), got {tuple(R.shape)}")
     return R
 
 
@@ -99,9 +121,36 @@ class MeshBuffers(nn.Module):
         return f"kind={self.kind}, V={self.n_vertices}, E={self.n_edges}"
 
 
-def _check_edges(R: torch.Tensor, mesh: MeshBuffers, who: str) -> None:
+def _rotations(connection: Any, mesh: MeshBuffers, who: str, n3: bool = False) -> torch.Tensor:
+    """Edge rotations of ``connection`` checked against ``mesh`` (one per edge; ``n = 3`` if ``n3``)."""
+    R = edge_rotations(connection, who)
     if R.shape[0] != mesh.n_edges:
-        raise ValueError(f"{who}: got {R.shape[0]} edge rotations for a mesh with {mesh.n_edges} edges")
+        raise ValueError(
+            f"{who}: got {R.shape[0]} edge rotations (shape {tuple(R.shape)}) for a mesh with "
+            f"{mesh.n_edges} edges; pass one rotation R_ij per mesh edge, shape ({mesh.n_edges}, n, n), "
+            f"in mesh.edges order"
+        )
+    if n3 and R.shape[-1] != 3:
+        raise ValueError(
+            f"{who}: the solder form lives in R^3, so the connection must have rank n = 3, i.e. edge "
+            f"rotations of shape ({mesh.n_edges}, 3, 3); got {tuple(R.shape)}"
+        )
+    return R
+
+
+def _frames(frames: Any, R: torch.Tensor, mesh: MeshBuffers, who: str) -> torch.Tensor | None:
+    """``frames (V, n, n)`` checked and cast to the dtype and device of the rotations ``R``."""
+    if frames is None:
+        return None
+    if not isinstance(frames, torch.Tensor) or not frames.is_floating_point():
+        got = f"dtype {frames.dtype}" if isinstance(frames, torch.Tensor) else type(frames).__name__
+        raise TypeError(f"{who}: frames must be None or a floating-point tensor, got {got}; convert it "
+                        f"first, e.g. torch.as_tensor(frames, dtype=torch.float64)")
+    n, V = R.shape[-1], mesh.n_vertices
+    if tuple(frames.shape) != (V, n, n):
+        raise ValueError(f"{who}: frames must have shape {(V, n, n)} (one frame per mesh vertex, rank of "
+                         f"the connection), got {tuple(frames.shape)}")
+    return frames.to(dtype=R.dtype, device=R.device)
 
 
 class Curvature(nn.Module):
@@ -125,8 +174,7 @@ class Curvature(nn.Module):
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any) -> torch.Tensor:
-        R = edge_rotations(connection)
-        _check_edges(R, self.mesh, "Curvature")
+        R = _rotations(connection, self.mesh, "Curvature")
         return _curvature.face_curvature(R, self.mesh, cut=self.cut, kind=self.kind)
 
 
@@ -153,8 +201,8 @@ class Torsion(nn.Module):
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
-        R = edge_rotations(connection)
-        _check_edges(R, self.mesh, "Torsion")
+        R = _rotations(connection, self.mesh, "Torsion", n3=True)
+        frames = _frames(frames, R, self.mesh, "Torsion")
         return _torsion.face_torsion(R, self.mesh, kind=self.kind, cut=self.cut, frames=frames)
 
 
@@ -187,9 +235,9 @@ class CovariantD(nn.Module):
         self.variant = variant
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
-        R = edge_rotations(connection)
-        _check_edges(R, self.mesh, "CovariantD")
-        return self._FUNCS[self.variant](R, self.mesh, frames)
+        who = type(self).__name__
+        R = _rotations(connection, self.mesh, who, n3=True)
+        return self._FUNCS[self.variant](R, self.mesh, _frames(frames, R, self.mesh, who))
 
 
 class AveragedCovariantD(CovariantD):
@@ -219,6 +267,5 @@ class BianchiCheck(nn.Module):
 
     @torch.no_grad()
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> dict[str, float]:
-        R = edge_rotations(connection).detach()
-        _check_edges(R, self.mesh, "BianchiCheck")
-        return _bianchi.check(R, self.mesh, atol=self.atol, frames=frames)
+        R = _rotations(connection, self.mesh, "BianchiCheck", n3=True).detach()
+        return _bianchi.check(R, self.mesh, atol=self.atol, frames=_frames(frames, R, self.mesh, "BianchiCheck"))

@@ -123,13 +123,15 @@ def face_curvature(edge_rot: torch.Tensor, mesh, cut=-1, kind: str = "two_prong"
     For ``n = 3`` the fused component-major kernel ``_FaceCurvatureFn`` (hand-written
     backward); other ranks use batched matrix products. ``None`` for a mesh without sorted
     triangles or a ``cut`` that is not an integer in ``[-3, 2]`` (two-prong). ``edge_rot`` with
-    fewer rows than ``mesh.edges`` raises ``ValueError``.
+    another number of rows than ``mesh.edges`` raises ``ValueError`` naming both shapes.
     """
     if not _sorted_triangles(mesh) or not (kind == "holonomy" or (type(cut) is int and -3 <= cut <= 2)):
         return None
     E = int(mesh.edges.shape[0])
-    if edge_rot.shape[0] < E:
-        raise ValueError(f"face_curvature: edge index {E - 1} out of range for {edge_rot.shape[0]} edge rotations")
+    if edge_rot.dim() < 3 or edge_rot.shape[0] != E:
+        short = f" (mesh edge index {E - 1} out of range)" if edge_rot.dim() and edge_rot.shape[0] < E else ""
+        raise ValueError(f"face_curvature: edge_rot must have shape ({E}, n, n), one rotation per mesh edge "
+                         f"in mesh.edges order, got {tuple(edge_rot.shape)}{short}")
     c = cut % 3 if kind == "two_prong" else 0
     if edge_rot.shape[-1] == 3 and edge_rot.dim() == 3:
         return _FaceCurvatureFn.apply(edge_rot, _face_index(mesh, edge_rot.device), c)

@@ -78,12 +78,15 @@ def face_torsion(edge_rot: torch.Tensor, mesh, kind: str = "sqrt", frames: torch
     ``R^amb_ab = F_a R_ab F_bᵀ``). ``frames`` is converted to the dtype and device of
     ``edge_rot``. ``edge_frame_rot``: optional ``(F_i, F_i R_ij, F_j)`` from
     :func:`edge_frames` (replaces ``frames``; the frame-field loss shares it with its ``tie``
-    term). ``None`` unless ``mesh`` has sorted triangles, ``cut`` is ``-1`` or ``2`` and
-    ``edge_rot`` has one rotation per edge of ``mesh``.
+    term). ``None`` unless ``mesh`` has sorted triangles and ``cut`` is ``-1`` or ``2``;
+    ``edge_rot`` with another number of rows than ``mesh.edges`` raises ``ValueError``.
     """
-    if not (_sorted_triangles(mesh) and type(cut) is int and cut in (-1, 2)
-            and edge_rot.shape[0] == mesh.edges.shape[0]):
+    if not (_sorted_triangles(mesh) and type(cut) is int and cut in (-1, 2)):
         return None
+    E = int(mesh.edges.shape[0])
+    if edge_rot.dim() != 3 or edge_rot.shape[0] != E:
+        raise ValueError(f"face_torsion: edge_rot must have shape ({E}, 3, 3), one rotation per mesh edge "
+                         f"in mesh.edges order, got {tuple(edge_rot.shape)}")
     if frames is not None:
         frames = frames.to(edge_rot)
     th = edge_solder_frames(edge_rot, mesh, kind, frames, edge_frame_rot)

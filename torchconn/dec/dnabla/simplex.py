@@ -29,7 +29,7 @@ leading dims (one simplex per batch entry, e.g. all tets of a mesh at once).
   ``4^4`` table. The only Python loops are over the few tuples/permutations of the template.
 
 Operators (docs/conventions.md §1, errata 1, 2, 4, 5, 6, 8)
----------------------------------------------------
+-----------------------------------------------------------
 * :func:`unsymmetrized_vector` -- corrected Def. 5.1, vector version:
   ``⟨𝔡∇α,[x0..x(k+1)]⟩ = R_{x0x1} α[x1..x(k+1)] + Σ_{j=1}^{k+1} (-1)^j α[s \\ x_j]``.
   This is *the same formula* as the BEHS21 / Sch18 covariant derivative quoted at the start of
