@@ -84,6 +84,7 @@ def test_in_memory_mesh_writes_no_files(tmp_path, monkeypatch, mesh):
     assert r.metrics["invariants"]["bianchi_ok"] and r.metrics["method"] == "connection"
     assert set(r.history) >= {"total", "smooth", "tie"} and all(len(v) == 3 for v in r.history.values())
     assert r.timings["iterations"] == 3 and not r.timings["stopped_early"]
+    assert repr(r).startswith("FrameFieldResult(method='connection', V=182, T=675") and len(repr(r)) < 300
 
 
 def test_path_input_equals_in_memory(tmp_path, mesh):
@@ -147,6 +148,10 @@ def test_sh_method(mesh):
     i, j = mesh.edges.unbind(1)
     assert (F[i] @ r.edge_rot - F[j] @ g.transpose(-1, -2)).abs().max() < 1e-12
     assert design(mesh, "sh_baseline", sh={"n_smooth_iters": 5}).vertex_frames.equal(F)
+    # init_frames as an in-memory tensor (checked against the mesh)
+    assert (design(mesh, "sh", init_frames=F).vertex_frames - F).abs().max() < 1e-14
+    with pytest.raises(ValueError, match=r"init_frames has shape \(181, 3, 3\)"):
+        design(mesh, "sh", init_frames=F[1:])
 
 
 def test_dtype_argument(mesh):

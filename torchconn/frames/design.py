@@ -126,6 +126,14 @@ class FrameFieldResult:
     history: dict[str, list[float]] = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:  # shapes and headline numbers, not every tensor entry
+        f = self.metrics.get("final", {})
+        return (f"FrameFieldResult(method={self.metrics.get('method')!r}, V={self.vertex_frames.shape[0]}, "
+                f"T={self.tet_frames.shape[0]}, E={self.edge_rot.shape[0]}, "
+                f"smoothness_mean_deg={f.get('smoothness_mean_deg', float('nan')):.3f}, "
+                f"n_singular_faces={int(self.singular_faces.sum())}, "
+                f"steps={self.timings.get('iterations', 0)}, wall_s={self.timings.get('wall_s', 0.0):.2f})")
+
 
 # ----------------------------------------------------------------------------- per-tet frames
 def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
