@@ -90,8 +90,8 @@ def test_in_memory_mesh_writes_no_files(tmp_path, monkeypatch, mesh):
 def test_path_input_equals_in_memory(tmp_path, mesh):
     path = tmp_path / "cyl.mesh"
     meshio.write(path, meshio.Mesh(mesh.vertices.numpy(), [("tetra", mesh.tets.numpy())]))
-    a = design(path, "sh", **{"sh": FAST["sh"]})
-    b = design(mesh, "sh", **{"sh": FAST["sh"]})
+    a = design(path, "sh", sh=FAST["sh"])
+    b = design(mesh, "sh", sh=FAST["sh"])
     assert torch.equal(a.vertex_frames, b.vertex_frames)
     with pytest.raises(FileNotFoundError, match="nope.mesh"):
         design(tmp_path / "nope.mesh")

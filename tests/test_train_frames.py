@@ -280,7 +280,7 @@ def test_resume_is_bitwise_and_frames_equal_design(tmp_path, monkeypatch):
     from torchconn import io as tio
     from torchconn.frames import design
 
-    kw = dict(steps=5, checkpoint_every=2, polish={"steps": 10, "check_every": 5})
+    kw = {"steps": 5, "checkpoint_every": 2, "polish": {"steps": 10, "check_every": 5}}
     full = train(_cfg(tmp_path, "full", **kw))
     real = losses.FrameFieldLoss.__call__
     calls = {"n": 0}

@@ -32,9 +32,10 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -52,7 +53,7 @@ from .polish import polish_frames
 from .sh import sh_frame_field
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
 
-__all__ = ["design", "FrameFieldResult", "tet_frames", "METHODS", "OPTIONS", "DEFAULTS", "method_options"]
+__all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options", "tet_frames"]
 
 #: Methods of :func:`design` (``"sh_baseline"`` is an alias of ``"sh"``).
 METHODS = ("connection", "sh")
