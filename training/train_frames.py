@@ -1,5 +1,8 @@
 """``train_frames``: an octahedral frame field on a tet mesh from a differentiable connection.
 
+A thin command over :func:`torchconn.frames.design` (the same field from Python, no files):
+config -> ``design(mesh, method, **options)`` -> writers + checkpoint/resume.
+
 Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
 
 1. Initialization ``F^0``: the spherical-harmonic baseline of Ray, Sokolov & Lévy 2016
@@ -50,18 +53,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import io as tio
 from torchconn.dec import bianchi
-from torchconn.frames import export, octahedral
-from torchconn.frames.constraints import BoundaryConstraint
-from torchconn.frames.loss import ALIGN_KINDS, FrameFieldLoss
-from torchconn.frames.metrics import METRIC_KEYS, edge_class_breakdown, frame_metrics
-from torchconn.frames.model import FORMULATIONS, FrameFieldModel, matched_connection
-from torchconn.frames.polish import polish_frames
-from torchconn.frames.sh import sh_frame_field
-from torchconn.frames.solver import (LR_SCHEDULES, OPTIMIZERS, NonFiniteLossError, make_optimizer, new_history,
-                                     optimize)
-from torchconn.lie import so3
+from torchconn.frames import export
+from torchconn.frames.design import FrameFieldResult, design, method_options
+from torchconn.frames.loss import ALIGN_KINDS
+from torchconn.frames.metrics import METRIC_KEYS
+from torchconn.frames.model import FORMULATIONS
+from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS, NonFiniteLossError
 from torchconn.mesh import MeshError
-from torchconn.tolerances import get_eps
 
 from . import frame_plots, io_utils
 
@@ -139,23 +137,6 @@ def _load_mesh(cfg, dtype, device):
     return mesh.to(device=device, dtype=dtype)
 
 
-def _load_init_frames(path: str, mesh) -> torch.Tensor:
-    """Frames ``(V, 3, 3)`` from a ``.npz`` (key ``frames``) or ``.npy``; checked against the mesh."""
-    p = Path(path).expanduser()
-    if not p.is_file():
-        raise FileNotFoundError(f"init_frames {path!r}: no such file")
-    data = np.load(p)
-    F = data["frames"] if isinstance(data, np.lib.npyio.NpzFile) else data
-    V = mesh.n_vertices
-    if F.shape != (V, 3, 3):
-        raise ValueError(f"init_frames {path!r} has shape {F.shape}, expected ({V}, 3, 3) for this mesh")
-    F = torch.as_tensor(np.asarray(F, dtype=np.float64)).to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
-    err = float((F.transpose(-1, -2) @ F - torch.eye(3, dtype=F.dtype, device=F.device)).abs().max())
-    if not err < 1e-4 or not bool((torch.linalg.det(F) > 0).all()):
-        raise ValueError(f"init_frames {path!r} are not rotations (max |F^T F - I| = {err:.2e} or det <= 0)")
-    return so3.project_to_rotation(F)
-
-
 # ----------------------------------------------------------------------------- helpers
 def _fingerprint(cfg, mesh) -> str:
     """Hash of what a resumed run must share with the checkpoint (mesh, method, optimizer)."""
@@ -170,44 +151,9 @@ def _fingerprint(cfg, mesh) -> str:
     return h.hexdigest()
 
 
-def _initial_frames(cfg, mesh, ckpt) -> tuple[torch.Tensor, dict]:
-    """``(F0 (V, 3, 3), its metrics)``: from the checkpoint, ``init_frames`` or the SH baseline."""
-    if ckpt is not None:  # stored in the checkpoint so that a resume does not redo it
-        return ckpt["init_frames"].to(device=mesh.vertices.device, dtype=mesh.vertices.dtype), ckpt["init_metrics"]
-    if cfg.init_frames is not None:
-        F0 = _load_init_frames(str(cfg.init_frames), mesh)
-    else:
-        F0 = sh_frame_field(mesh, boundary_weight=float(cfg.sh.boundary_weight),
-                            n_smooth_iters=int(cfg.sh.n_smooth_iters),
-                            feature_angle_deg=float(cfg.feature_angle_deg),
-                            mbo_steps=int(cfg.sh.mbo_steps),
-                            mbo_tau=(float(cfg.sh.mbo_tau_start), float(cfg.sh.mbo_tau_end)))
-    return F0, frame_metrics(F0, mesh, cfg.feature_angle_deg)
-
-
-def _invariants(R: torch.Tensor, F: torch.Tensor, mesh, atol, dtype) -> tuple[dict, torch.Tensor, str | None]:
-    """``(invariants dict, singular faces (S, 3), Bianchi error message or None)``."""
-    mask, sing = octahedral.singular_faces(F, mesh)
-    one = octahedral.tets_with_one_singular_face(mask, mesh)
-    bianchi_error = None
-    try:
-        bres = bianchi.check(R.detach(), mesh, atol=atol)
-    except bianchi.BianchiError as exc:
-        bianchi_error = str(exc)
-        bres = {"differential": float(bianchi.differential_residual(R.detach(), mesh).max())}
-    return {
-        "bianchi_differential_max": bres.get("differential"),
-        "bianchi_algebraic_max": bres.get("algebraic"),
-        "bianchi_tolerance": (atol if atol is not None else get_eps("identity", dtype)) * 3,
-        "bianchi_ok": bianchi_error is None,
-        "bianchi_error": bianchi_error,
-        "n_singular_faces": int(mask.sum()),
-        "n_tets_one_singular_face": int(one.sum()),
-    }, sing, bianchi_error
-
-
-def _save_outputs(out: Path, mesh, frames: torch.Tensor, sing_faces: torch.Tensor, history: dict,
-                  metrics: dict) -> None:
+def _save_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
+    mesh, frames = result.mesh, result.vertex_frames
+    sing_faces = mesh.faces[result.singular_faces]
     io_utils.atomic_savez(out / "frames.npz", vertices=mesh.vertices.detach().cpu().double().numpy(),
                           tets=mesh.tets.cpu().numpy().astype(np.int64),
                           frames=frames.detach().cpu().double().numpy(),
@@ -215,13 +161,23 @@ def _save_outputs(out: Path, mesh, frames: torch.Tensor, sing_faces: torch.Tenso
     io_utils.atomic_write_json(out / "metrics.json", metrics)
     export.write_frames_vtu(out / "frames.vtu", mesh, frames)
     export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
-    frame_plots.plot_loss(out / "loss.png", history)
+    frame_plots.plot_loss(out / "loss.png", result.history)
     frame_plots.plot_singularities(out / "singularities.png", mesh, sing_faces)
 
 
 # ----------------------------------------------------------------------------- train
+def design_options(cfg) -> dict:
+    """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values)."""
+    return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k]
+            for k in method_options(cfg.method)}
+
+
 def train(cfg) -> dict:
     """Run the frame-field optimization described by ``cfg``; return the metrics dict.
+
+    ``config -> torchconn.frames.design(mesh, **design_options(cfg)) -> writers`` plus the
+    checkpoint (``design``'s ``on_checkpoint`` state with the configuration's fingerprint) and
+    ``resume`` (``design(state=checkpoint)``).
 
     Args:
         cfg: a ``DictConfig`` or dict with the keys of ``configs/train_frames.yaml`` (missing
@@ -245,8 +201,7 @@ def train(cfg) -> dict:
     device = torch.device(cfg.device)
     if cfg.num_threads is not None:
         torch.set_num_threads(int(cfg.num_threads))
-    torch.manual_seed(int(cfg.seed))
-    np.random.seed(int(cfg.seed))
+    np.random.seed(int(cfg.seed))  # design() seeds torch
 
     mesh = _load_mesh(cfg, dtype, device)
     fp = _fingerprint(cfg, mesh)
@@ -256,112 +211,28 @@ def train(cfg) -> dict:
         if ckpt.get("fingerprint") != fp:
             raise ValueError(f"checkpoint {str(ckpt_path)!r} was written for another mesh/method/optimizer/"
                              f"weights configuration; refusing to resume")
+    config = OmegaConf.to_container(cfg, resolve=True)
 
-    t0 = time.perf_counter()
-    F0, init_metrics = _initial_frames(cfg, mesh, ckpt)
-    t_init = time.perf_counter() - t0
+    def on_checkpoint(state: dict) -> None:
+        io_utils.save_checkpoint(ckpt_path, {**state, "fingerprint": fp, "config": config})
 
-    # --- library objects: constraint, loss, model, optimizer
-    constraint = BoundaryConstraint.from_mesh(mesh, float(cfg.feature_angle_deg))
-    loss_fn = FrameFieldLoss(mesh, dict(cfg.weights), feature_angle_deg=float(cfg.feature_angle_deg),
-                             smooth_power=float(cfg.smooth_power), smooth_eps=float(cfg.smooth_eps),
-                             align_kind=str(cfg.align_kind), align_eps=float(cfg.align_eps))
-    model = FrameFieldModel(mesh, F0, cfg.formulation, constraint).to(device)
-    steps = int(cfg.steps) if cfg.method == "connection" else 0
-    optimizer, scheduler = make_optimizer(model.parameters(), cfg.optim, float(cfg.lr), int(cfg.steps),
-                                          cfg.lr_schedule, int(cfg.lbfgs.history_size), int(cfg.lbfgs.max_iter))
-    history = new_history(loss_fn.weights)
-    start = 0
-    if ckpt is not None:
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
-        scheduler.load_state_dict(ckpt["scheduler"])
-        io_utils.set_rng_state(ckpt["rng"])
-        start = int(ckpt["step"])
-        history = {k: list(v) for k, v in ckpt["history"].items()}
-        if start > steps:
-            raise ValueError(f"checkpoint is at step {start}, beyond steps={steps}")
-
-    def checkpoint(step: int) -> None:
-        io_utils.save_checkpoint(ckpt_path, {
-            "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "rng": io_utils.get_rng_state(), "history": history, "fingerprint": fp,
-            "init_frames": F0.detach().cpu(), "init_metrics": init_metrics,
-            "config": OmegaConf.to_container(cfg, resolve=True),
-        })
-
-    bar = None
-    if cfg.progress and steps > start:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=steps, initial=start, desc="train_frames", dynamic_ncols=True)
-
-    def on_step(step: int, record: dict) -> None:
-        if step % int(cfg.checkpoint_every) == 0 or step == steps:
-            checkpoint(step)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
-
-    # --- optimization
-    t0 = time.perf_counter()
-    if ckpt is None and steps > 0:
-        checkpoint(0)
-    try:
-        optimize(model, loss_fn, optimizer, scheduler, steps, start=start, history=history, on_step=on_step)
-    finally:
-        if bar is not None:
-            bar.close()
-    t_opt = time.perf_counter() - t0
-
-    # --- final field (optionally polished), invariants, metrics
-    with torch.no_grad():
-        R, F = model()
-    polish_info = None
-    if cfg.method == "connection" and int(cfg.polish.steps) > 0:
-        t1 = time.perf_counter()
-        F, polish_info = polish_frames(
-            mesh, F, int(cfg.polish.steps), lr=float(cfg.polish.lr), check_every=int(cfg.polish.check_every),
-            feature_weight=float(cfg.weights.feature), max_singular_faces=int(init_metrics["n_singular_faces"]),
-            angle_deg=float(cfg.feature_angle_deg), align_eps=float(cfg.align_eps))
-        if polish_info["accepted_step"] > 0:  # the connection that transports the polished frames
-            R = matched_connection(F, mesh.edges)
-        polish_info["seconds"] = time.perf_counter() - t1
-    with torch.no_grad():
-        final_terms = {k: float(v) for k, v in loss_fn(R, F).items()}
-    if cfg.method == "sh_baseline":
-        F = F0
-    final_metrics = frame_metrics(F, mesh, cfg.feature_angle_deg)
-    atol = None if cfg.bianchi_atol is None else float(cfg.bianchi_atol)
-    invariants, sing, bianchi_error = _invariants(R, F, mesh, atol, dtype)
+    connection = cfg.method == "connection"
+    result = design(mesh, cfg.method, progress=bool(cfg.progress), seed=int(cfg.seed),
+                    state=ckpt if connection else None, on_checkpoint=on_checkpoint if connection else None,
+                    checkpoint_every=int(cfg.checkpoint_every), **design_options(cfg))
+    m = result.metrics
     metrics = {
-        "mesh": {"source": str(cfg.mesh), "n_vertices": mesh.n_vertices, "n_edges": mesh.n_edges,
-                 "n_faces": mesh.n_faces, "n_tets": mesh.n_tets,
-                 "n_boundary_vertices": int(mesh.boundary_vertices.numel())},
+        **m,
+        "mesh": {"source": str(cfg.mesh), **m["mesh"]},
         "method": cfg.method,
-        "formulation": cfg.formulation if cfg.method == "connection" else None,
-        "final": final_metrics,
-        "init": init_metrics,
-        "edge_classes": edge_class_breakdown(F.detach(), mesh, cfg.feature_angle_deg),
-        "polish": polish_info,
-        "final_loss_terms": final_terms,
-        "loss_history": history,
-        "invariants": invariants,
-        "timings": {
-            "wall_s": time.perf_counter() - t_start,
-            "init_s": t_init,
-            "optimize_s": t_opt,
-            "iterations": steps - start,
-            "total_steps": steps,
-            "s_per_iteration": t_opt / max(steps - start, 1),
-        },
-        "config": OmegaConf.to_container(cfg, resolve=True),
+        "loss_history": result.history,
+        "timings": {**result.timings, "wall_s": time.perf_counter() - t_start},
+        "config": config,
     }
-    assert set(METRIC_KEYS) <= set(final_metrics)
-    _save_outputs(out, mesh, F, sing, history, metrics)
-    if bianchi_error is not None:
-        raise bianchi.BianchiError(bianchi_error)
+    assert set(METRIC_KEYS) <= set(m["final"])
+    _save_outputs(out, result, metrics)
+    if not m["invariants"]["bianchi_ok"]:
+        raise bianchi.BianchiError(m["invariants"]["bianchi_error"])
     return metrics
 
 

@@ -4,7 +4,8 @@ Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-h
 Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
-:mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.export` (VTU).
+:mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.export` (VTU),
+:mod:`.design` (the whole method in one call: :func:`design` -> :class:`FrameFieldResult`).
 
 >>> from torchconn import io
 >>> from torchconn.frames import sh_frame_field, frame_metrics
@@ -12,9 +13,19 @@ parallel propagation), :mod:`.model` (matched connection, trainable model), :mod
 >>> frames = sh_frame_field(mesh)          # (V, 3, 3); frames[i][:, k] = axis k at vertex i
 >>> frame_metrics(frames, mesh)["n_singular_faces"]
 0
+
+The connection method in one call (no files written; ``method="sh"`` for the baseline):
+
+>>> from torchconn.frames import design
+>>> result = design(mesh, steps=5, polish={"steps": 0}, sh={"n_smooth_iters": 2})
+>>> result.vertex_frames.shape, result.tet_frames.shape == (mesh.n_tets, 3, 3)
+(torch.Size([64, 3, 3]), True)
+>>> len(result.history["total"]), result.metrics["invariants"]["bianchi_ok"]
+(5, True)
 """
 from . import propagate
 from .constraints import BoundaryConstraint, feature_edges, feature_vertices
+from .design import FrameFieldResult, design
 from .metrics import METRIC_KEYS, axis_alignment_angle, frame_metrics
 from .sh import (
     boundary_constraint,
@@ -29,6 +40,8 @@ from .sh import (
 
 __all__ = [
     "propagate",
+    "design",
+    "FrameFieldResult",
     "BoundaryConstraint",
     "METRIC_KEYS",
     "axis_alignment_angle",

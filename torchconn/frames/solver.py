@@ -85,7 +85,7 @@ def check_finite_terms(terms: Mapping[str, torch.Tensor], step: int) -> None:
 
 def optimize(model: torch.nn.Module, loss_fn: Callable, optimizer: torch.optim.Optimizer, scheduler,
              steps: int, *, start: int = 0, history: dict[str, list] | None = None,
-             on_step: Callable[[int, dict], None] | None = None) -> dict[str, list]:
+             on_step: Callable[[int, dict], bool | None] | None = None) -> dict[str, list]:
     """Run optimizer steps ``start, ..., steps - 1`` of ``loss_fn(*model())["total"]``.
 
     Args:
@@ -97,7 +97,8 @@ def optimize(model: torch.nn.Module, loss_fn: Callable, optimizer: torch.optim.O
         history: ``{term: [value per step]}`` to append to (default :func:`new_history` of the
             loss's ``weights``); a term not evaluated at a step records 0.
         on_step: called as ``on_step(step + 1, record)`` after each step with the unweighted
-            terms of the step's first evaluation (checkpoints, progress bars).
+            terms of the step's first evaluation (checkpoints, progress bars); returning
+            ``True`` stops the loop after that step.
 
     Returns:
         ``history``. Raises :class:`NonFiniteLossError` on a NaN/inf term (before the step).
@@ -126,6 +127,6 @@ def optimize(model: torch.nn.Module, loss_fn: Callable, optimizer: torch.optim.O
         scheduler.step()
         for k in history:
             history[k].append(record.get(k, 0.0))
-        if on_step is not None:
-            on_step(step + 1, record)
+        if on_step is not None and on_step(step + 1, record) is True:
+            break
     return history

@@ -1,0 +1,470 @@
+"""One call from a tet mesh to an octahedral frame field: :func:`design` -> :class:`FrameFieldResult`.
+
+The library form of the ``train_frames`` job (``training/train_frames.py`` is ``config ->
+design() -> writers``); nothing is written to disk. Methods:
+
+* ``"connection"``: the spherical-harmonic field of Ray, Sokolov & Lévy 2016
+  (:func:`~torchconn.frames.sh.sh_frame_field`, or ``init_frames``) initializes a
+  :class:`~torchconn.frames.model.FrameFieldModel` (connection + frames), optimized against
+  :class:`~torchconn.frames.loss.FrameFieldLoss` (:func:`~torchconn.frames.solver.optimize`), then
+  the guarded frames-only polish (:func:`~torchconn.frames.polish.polish_frames`);
+* ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
+
+Options are the keys of ``configs/train_frames.yaml`` that belong to the method (:data:`OPTIONS`,
+defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``polish``, ``sh``) are merged
+onto their defaults, so ``weights={"tie": 5.0}`` changes one weight. Unknown names raise
+``TypeError`` listing the known ones.
+
+Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`): ``frames[i][:, k]`` is
+axis ``k`` at vertex ``i``; ``edge_rot[e] = R_ij`` for the canonical edge ``(i, j)``, ``i < j``, maps
+coordinates at ``v_j`` to coordinates at ``v_i`` with ``F_i R_ij = F_j h_ij``, ``h_ij in O``;
+``matchings[e]`` indexes :func:`~torchconn.frames.octahedral.group`, ``F_i g*_ij ~ F_j``.
+
+Per-tet frames (the rule of :func:`tet_frames`): tet ``t`` with lowest-index vertex ``a`` takes
+the chordal mean of its four vertex frames relabeled into the frame of ``a`` along the tet's
+edges, ``M = (1/4) sum_v F_v g*_av^T`` (``g*_aa = I``), projected to SO(3):
+``tet_frames[t] = F_a polar(F_a^T M)`` (``= polar(M)``; written about ``F_a`` so that a tet whose
+relabeled frames agree returns exactly ``F_a``). So ``tet_frames[t]`` carries the axis labels of
+``F_a``, and ``tet_frames[t] g*_av ~ F_v`` for the tet's other vertices.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..dec import bianchi
+from ..lie import so3
+from ..mesh import MeshError, load_mesh
+from ..tolerances import get_eps
+from . import octahedral
+from .constraints import BoundaryConstraint
+from .loss import ALIGN_KINDS, FrameFieldLoss
+from .metrics import edge_class_breakdown, frame_metrics
+from .model import FORMULATIONS, FrameFieldModel, matched_connection
+from .polish import polish_frames
+from .sh import sh_frame_field
+from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
+
+__all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options", "tet_frames"]
+
+#: Methods of :func:`design` (``"sh_baseline"`` is an alias of ``"sh"``).
+METHODS = ("connection", "sh")
+_ALIASES = {"sh_baseline": "sh"}
+
+#: Default value of every option; the same values as ``configs/train_frames.yaml`` (a test checks it).
+DEFAULTS: dict[str, Any] = {
+    "formulation": "vertex",
+    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "align": 10.0, "feature": 1.0},
+    "feature_angle_deg": 30.0,
+    "smooth_power": 1.0,
+    "smooth_eps": 1e-3,
+    "align_kind": "angle",
+    "align_eps": 1e-3,
+    "optim": "adam",
+    "steps": 150,
+    "lr": 0.02,
+    "lr_schedule": "cosine",
+    "lbfgs": {"history_size": 20, "max_iter": 5},
+    "polish": {"steps": 600, "lr": 0.01, "check_every": 50},
+    "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
+           "mbo_tau_end": 0.05},
+    "init_frames": None,
+    "bianchi_atol": None,
+}
+_COMMON = ("sh", "feature_angle_deg", "init_frames", "bianchi_atol")
+#: Option names of each method.
+OPTIONS: dict[str, tuple[str, ...]] = {
+    "connection": tuple(DEFAULTS),
+    "sh": _COMMON,
+}
+_CHOICES = {"formulation": FORMULATIONS, "optim": OPTIMIZERS, "lr_schedule": LR_SCHEDULES, "align_kind": ALIGN_KINDS}
+
+
+def method_options(method: str) -> tuple[str, ...]:
+    """The option names of ``method`` (a name of :data:`METHODS` or an alias)."""
+    return OPTIONS[_method_name(method)]
+
+
+@dataclass
+class FrameFieldResult:
+    """What :func:`design` returns (tensors on the mesh's device and dtype, detached).
+
+    Attributes:
+        mesh: the ``TetMesh`` the field lives on (after the ``device``/``dtype`` move).
+        vertex_frames: ``(V, 3, 3)`` rotations; ``vertex_frames[i][:, k]`` is axis ``k`` at vertex ``i``.
+        tet_frames: ``(T, 3, 3)`` rotations by the rule of :func:`tet_frames`.
+        edge_rot: ``(E, 3, 3)`` the connection ``R_ij`` on ``mesh.edges``, ``F_i R_ij = F_j h_ij``,
+            ``h_ij in O`` (the optimized one; the matched connection of ``vertex_frames`` after an
+            accepted polish and for ``method="sh"``).
+        matchings: ``(E,)`` long, ``g*_ij = octahedral.group()[matchings[e]]`` with ``F_i g*_ij ~ F_j``
+            (:func:`~torchconn.frames.octahedral.match_edges`, the matchings of the metrics).
+        singular_faces: ``(F,)`` bool, faces of ``mesh.faces`` with non-identity matched holonomy.
+        metrics: ``{"mesh", "method", "formulation", "final", "init", "edge_classes", "polish",
+            "final_loss_terms", "invariants"}``: ``final``/``init`` are
+            :func:`~torchconn.frames.metrics.frame_metrics` of the result and of the initialization,
+            ``invariants`` the Bianchi residuals of ``edge_rot`` (``bianchi_ok``) and the singular
+            counts; ``final_loss_terms`` and ``polish`` are ``None`` for ``method="sh"``.
+        history: ``{loss term: [value per step]}`` (unweighted terms, ``"total"`` weighted; empty for ``"sh"``).
+        timings: ``{"wall_s", "init_s", "optimize_s", "polish_s", "iterations", "total_steps",
+            "s_per_iteration", "stopped_early"}``.
+    """
+
+    mesh: Any
+    vertex_frames: torch.Tensor
+    tet_frames: torch.Tensor
+    edge_rot: torch.Tensor
+    matchings: torch.Tensor
+    singular_faces: torch.Tensor
+    metrics: dict
+    history: dict[str, list[float]] = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+    def __repr__(self) -> str:  # shapes and headline numbers, not every tensor entry
+        f = self.metrics.get("final", {})
+        return (f"FrameFieldResult(method={self.metrics.get('method')!r}, V={self.vertex_frames.shape[0]}, "
+                f"T={self.tet_frames.shape[0]}, E={self.edge_rot.shape[0]}, "
+                f"smoothness_mean_deg={f.get('smoothness_mean_deg', float('nan')):.3f}, "
+                f"n_singular_faces={int(self.singular_faces.sum())}, "
+                f"steps={self.timings.get('iterations', 0)}, wall_s={self.timings.get('wall_s', 0.0):.2f})")
+
+
+# ----------------------------------------------------------------------------- per-tet frames
+def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-tet frames ``(T, 3, 3)`` from per-vertex ``frames (V, 3, 3)`` (rule: module docstring).
+
+    Args:
+        frames: ``(V, 3, 3)`` rotations, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
+        mesh: ``TetMesh`` (``tets``, ``edges``, ``edge_index``).
+        matchings: ``(E,)`` indices of :func:`~torchconn.frames.octahedral.match_edges` on
+            ``mesh.edges`` (computed when ``None``).
+
+    Returns:
+        ``(T, 3, 3)`` rotations; ``tet_frames[t]`` has the axis labels of the frame of the tet's
+        lowest-index vertex ``a``, and equals ``frames[a]`` exactly where the four relabeled frames do.
+    """
+    if matchings is None:
+        matchings = octahedral.match_edges(frames, mesh.edges)[0]
+    tets = mesh.tets
+    a = tets.min(dim=1).values  # (T,)
+    others = tets.sort(dim=1).values[:, 1:]  # (T, 3), all > a
+    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)  # (T, 3), edges (a, v) with a < v
+    g = octahedral.group(frames.dtype, frames.device)[matchings[eid]]  # (T, 3, 3, 3): F_a g ~ F_v
+    Fa = frames[a]
+    relabeled = frames[others] @ g.transpose(-1, -2)  # F_v g^T ~ F_a
+    # mean of the deviations from F_a; where they all vanish the tet takes F_a itself (no SVD round-off)
+    dev = (relabeled - Fa[:, None]).sum(1) / 4.0
+    exact = (dev == 0).flatten(-2).all(-1)
+    eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
+    P = so3.project_to_rotation(torch.where(exact[:, None, None], eye, Fa.transpose(-1, -2) @ (Fa + dev)))
+    return torch.where(exact[:, None, None], Fa, Fa @ P)
+
+
+# ----------------------------------------------------------------------------- options
+def _method_name(method: str) -> str:
+    name = _ALIASES.get(method, method)
+    if name not in METHODS:
+        raise ValueError(f"unknown method {method!r}; known: {list(METHODS)} (alias: {_ALIASES})")
+    return name
+
+
+def _resolve_options(method: str, options: dict) -> dict:
+    """Defaults of ``method`` overlaid with ``options`` (groups merged), names and values checked."""
+    known = OPTIONS[method]
+    unknown = [k for k in options if k not in known]
+    if unknown:
+        other = [k for k in unknown if k in DEFAULTS]
+        hint = f" ({other} belong to another method)" if other else ""
+        raise TypeError(f"design(method={method!r}): unknown option(s) {unknown}{hint}; known options: {list(known)}")
+    opts = {}
+    for k in known:
+        default = DEFAULTS[k]
+        if isinstance(default, dict):
+            given = dict(options.get(k) or {})
+            bad = [s for s in given if s not in default]
+            if bad:
+                raise TypeError(f"design(): unknown option(s) {[f'{k}.{s}' for s in bad]}; "
+                                f"known {k} keys: {list(default)}")
+            opts[k] = {**default, **given}
+        else:
+            opts[k] = options.get(k, default)
+    for k, allowed in _CHOICES.items():
+        if k in opts and opts[k] not in allowed:
+            raise ValueError(f"design(): option {k}={opts[k]!r} is not one of {list(allowed)}")
+    if method == "connection":
+        if int(opts["steps"]) < 0:
+            raise ValueError(f"design(): option steps must be >= 0, got {opts['steps']}")
+        if not float(opts["lr"]) > 0:
+            raise ValueError(f"design(): option lr must be > 0, got {opts['lr']}")
+        for k, w in opts["weights"].items():
+            if not (math.isfinite(float(w)) and float(w) >= 0):
+                raise ValueError(f"design(): option weights.{k} must be finite and >= 0, got {w}")
+    return opts
+
+
+def _as_mesh(mesh, device, dtype):
+    if isinstance(mesh, (str, Path)):
+        path = Path(mesh).expanduser()
+        if not path.is_file():
+            raise FileNotFoundError(f"mesh {str(mesh)!r}: no such file")
+        mesh = load_mesh(path)
+    if not hasattr(mesh, "tets"):
+        raise TypeError(f"mesh must be a TetMesh or a path to a mesh file, got {type(mesh).__name__}")
+    if isinstance(dtype, str):
+        dtype = getattr(torch, dtype)
+    if device is not None or dtype is not None:
+        mesh = mesh.to(device=device, dtype=dtype)
+    if mesh.boundary_faces.shape[0] == 0:
+        raise MeshError("mesh has no boundary faces; a frame field needs a boundary to align to")
+    return mesh
+
+
+def _init_frames(value, mesh) -> torch.Tensor:
+    """Frames ``(V, 3, 3)`` from a tensor/array or a ``.npz`` (key ``frames``) / ``.npy`` path, checked."""
+    name = "init_frames"
+    if isinstance(value, (str, Path)):
+        p = Path(value).expanduser()
+        name = f"init_frames {str(value)!r}"
+        if not p.is_file():
+            raise FileNotFoundError(f"{name}: no such file")
+        data = np.load(p)
+        value = data["frames"] if isinstance(data, np.lib.npyio.NpzFile) else data
+    F = torch.as_tensor(np.asarray(value, dtype=np.float64) if not torch.is_tensor(value) else value)
+    V = mesh.n_vertices
+    if tuple(F.shape) != (V, 3, 3):
+        raise ValueError(f"{name} has shape {tuple(F.shape)}, expected ({V}, 3, 3) for this mesh")
+    F = F.to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
+    err = float((F.transpose(-1, -2) @ F - torch.eye(3, dtype=F.dtype, device=F.device)).abs().max())
+    if not err < 1e-4 or not bool((torch.linalg.det(F) > 0).all()):
+        raise ValueError(f"{name} are not rotations (max |F^T F - I| = {err:.2e} or det <= 0)")
+    return so3.project_to_rotation(F)
+
+
+def _invariants(R: torch.Tensor, mask: torch.Tensor, mesh, atol) -> dict:
+    one = octahedral.tets_with_one_singular_face(mask, mesh)
+    error = None
+    try:
+        res = bianchi.check(R.detach(), mesh, atol=atol)
+    except bianchi.BianchiError as exc:
+        error = str(exc)
+        res = {"differential": float(bianchi.differential_residual(R.detach(), mesh).max())}
+    return {
+        "bianchi_differential_max": res.get("differential"),
+        "bianchi_algebraic_max": res.get("algebraic"),
+        "bianchi_tolerance": (atol if atol is not None else get_eps("identity", R.dtype)) * 3,
+        "bianchi_ok": error is None,
+        "bianchi_error": error,
+        "n_singular_faces": int(mask.sum()),
+        "n_tets_one_singular_face": int(one.sum()),
+    }
+
+
+def _rng_state(device) -> dict:
+    state = {"torch": torch.get_rng_state()}
+    if torch.device(device).type == "cuda" and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _progress_bar(enabled: bool, total: int, initial: int):
+    if not enabled or total <= initial:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        warnings.warn("design(progress=True): tqdm is not installed (pip install tqdm); no progress bar",
+                      stacklevel=3)
+        return None
+    return tqdm(total=total, initial=initial, desc="design", dynamic_ncols=True)
+
+
+# ----------------------------------------------------------------------------- design
+def design(mesh, method: str = "connection", *, progress: bool = False,
+           callback: Callable[[int, dict], bool | None] | None = None, seed: int | None = 0,
+           device=None, dtype=None, state: dict | None = None,
+           on_checkpoint: Callable[[dict], None] | None = None, checkpoint_every: int = 25,
+           **options) -> FrameFieldResult:
+    """Octahedral frame field on a tet mesh (methods and rules: the module docstring). Writes no file.
+
+    Args:
+        mesh: a ``TetMesh`` or a path to a mesh file (:func:`torchconn.mesh.load_mesh` with its
+            defaults). It needs boundary faces (:class:`~torchconn.mesh.MeshError` otherwise).
+        method: ``"connection"`` or ``"sh"`` (:data:`METHODS`).
+        progress: a tqdm bar over the optimizer steps (a warning and no bar without tqdm).
+        callback: ``callback(step, record)`` after every optimizer step ``step = 1, ..., steps``
+            with ``record`` the step's loss terms (floats). **Returning ``True`` stops** the
+            optimization after that step (the polish and the metrics still run;
+            ``timings["stopped_early"]``); exceptions propagate.
+        seed: ``torch.manual_seed(seed)`` first (``None``: the global RNG is left alone).
+        device, dtype: move the mesh (and so everything) there; ``None`` keeps the mesh's.
+        state: resume from a dict given to ``on_checkpoint`` by an earlier call with the same
+            mesh and options (``method="connection"``): the initialization, model, optimizer,
+            scheduler, torch RNG, step and history are restored, and the result equals the
+            uninterrupted run's. The caller checks that the options match.
+        on_checkpoint: ``on_checkpoint(state)`` at step 0 of a fresh run, every
+            ``checkpoint_every`` steps and at the last step, with ``state = {"step", "model",
+            "optimizer", "scheduler", "rng", "history", "init_frames", "init_metrics"}``
+            (live ``state_dict``s: serialize them before the next step, e.g. ``torch.save``).
+        **options: :data:`OPTIONS` of the method (defaults :data:`DEFAULTS`); ``init_frames`` is a
+            ``(V, 3, 3)`` tensor/array or a ``.npz`` (key ``frames``) / ``.npy`` path.
+
+    Returns:
+        :class:`FrameFieldResult`. A failed Bianchi check is reported in
+        ``metrics["invariants"]`` (``bianchi_ok``, ``bianchi_error``), not raised.
+
+    Raises:
+        TypeError: an unknown option (the message lists the known ones).
+        torchconn.frames.solver.NonFiniteLossError: a NaN/inf loss term (naming it and the step).
+    """
+    t_start = time.perf_counter()
+    method = _method_name(method)
+    opts = _resolve_options(method, options)
+    if checkpoint_every < 1:
+        raise ValueError(f"design(): checkpoint_every must be >= 1, got {checkpoint_every}")
+    if state is not None and method != "connection":
+        raise ValueError(f"design(): state= resumes method 'connection' only, not {method!r}")
+    mesh = _as_mesh(mesh, device, dtype)
+    if seed is not None:
+        torch.manual_seed(int(seed))
+    angle = float(opts["feature_angle_deg"])
+
+    # 1. initialization (stored in the state so that a resume does not redo it)
+    t0 = time.perf_counter()
+    if state is not None:
+        F0 = state["init_frames"].to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
+        init_metrics = state["init_metrics"]
+    else:
+        if opts["init_frames"] is not None:
+            F0 = _init_frames(opts["init_frames"], mesh)
+        else:
+            s = opts["sh"]
+            F0 = sh_frame_field(mesh, boundary_weight=float(s["boundary_weight"]),
+                                n_smooth_iters=int(s["n_smooth_iters"]), feature_angle_deg=angle,
+                                mbo_steps=int(s["mbo_steps"]),
+                                mbo_tau=(float(s["mbo_tau_start"]), float(s["mbo_tau_end"])))
+        init_metrics = frame_metrics(F0, mesh, angle)
+    t_init = time.perf_counter() - t0
+
+    history: dict[str, list[float]] = {}
+    t_opt = t_polish = 0.0
+    start = steps = iterations = 0
+    stopped = False
+    polish_info = final_terms = None
+    if method == "sh":
+        F = F0
+        R = matched_connection(F, mesh.edges)
+    else:
+        # 2. model, loss, optimizer
+        constraint = BoundaryConstraint.from_mesh(mesh, angle)
+        loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
+                                 smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
+                                 align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]))
+        model = FrameFieldModel(mesh, F0, opts["formulation"], constraint).to(mesh.vertices.device)
+        steps = int(opts["steps"])
+        lb = opts["lbfgs"]
+        optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
+                                              opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
+        history = new_history(loss_fn.weights)
+        if state is not None:
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
+            if "rng" in state:
+                _set_rng_state(state["rng"])
+            start = int(state["step"])
+            history = {k: list(v) for k, v in state["history"].items()}
+            if start > steps:
+                raise ValueError(f"design(): the state is at step {start}, beyond steps={steps}")
+
+        def checkpoint(step: int) -> None:
+            on_checkpoint({
+                "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(), "rng": _rng_state(mesh.vertices.device),
+                "history": history, "init_frames": F0.detach().cpu(), "init_metrics": init_metrics,
+            })
+
+        bar = _progress_bar(progress, steps, start)
+
+        def on_step(step: int, record: dict) -> bool:
+            if on_checkpoint is not None and (step % checkpoint_every == 0 or step == steps):
+                checkpoint(step)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
+            return callback is not None and callback(step, record) is True
+
+        # 3. optimization
+        t0 = time.perf_counter()
+        if state is None and steps > 0 and on_checkpoint is not None:
+            checkpoint(0)
+        try:
+            optimize(model, loss_fn, optimizer, scheduler, steps, start=start, history=history, on_step=on_step)
+        finally:
+            if bar is not None:
+                bar.close()
+        t_opt = time.perf_counter() - t0
+        done = len(history["total"])  # steps completed, resumed ones included
+        stopped = done < steps
+
+        # 4. guarded polish
+        with torch.no_grad():
+            R, F = model()
+        if int(opts["polish"]["steps"]) > 0:
+            t0 = time.perf_counter()
+            p = opts["polish"]
+            F, polish_info = polish_frames(
+                mesh, F, int(p["steps"]), lr=float(p["lr"]), check_every=int(p["check_every"]),
+                feature_weight=float(opts["weights"]["feature"]),
+                max_singular_faces=int(init_metrics["n_singular_faces"]), angle_deg=angle,
+                align_eps=float(opts["align_eps"]))
+            if polish_info["accepted_step"] > 0:  # the connection that transports the polished frames
+                R = matched_connection(F, mesh.edges)
+            t_polish = time.perf_counter() - t0
+            polish_info["seconds"] = t_polish
+        with torch.no_grad():
+            final_terms = {k: float(v) for k, v in loss_fn(R, F).items()}
+        iterations = done - start
+
+    # 5. matchings, per-tet frames, metrics, invariants
+    F, R = F.detach(), R.detach()
+    matchings = octahedral.match_edges(F, mesh.edges)[0]
+    mask, _ = octahedral.singular_faces(F, mesh)
+    atol = None if opts["bianchi_atol"] is None else float(opts["bianchi_atol"])
+    metrics = {
+        "mesh": {"n_vertices": mesh.n_vertices, "n_edges": mesh.n_edges, "n_faces": mesh.n_faces,
+                 "n_tets": mesh.n_tets, "n_boundary_vertices": int(mesh.boundary_vertices.numel())},
+        "method": method,
+        "formulation": opts["formulation"] if method == "connection" else None,
+        "final": frame_metrics(F, mesh, angle),
+        "init": init_metrics,
+        "edge_classes": edge_class_breakdown(F, mesh, angle),
+        "polish": polish_info,
+        "final_loss_terms": final_terms,
+        "invariants": _invariants(R, mask, mesh, atol),
+    }
+    timings = {
+        "wall_s": time.perf_counter() - t_start,
+        "init_s": t_init,
+        "optimize_s": t_opt,
+        "polish_s": t_polish,
+        "iterations": iterations,
+        "total_steps": steps,
+        "s_per_iteration": t_opt / max(iterations, 1),
+        "stopped_early": stopped,
+    }
+    return FrameFieldResult(mesh=mesh, vertex_frames=F, tet_frames=tet_frames(F, mesh, matchings), edge_rot=R,
+                            matchings=matchings, singular_faces=mask, metrics=metrics, history=history,
+                            timings=timings)
