@@ -40,7 +40,6 @@ Usage::
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from pathlib import Path
 
@@ -52,31 +51,26 @@ from torchconn import io as tio
 from torchconn.dec import bianchi
 from torchconn.frames import export, octahedral
 from torchconn.frames.constraints import BoundaryConstraint
-from torchconn.frames.loss import ALIGN_KINDS, FrameFieldLoss
+from torchconn.frames.loss import FrameFieldLoss
 from torchconn.frames.metrics import METRIC_KEYS, edge_class_breakdown, frame_metrics
-from torchconn.frames.model import FORMULATIONS, FrameFieldModel, matched_connection
+from torchconn.frames.model import FrameFieldModel, matched_connection
 from torchconn.frames.polish import polish_frames
 from torchconn.frames.sh import sh_frame_field
-from torchconn.frames.solver import (LR_SCHEDULES, OPTIMIZERS, NonFiniteLossError, make_optimizer, new_history,
-                                     optimize)
+from torchconn.frames.solver import NonFiniteLossError, make_optimizer, new_history, optimize
 from torchconn.lie import so3
 from torchconn.mesh import MeshError
 from torchconn.tolerances import get_eps
 
-from . import frame_plots, io_utils
+from . import config_check, frame_plots, io_utils
 
-__all__ = ["train", "main", "load_config", "NonFiniteLossError", "CONFIG_DIR", "BUILTIN_MESHES"]
+__all__ = ["train", "main", "load_config", "NonFiniteLossError", "ConfigError", "CONFIG_DIR", "BUILTIN_MESHES"]
+
+ConfigError = config_check.ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 BUILTIN_MESHES = ("box", "ball", "cylinder", "torus")
-_CHOICES = {
-    "method": ("connection", "sh_baseline"),
-    "formulation": FORMULATIONS,
-    "optim": OPTIMIZERS,
-    "dtype": ("float32", "float64"),
-    "lr_schedule": LR_SCHEDULES,
-    "align_kind": ALIGN_KINDS,
-}
+CHECKPOINT_KEYS = ("step", "model", "optimizer", "scheduler", "rng", "history", "fingerprint", "init_frames",
+                   "init_metrics")
 
 
 # ----------------------------------------------------------------------------- config
@@ -99,24 +93,14 @@ def load_config(overrides: list[str] | None = None) -> DictConfig:
 
 
 def _validate(cfg) -> DictConfig:
-    """Merge ``cfg`` onto the schema in struct mode (unknown keys raise) and check the choices."""
+    """Merge ``cfg`` onto the defaults in struct mode (unknown keys raise ``ConfigKeyError``), then
+    check every value's type and range (:data:`training.config_check.TRAIN_FRAMES`, :class:`ConfigError`)."""
     schema = _schema()
     OmegaConf.set_struct(schema, True)
     user = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     user = OmegaConf.masked_copy(user, [k for k in user.keys() if k != "hydra"]) if "hydra" in user else user
     merged = OmegaConf.merge(schema, user)  # raises ConfigKeyError on unknown keys
-    for key, allowed in _CHOICES.items():
-        if merged[key] not in allowed:
-            raise ValueError(f"config {key}={merged[key]!r} is not one of {list(allowed)}")
-    if int(merged.steps) < 0:
-        raise ValueError(f"config steps must be >= 0, got {merged.steps}")
-    if not float(merged.lr) > 0:
-        raise ValueError(f"config lr must be > 0, got {merged.lr}")
-    if int(merged.checkpoint_every) < 1:
-        raise ValueError(f"config checkpoint_every must be >= 1, got {merged.checkpoint_every}")
-    for k, w in merged.weights.items():
-        if not (math.isfinite(float(w)) and float(w) >= 0):
-            raise ValueError(f"config weights.{k} must be finite and >= 0, got {w}")
+    config_check.check_config(merged, config_check.TRAIN_FRAMES, "configs/train_frames.yaml")
     return merged
 
 
@@ -208,6 +192,11 @@ def _invariants(R: torch.Tensor, F: torch.Tensor, mesh, atol, dtype) -> tuple[di
 
 def _save_outputs(out: Path, mesh, frames: torch.Tensor, sing_faces: torch.Tensor, history: dict,
                   metrics: dict) -> None:
+    with io_utils.staged_outputs(out) as stage:  # a failing writer leaves no partial output
+        _write_outputs(stage, mesh, frames, sing_faces, history, metrics)
+
+
+def _write_outputs(out: Path, mesh, frames, sing_faces, history, metrics) -> None:
     io_utils.atomic_savez(out / "frames.npz", vertices=mesh.vertices.detach().cpu().double().numpy(),
                           tets=mesh.tets.cpu().numpy().astype(np.int64),
                           frames=frames.detach().cpu().double().numpy(),
@@ -232,19 +221,22 @@ def train(cfg) -> dict:
         history, invariants, timings).
     """
     t_start = time.perf_counter()
-    cfg = _validate(cfg)
-    try:
-        out_dir_value = cfg.output_dir
-    except Exception as exc:  # unresolved ${hydra:...} outside Hydra
-        raise ValueError("output_dir must be set when train() runs outside Hydra") from exc
-    out = io_utils.check_output_dir(out_dir_value)
+    cfg = _validate(cfg)  # types and ranges of every key (ConfigError), before anything is created
+    out = io_utils.check_output_dir(cfg.output_dir)
+    with io_utils.lock_output_dir(out):  # one run per output_dir (OutputDirLockedError)
+        return _train(cfg, out, t_start)
+
+
+def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
+    """The body of :func:`train` on a checked ``cfg``, with ``out`` locked."""
     ckpt_path = out / "checkpoint.pt"
     if cfg.resume and not ckpt_path.is_file():
         raise FileNotFoundError(f"resume=true but there is no checkpoint at {str(ckpt_path)!r}")
     dtype = getattr(torch, cfg.dtype)
     device = torch.device(cfg.device)
-    if cfg.num_threads is not None:
-        torch.set_num_threads(int(cfg.num_threads))
+    threads = config_check.resolve_num_threads(cfg.num_threads)
+    if threads is not None:
+        torch.set_num_threads(threads)
     torch.manual_seed(int(cfg.seed))
     np.random.seed(int(cfg.seed))
 
@@ -252,10 +244,7 @@ def train(cfg) -> dict:
     fp = _fingerprint(cfg, mesh)
     ckpt = None
     if cfg.resume:
-        ckpt = io_utils.load_checkpoint(ckpt_path, map_location=device)
-        if ckpt.get("fingerprint") != fp:
-            raise ValueError(f"checkpoint {str(ckpt_path)!r} was written for another mesh/method/optimizer/"
-                             f"weights configuration; refusing to resume")
+        ckpt = io_utils.load_checkpoint(ckpt_path, map_location=device, fingerprint=fp, required=CHECKPOINT_KEYS)
 
     t0 = time.perf_counter()
     F0, init_metrics = _initial_frames(cfg, mesh, ckpt)
