@@ -147,7 +147,7 @@ DEMO: dict[str, Spec] = {
     "edge_length": _positive(),
     "seed": _int(0, 2**32 - 1),
     "dtype": _choice("float32", "float64"),
-    "scale": _float(0, lo_open=True, nullable=True),
+    "scale": _float(0, nullable=True),
     "device": Spec("device"),
 }
 
@@ -250,7 +250,8 @@ def check_config(cfg, schema: Mapping[str, Spec], source: str) -> None:
                 values[key] = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
             except Exception as exc:
                 raise ConfigError(f"config key {key!r} = {raw[key]!r} in {source} cannot be resolved here "
-                                  f"({type(exc).__name__}: {exc}); set it explicitly ({key}=...)") from exc
+                                  f"({type(exc).__name__}: {str(exc).splitlines()[0]}); set it explicitly "
+                                  f"({key}=...)") from exc
     else:
         values = _flatten(cfg)
     for key, v in values.items():
