@@ -268,8 +268,9 @@ def resolve_num_threads(value) -> int | None:
 
     ``"auto"``: the cores this process may run on (``os.sched_getaffinity``) minus the busy ones
     (the 1-minute load average, rounded), at least 1 and at most torch's default. A loaded machine
-    thus gets fewer threads: OpenMP threads that wait for a descheduled sibling made a job 12x
-    slower on a 2-core machine with one busy core (measurements: configs/train_frames.yaml).
+    thus gets fewer threads: threads that wait for a descheduled sibling made the default job 5 to
+    11 times slower with 2 threads than with 1 on a loaded 2-core machine (measurements: the
+    ``num_threads`` comment of configs/train_frames.yaml).
     """
     if value is None:
         return None

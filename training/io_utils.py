@@ -59,7 +59,7 @@ class OutputDirError(OSError):
 
 
 def check_output_dir(path) -> Path:
-    """Create ``path`` if needed and check that files can be created, written and replaced in it.
+    """Create ``path`` if needed and check that files can be created and written in it.
 
     Raises:
         OutputDirError: naming the path, when it is a file, cannot be created, or is not writable.
@@ -71,9 +71,10 @@ def check_output_dir(path) -> Path:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputDirError(f"cannot create output_dir {str(p)!r}: {exc.strerror or exc}") from exc
-    try:
-        atomic_write_bytes(p / ".write_test", b"ok")
-        (p / ".write_test").unlink()
+    try:  # a unique name: two runs checking one folder at once must not delete each other's probe
+        with tempfile.NamedTemporaryFile(dir=p, prefix=".write_test.") as f:
+            f.write(b"ok")
+            f.flush()
     except OSError as exc:
         raise OutputDirError(f"output_dir {str(p)!r} is not writable: {exc.strerror or exc}") from exc
     return p

@@ -26,9 +26,15 @@ Outputs in ``output_dir``: ``frames.npz`` (vertices, tets, frames, singular_face
 continues from the checkpoint to the same result as an uninterrupted run; a checkpoint of another
 configuration (mesh, method, optimizer, weights, ``steps``) is refused.
 
-Bad input fails before any optimization (unknown config keys or choices, an unwritable
-``output_dir``, an unreadable or invalid mesh: :class:`torchconn.mesh.MeshError`); a NaN/inf loss
-term stops the run with :class:`NonFiniteLossError` naming the term and the step.
+Bad input fails before any optimization: unknown config keys (``ConfigKeyError``), a value of the
+wrong type or out of range (:class:`ConfigError`, from the one typed schema
+:data:`training.config_check.TRAIN_FRAMES`; ``resume=no`` is refused, not truthy), an unwritable
+``output_dir`` or one in use by another run (:class:`~training.io_utils.OutputDirLockedError`), a
+corrupted or foreign checkpoint (:class:`~training.io_utils.CheckpointError`; checkpoints load with
+``weights_only=True``, so no code in the file runs), an unreadable or invalid mesh
+(:class:`torchconn.mesh.MeshError`). A NaN/inf loss term stops the run with
+:class:`NonFiniteLossError` naming the term and the step. The final outputs appear together or not
+at all (staged, ``metrics.json`` last); a failed run leaves only its last good checkpoint.
 
 Usage::
 
@@ -344,6 +350,7 @@ def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
             "iterations": steps - start,
             "total_steps": steps,
             "s_per_iteration": t_opt / max(steps - start, 1),
+            "num_threads": torch.get_num_threads(),  # after num_threads=auto was resolved
         },
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
