@@ -354,6 +354,6 @@ def test_cli_bad_value_exits_nonzero_naming_the_key(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     r = subprocess.run([sys.executable, "-m", "training.train_frames", "steps=1.5", f"output_dir={tmp_path / 'x'}",
                         f"hydra.run.dir={tmp_path / 'h'}"], cwd=ROOT, env=env, capture_output=True, text=True,
-                       timeout=120)
+                       timeout=120, check=False)
     assert r.returncode != 0 and "ConfigError" in r.stderr and "'steps' = 1.5" in r.stderr
     assert not (tmp_path / "x").exists()

@@ -171,27 +171,28 @@ def _type_name(v) -> str:
     return "null" if v is None else type(v).__name__
 
 
-def check_device(value, key: str = "device") -> torch.device:
+def check_device(value, key: str = "device", source: str = "the config") -> torch.device:
     """``torch.device(value)`` if that device exists here, else :class:`ConfigError` naming ``key``."""
     try:
         dev = torch.device(value)
     except (RuntimeError, TypeError, ValueError) as exc:
-        raise ConfigError(f"config key {key!r}: {value!r} is not a torch device ({exc}); use e.g. device=cpu") from exc
+        raise ConfigError(f"config key {key!r} in {source}: {value!r} is not a torch device ({exc}); use e.g. "
+                          f"{key}=cpu") from exc
     if dev.type == "cpu":
         return dev
     backend = getattr(torch, dev.type, None) if dev.type != "mps" else torch.backends.mps
     available = bool(backend is not None and hasattr(backend, "is_available") and backend.is_available())
     if not available:
-        raise ConfigError(f"config key {key!r}: device {value!r} is not available in this torch build/machine "
+        raise ConfigError(f"config key {key!r} in {source}: device {value!r} is not available in this torch build/machine "
                           f"(torch {torch.__version__}); use {key}=cpu")
     count = getattr(backend, "device_count", lambda: 1)()
     if dev.index is not None and dev.index >= count:
-        raise ConfigError(f"config key {key!r}: device {value!r} does not exist ({count} {dev.type} device(s)); "
+        raise ConfigError(f"config key {key!r} in {source}: device {value!r} does not exist ({count} {dev.type} device(s)); "
                           f"use an index < {count}")
     return dev
 
 
-def _check_value(key: str, v, spec: Spec) -> str | None:
+def _check_value(key: str, v, spec: Spec, source: str) -> str | None:
     """``None`` if ``v`` satisfies ``spec``, else the reason."""
     if v is None:
         return None if spec.nullable else "null is not allowed"
@@ -217,7 +218,7 @@ def _check_value(key: str, v, spec: Spec) -> str | None:
         if not isinstance(v, (str, os.PathLike)) or not str(v).strip():
             return "not a non-empty string"
         if kind == "device":
-            check_device(str(v), key)
+            check_device(str(v), key, source)
         return None
     x = float(v)
     if spec.lo is not None and (x < spec.lo or (spec.lo_open and x == spec.lo)):
@@ -257,7 +258,7 @@ def check_config(cfg, schema: Mapping[str, Spec], source: str) -> None:
     for key, v in values.items():
         if key not in schema:
             raise ConfigError(f"config key {key!r} is not a key of {source}; allowed keys: {sorted(schema)}")
-        reason = _check_value(key, v, schema[key])
+        reason = _check_value(key, v, schema[key], source)
         if reason is not None:
             raise ConfigError(f"config key {key!r} = {v!r} ({_type_name(v)}) in {source} is {reason}; allowed: "
                               f"{schema[key].describe()}. Fix it in the file or override it: {key}=...")
