@@ -314,6 +314,20 @@ def test_lock_of_another_process_then_stale_after_it_dies(tmp_path):
     assert not lock.exists()
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="fcntl locks")
+def test_file_system_without_locks_is_named(tmp_path, monkeypatch):
+    import errno
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.raises(io_utils.OutputDirError, match=rf"{tmp_path}.*cannot be locked.*local file system"):
+        with io_utils.lock_output_dir(tmp_path):
+            pass
+
+
 # ----------------------------------------------------------------------------- no partial output
 def test_failing_writer_leaves_no_partial_output(tmp_path, monkeypatch):
     """A run stopped while writing its outputs adds none of them (metrics.json comes last)."""

@@ -129,12 +129,16 @@ def _acquire_flock(lock: Path) -> int:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except BlockingIOError:
             os.close(fd)
             holder = _parse_holder(lock.read_bytes()) if lock.exists() else {}
             raise OutputDirLockedError(
                 f"output_dir {str(lock.parent)!r} is in use by another run ({_describe_holder(holder)}); "
                 f"wait for it to finish or choose another output_dir=...") from None
+        except OSError as exc:  # e.g. ENOLCK: a network file system without locks
+            os.close(fd)
+            raise OutputDirError(f"output_dir {str(lock.parent)!r} cannot be locked ({exc.strerror or exc}); "
+                                 f"use an output_dir on a local file system") from exc
         try:  # the previous holder may have unlinked the file between our open() and flock()
             same = os.path.samestat(os.fstat(fd), os.stat(lock))
         except FileNotFoundError:
