@@ -68,6 +68,9 @@ def test_cli_end_to_end(tmp_path):
     assert np.allclose(vtu.point_data["axis1"], F[:, :, 1])
     ck = io_utils.load_checkpoint(out / "checkpoint.pt")
     assert ck["step"] == 3
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 3  # no pickled objects
+    # the lock is released and no staging folder or temporary file is left
+    assert not [p.name for p in out.iterdir() if p.name.startswith((".lock", ".staging")) or p.name.endswith(".tmp")]
 
 
 def test_loss_decreases_and_field_improves(tmp_path):

@@ -18,6 +18,8 @@ from torchconn import io
 from torchconn.dec.connection import Connection
 from torchconn.nn import AveragedCovariantD, BianchiCheck, ConnectionField, Curvature, Torsion
 
+from .config_check import DEMO, check_config
+
 BUILTINS = {"ball": io.ball, "box": None, "cylinder": io.cylinder, "torus": io.torus}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -38,6 +40,7 @@ def load(cfg: DictConfig):
 def run(cfg: DictConfig) -> dict:
     """Build everything, print a report, return the figures (a plain function for tests)."""
     t0 = time.perf_counter()
+    check_config(cfg, DEMO, "configs/demo.yaml")  # typed, range-checked keys (ConfigError)
     mesh = load(cfg)
     gen = torch.Generator().manual_seed(int(cfg.seed))
     conn = Connection.random_on_mesh(mesh, generator=gen, scale=cfg.scale)

@@ -29,9 +29,15 @@ Outputs in ``output_dir``: ``frames.npz`` (vertices, tets, frames, singular_face
 continues from the checkpoint to the same result as an uninterrupted run; a checkpoint of another
 configuration (mesh, method, optimizer, weights, ``steps``) is refused.
 
-Bad input fails before any optimization (unknown config keys or choices, an unwritable
-``output_dir``, an unreadable or invalid mesh: :class:`torchconn.mesh.MeshError`); a NaN/inf loss
-term stops the run with :class:`NonFiniteLossError` naming the term and the step.
+Bad input fails before any optimization: unknown config keys (``ConfigKeyError``), a value of the
+wrong type or out of range (:class:`ConfigError`, from the one typed schema
+:data:`training.config_check.TRAIN_FRAMES`; ``resume=no`` is refused, not truthy), an unwritable
+``output_dir`` or one in use by another run (:class:`~training.io_utils.OutputDirLockedError`), a
+corrupted or foreign checkpoint (:class:`~training.io_utils.CheckpointError`; checkpoints load with
+``weights_only=True``, so no code in the file runs), an unreadable or invalid mesh
+(:class:`torchconn.mesh.MeshError`). A NaN/inf loss term stops the run with
+:class:`NonFiniteLossError` naming the term and the step. The final outputs appear together or not
+at all (staged, ``metrics.json`` last); a failed run leaves only its last good checkpoint.
 
 Usage::
 
@@ -43,7 +49,6 @@ Usage::
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from pathlib import Path
 
@@ -55,26 +60,20 @@ from torchconn import io as tio
 from torchconn.dec import bianchi
 from torchconn.frames import export
 from torchconn.frames.design import FrameFieldResult, design, method_options
-from torchconn.frames.loss import ALIGN_KINDS
 from torchconn.frames.metrics import METRIC_KEYS
-from torchconn.frames.model import FORMULATIONS
-from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS, NonFiniteLossError
+from torchconn.frames.solver import NonFiniteLossError
 from torchconn.mesh import MeshError
 
-from . import frame_plots, io_utils
+from . import config_check, frame_plots, io_utils
 
-__all__ = ["train", "main", "load_config", "NonFiniteLossError", "CONFIG_DIR", "BUILTIN_MESHES"]
+__all__ = ["train", "main", "load_config", "NonFiniteLossError", "ConfigError", "CONFIG_DIR", "BUILTIN_MESHES"]
+
+ConfigError = config_check.ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 BUILTIN_MESHES = ("box", "ball", "cylinder", "torus")
-_CHOICES = {
-    "method": ("connection", "sh_baseline"),
-    "formulation": FORMULATIONS,
-    "optim": OPTIMIZERS,
-    "dtype": ("float32", "float64"),
-    "lr_schedule": LR_SCHEDULES,
-    "align_kind": ALIGN_KINDS,
-}
+CHECKPOINT_KEYS = ("step", "model", "optimizer", "scheduler", "rng", "history", "fingerprint", "init_frames",
+                   "init_metrics")
 
 
 # ----------------------------------------------------------------------------- config
@@ -97,24 +96,14 @@ def load_config(overrides: list[str] | None = None) -> DictConfig:
 
 
 def _validate(cfg) -> DictConfig:
-    """Merge ``cfg`` onto the schema in struct mode (unknown keys raise) and check the choices."""
+    """Merge ``cfg`` onto the defaults in struct mode (unknown keys raise ``ConfigKeyError``), then
+    check every value's type and range (:data:`training.config_check.TRAIN_FRAMES`, :class:`ConfigError`)."""
     schema = _schema()
     OmegaConf.set_struct(schema, True)
     user = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     user = OmegaConf.masked_copy(user, [k for k in user.keys() if k != "hydra"]) if "hydra" in user else user
     merged = OmegaConf.merge(schema, user)  # raises ConfigKeyError on unknown keys
-    for key, allowed in _CHOICES.items():
-        if merged[key] not in allowed:
-            raise ValueError(f"config {key}={merged[key]!r} is not one of {list(allowed)}")
-    if int(merged.steps) < 0:
-        raise ValueError(f"config steps must be >= 0, got {merged.steps}")
-    if not float(merged.lr) > 0:
-        raise ValueError(f"config lr must be > 0, got {merged.lr}")
-    if int(merged.checkpoint_every) < 1:
-        raise ValueError(f"config checkpoint_every must be >= 1, got {merged.checkpoint_every}")
-    for k, w in merged.weights.items():
-        if not (math.isfinite(float(w)) and float(w) >= 0):
-            raise ValueError(f"config weights.{k} must be finite and >= 0, got {w}")
+    config_check.check_config(merged, config_check.TRAIN_FRAMES, "configs/train_frames.yaml")
     return merged
 
 
@@ -152,6 +141,11 @@ def _fingerprint(cfg, mesh) -> str:
 
 
 def _save_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
+    with io_utils.staged_outputs(out) as stage:  # a failing writer leaves no partial output
+        _write_outputs(stage, result, metrics)
+
+
+def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
     mesh, frames = result.mesh, result.vertex_frames
     sing_faces = mesh.faces[result.singular_faces]
     io_utils.atomic_savez(out / "frames.npz", vertices=mesh.vertices.detach().cpu().double().numpy(),
@@ -188,29 +182,29 @@ def train(cfg) -> dict:
         history, invariants, timings).
     """
     t_start = time.perf_counter()
-    cfg = _validate(cfg)
-    try:
-        out_dir_value = cfg.output_dir
-    except Exception as exc:  # unresolved ${hydra:...} outside Hydra
-        raise ValueError("output_dir must be set when train() runs outside Hydra") from exc
-    out = io_utils.check_output_dir(out_dir_value)
+    cfg = _validate(cfg)  # types and ranges of every key (ConfigError), before anything is created
+    out = io_utils.check_output_dir(cfg.output_dir)
+    with io_utils.lock_output_dir(out):  # one run per output_dir (OutputDirLockedError)
+        return _train(cfg, out, t_start)
+
+
+def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
+    """The body of :func:`train` on a checked ``cfg``, with ``out`` locked."""
     ckpt_path = out / "checkpoint.pt"
     if cfg.resume and not ckpt_path.is_file():
         raise FileNotFoundError(f"resume=true but there is no checkpoint at {str(ckpt_path)!r}")
     dtype = getattr(torch, cfg.dtype)
     device = torch.device(cfg.device)
-    if cfg.num_threads is not None:
-        torch.set_num_threads(int(cfg.num_threads))
+    threads = config_check.resolve_num_threads(cfg.num_threads)
+    if threads is not None:
+        torch.set_num_threads(threads)
     np.random.seed(int(cfg.seed))  # design() seeds torch
 
     mesh = _load_mesh(cfg, dtype, device)
     fp = _fingerprint(cfg, mesh)
     ckpt = None
     if cfg.resume:
-        ckpt = io_utils.load_checkpoint(ckpt_path, map_location=device)
-        if ckpt.get("fingerprint") != fp:
-            raise ValueError(f"checkpoint {str(ckpt_path)!r} was written for another mesh/method/optimizer/"
-                             f"weights configuration; refusing to resume")
+        ckpt = io_utils.load_checkpoint(ckpt_path, map_location=device, fingerprint=fp, required=CHECKPOINT_KEYS)
     config = OmegaConf.to_container(cfg, resolve=True)
 
     def on_checkpoint(state: dict) -> None:
@@ -226,7 +220,8 @@ def train(cfg) -> dict:
         "mesh": {"source": str(cfg.mesh), **m["mesh"]},
         "method": cfg.method,
         "loss_history": result.history,
-        "timings": {**result.timings, "wall_s": time.perf_counter() - t_start},
+        "timings": {**result.timings, "wall_s": time.perf_counter() - t_start,
+                    "num_threads": torch.get_num_threads()},  # after num_threads=auto was resolved
         "config": config,
     }
     assert set(METRIC_KEYS) <= set(m["final"])
