@@ -27,7 +27,10 @@ Conventions
   on the traversal direction (reversing the loop flips both ``H`` and ``n``). Example
   (``tests/test_singular.py``): ``F = Rz(phi/4)`` with ``phi`` the angle around the z-axis gives
   one valence-3 curve along it, ``Rz(-phi/4)`` a valence-5 curve. A half turn's sign is lost
-  (180° = -180°): its valence (2 or 6) is reported as ``0``.
+  (180° = -180°): its valence (2 or 6) is reported as ``0``. (A smooth ±180° field is never
+  resolved on a triangle anyway: the three angular gaps around the curve average 120°, frame
+  steps of 60° > 45° that the matching takes for the next quarter turn, so half-turn faces come
+  from rough fields.)
 * **Chaining** (one-time setup on the singular faces only): a tet with exactly two singular faces
   links them; a curve ends at a boundary singular face (``"boundary"``), at a junction tet with
   three or four singular faces (``"junction"``), or inside a tet with exactly one singular face
@@ -188,18 +191,6 @@ class SingularGraph:
         }
 
 
-def _curve_label(types: np.ndarray, valences: np.ndarray) -> str:
-    if (types == 1).all() and (valences == 3).all():
-        return "valence3"
-    if (types == 1).all() and (valences == 5).all():
-        return "valence5"
-    if (types == 2).all():
-        return "half"
-    if (types == 3).all():
-        return "complex"
-    return "mixed"
-
-
 def _chain(mask: np.ndarray, tet_faces: np.ndarray, face_tets: np.ndarray):
     """Order the singular faces into chains (numpy; loops over singular faces only).
 
@@ -290,76 +281,78 @@ def singular_graph(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = 
 
     # --- chaining (numpy, one-time, over the singular faces)
     count, ft, chains = _chain(mask_t.cpu().numpy(), mesh.tet_faces.cpu().numpy(), mesh.face_tets.cpu().numpy())
-    fb = mesh.face_barycenters.to(dt)
-    tb = mesh.tet_barycenters.to(dt)
     S = int(S_idx.numel())
+    s_np = S_idx.cpu().numpy()
+    C = len(chains)
     face_curve = np.full(S, -1, np.int64)
-    pt_rows, curve_meta, pt_face = [], [], []
+    row_is_face, row_id, n_rows, ends_all, closed_all = [], [], np.zeros(C, np.int64), [], np.zeros(C, bool)
+    t_from, t_to = np.zeros(S, np.int64), np.zeros(S, np.int64)
+    offset = 0
+
+    def end_of(e):
+        tet = int(ft[e[0], e[1]])
+        return ("boundary" if tet < 0 else "junction" if count[tet] >= 3 else "inside"), tet
+
     for cid, (seq, links, closed, e0, e1) in enumerate(chains):
         face_curve[seq] = cid
-        rows, fpos = [], []  # rows: ("f", position) or ("t", tet)
-        ends = []
-        for e in (e0,) if e0 else ():
-            tet = int(ft[e[0], e[1]])
-            kind = "boundary" if tet < 0 else ("junction" if count[tet] >= 3 else "inside")
-            ends.append((kind, tet))
-            if tet >= 0:
-                rows.append(("t", tet))
-        for i, p in enumerate(seq):
-            fpos.append(len(rows))
-            rows.append(("f", p))
-            if i < len(links):
-                rows.append(("t", links[i]))
+        ends = (end_of(e0), end_of(e1)) if not closed else ()
+        k = len(seq)
+        # rows: [end tet], f0, t0, f1, ..., f(k-1), [t(k-1), f0 if closed], [end tet]
+        kinds = np.zeros(2 * k - 1 + 2 * closed, bool)
+        kinds[0::2] = True
+        ids = np.empty(kinds.size, np.int64)
+        ids[0:2 * k:2] = s_np[seq]
+        ids[1:2 * k - 1:2] = links[:k - 1]
         if closed:
-            rows.append(("f", seq[0]))
-        if e1:
-            tet = int(ft[e1[0], e1[1]])
-            kind = "boundary" if tet < 0 else ("junction" if count[tet] >= 3 else "inside")
-            ends.append((kind, tet))
-            if tet >= 0:
-                rows.append(("t", tet))
-        pt_rows.append(rows)
-        pt_face.append(fpos)
-        curve_meta.append((seq, closed, tuple(ends)))
-
-    sidx_cpu = S_idx.cpu()
-    points, tangents_from, tangents_to = [], np.zeros(S, np.int64), np.zeros(S, np.int64)
-    offset = 0
-    for rows, fpos, (seq, closed, _) in zip(pt_rows, pt_face, curve_meta):
-        m = len(rows)
-        for p, r in zip(seq, fpos):
-            lo, hi = r - 2 * tangent_window, r + 2 * tangent_window
-            if closed:  # the last row repeats the first face: wrap over m - 1 distinct rows
-                lo, hi = lo % (m - 1), hi % (m - 1)
-            else:  # near an end, slide the window inward so the chord keeps its length
-                lo, hi = lo - max(hi - (m - 1), 0), hi - min(lo, 0)
-                lo, hi = max(lo, 0), min(hi, m - 1)
-            tangents_from[p] = offset + lo
-            tangents_to[p] = offset + hi
+            ids[2 * k - 1], ids[2 * k] = links[k - 1], s_np[seq[0]]
+        head = [t for kind, t in ends[:1] if t >= 0]
+        tail = [t for kind, t in ends[1:] if t >= 0]
+        kinds = np.concatenate([np.zeros(len(head), bool), kinds, np.zeros(len(tail), bool)])
+        ids = np.concatenate([np.asarray(head, np.int64), ids, np.asarray(tail, np.int64)])
+        m = ids.size
+        r = len(head) + 2 * np.arange(k)  # row of each face of the chain
+        lo, hi = r - 2 * tangent_window, r + 2 * tangent_window
+        if closed:  # the last row repeats the first face: wrap over m - 1 distinct rows
+            lo, hi = lo % (m - 1), hi % (m - 1)
+        else:  # near an end, slide the window inward so the chord keeps its length
+            lo, hi = lo - np.maximum(hi - (m - 1), 0), hi - np.minimum(lo, 0)
+            lo, hi = np.maximum(lo, 0), np.minimum(hi, m - 1)
+        t_from[seq], t_to[seq] = offset + lo, offset + hi
+        row_is_face.append(kinds)
+        row_id.append(ids)
+        n_rows[cid], closed_all[cid] = m, closed
+        ends_all.append(ends)
         offset += m
-        points.append(rows)
-    flat = [r for rows in points for r in rows]
-    kinds = torch.tensor([r[0] == "f" for r in flat], dtype=torch.bool)
-    ids = torch.tensor([int(sidx_cpu[r[1]]) if r[0] == "f" else r[1] for r in flat], dtype=torch.long)
-    P = torch.where(kinds.to(dev)[:, None], fb[ids.clamp(max=fb.shape[0] - 1).to(dev)],
-                    tb[ids.clamp(max=tb.shape[0] - 1).to(dev)]) if flat else torch.zeros(0, 3, dtype=dt, device=dev)
-    tangent = P[torch.as_tensor(tangents_to, device=dev)] - P[torch.as_tensor(tangents_from, device=dev)] \
-        if S else torch.zeros(0, 3, dtype=dt, device=dev)
+
+    fb = mesh.face_barycenters.to(dt)
+    tb = mesh.tet_barycenters.to(dt)
+    if C:
+        kinds_t = torch.as_tensor(np.concatenate(row_is_face), device=dev)
+        ids_t = torch.as_tensor(np.concatenate(row_id), device=dev)
+        P = torch.where(kinds_t[:, None], fb[ids_t.clamp(max=fb.shape[0] - 1)], tb[ids_t.clamp(max=tb.shape[0] - 1)])
+        tangent = P[torch.as_tensor(t_to, device=dev)] - P[torch.as_tensor(t_from, device=dev)]
+    else:
+        P, tangent = torch.zeros(0, 3, dtype=dt, device=dev), torch.zeros(0, 3, dtype=dt, device=dev)
     dom = (Fa * tangent.unsqueeze(-1)).sum(-2).abs().argmax(-1)  # |F_a e_j . t|
     valid = (typ == 1) & (dom == axis)
 
+    # --- per-curve statistics by bincount over face_curve
     typ_np, val_np, valid_np = typ.cpu().numpy(), valence.cpu().numpy(), valid.cpu().numpy()
-    curves, start = [], 0
-    for rows, (seq, closed, ends) in zip(points, curve_meta):
-        sq = np.asarray(seq)
-        curves.append(SingularCurve(
-            faces=S_idx[torch.as_tensor(sq, device=dev)], points=P[start:start + len(rows)],
-            label=_curve_label(typ_np[sq], val_np[sq]), closed=closed, ends=ends,
-            n_valid=int(valid_np[sq].sum()), n_quarter=int((typ_np[sq] == 1).sum())))
-        start += len(rows)
+    nf = np.bincount(face_curve, minlength=C)
+    per = lambda x: np.bincount(face_curve, weights=x, minlength=C).astype(np.int64)  # noqa: E731
+    nq, nv = per(typ_np == 1), per(valid_np)
+    n3, n5 = per((typ_np == 1) & (val_np == 3)), per((typ_np == 1) & (val_np == 5))
+    nh, nc = per(typ_np == 2), per(typ_np == 3)
+    label_idx = np.select([n3 == nf, n5 == nf, nh == nf, nc == nf], [0, 1, 2, 3], 4)
+    order = torch.as_tensor(np.concatenate([c[0] for c in chains]) if C else np.zeros(0, np.int64), device=dev)
+    curve_faces = torch.split(S_idx[order], nf.tolist())
+    curve_points = torch.split(P, n_rows.tolist())
+    curves = [SingularCurve(faces=curve_faces[i], points=curve_points[i], label=CURVE_TYPES[label_idx[i]],
+                            closed=bool(closed_all[i]), ends=ends_all[i], n_valid=int(nv[i]), n_quarter=int(nq[i]))
+              for i in range(C)]
     junctions = {}
-    for cid, c in enumerate(curves):
-        for kind, tet in c.ends:
+    for cid, ends in enumerate(ends_all):
+        for kind, tet in ends:
             if kind == "junction":
                 junctions.setdefault(tet, []).append(cid)
     jlist = [{"tet": t, "point": tb[t], "curves": cs, "labels": [curves[c].label for c in cs]}
