@@ -154,9 +154,13 @@ def test_matchings_may_be_given_as_elements_or_indices():
         singular_graph(F, m, tangent_window=0)
 
 
+def _smooth_rotation(x):
+    """A smooth, slowly varying, non-integrable field at points ``x (..., 3)``."""
+    return so3.exp(torch.stack([0.4 * x[..., 1], 0.3 * x[..., 2], 0.5 * x[..., 0]], -1))
+
+
 def _smooth_field(mesh):
-    x = mesh.vertices
-    return so3.exp(torch.stack([0.4 * x[:, 1], 0.3 * x[:, 2], 0.5 * x[:, 0]], 1))
+    return _smooth_rotation(mesh.vertices)
 
 
 def test_curl_is_first_order_for_a_smooth_field():
@@ -167,6 +171,23 @@ def test_curl_is_first_order_for_a_smooth_field():
     assert 1.8 < ratio < 2.2, ratio
     assert 1.7 < cm[0]["curl_p95"] / cm[1]["curl_p95"] < 2.3
     assert cm[0]["curl_mean"] > 1e-3  # the field is not integrable: the measure sees it
+
+
+def test_closure_is_the_curl_flux_by_stokes():
+    """``c_k = oint a_k . dx = area (curl a_k) . n`` for a slowly varying field (all matchings I)."""
+    errs = []
+    for n in (4, 8):
+        m = io.box(n)
+        c = face_closure(_smooth_field(m), m)
+        X = m.vertices[m.faces]
+        area_n = torch.linalg.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], dim=-1) / 2  # loop a -> b -> c
+        J = torch.func.vmap(torch.func.jacrev(_smooth_rotation))(X.mean(1))
+        # J[f, i, k, j] = d a_k,i / d x_j with a_k = F[:, k]; (curl a_k)_i = eps_ijl d_j a_k,l
+        curl = torch.stack([J[:, 2, :, 1] - J[:, 1, :, 2], J[:, 0, :, 2] - J[:, 2, :, 0],
+                            J[:, 1, :, 0] - J[:, 0, :, 1]], 1)
+        expect = (curl * area_n[:, :, None]).sum(1)  # (F, k)
+        errs.append(float((c - expect).norm(dim=1).max() / expect.norm(dim=1).max()))
+    assert errs[0] < 0.03 and 1.7 < errs[0] / errs[1] < 2.3, errs  # trapezoid + centroid: O(h) relative
 
 
 def test_metrics_dtype_and_keys():
@@ -200,6 +221,21 @@ def _check_graph_structure(g, m):
     for j in g.junctions:
         assert int(count[j["tet"]]) == len(j["curves"]) >= 3
         assert j["labels"] == [g.curves[c].label for c in j["curves"]]
+
+
+def test_curves_of_a_rough_field_form_a_graph(gen):
+    """Many curves and junctions: chains, ends and junction lists are consistent; the polyline
+    alternates face and tet barycenters."""
+    m = io.box(3)
+    F = so3.exp(2.0 * torch.randn(m.vertices.shape[0], 3, generator=gen, dtype=torch.float64))
+    g = singular_graph(F, m)
+    assert len(g.curves) > 10 and len(g.junctions) > 3
+    _check_graph_structure(g, m)
+    assert g.counts()["n_curves_ending_inside"] == 0 == g.n_tets_one_singular_face
+    for cid, c in enumerate(g.curves):
+        assert (g.face_curve[torch.searchsorted(g.face_index, c.faces)] == cid).all()
+        inner = c.points[(1 if c.ends and c.ends[0][1] >= 0 else 0)::2][: c.faces.numel()]
+        assert torch.equal(inner, m.face_barycenters[c.faces])
 
 
 def test_curves_on_the_shared_sphere_are_closed_or_end_on_boundary_or_junctions():

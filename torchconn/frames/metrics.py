@@ -30,9 +30,11 @@ coordinates):
   vector ``x_j - x_i`` of the loop is expressed in the average of its endpoints' matched frames,
   and the closure is ``c = sum_(i->j) ((M_i + M_j)/2)^T (x_j - x_i)`` (frame-``a`` coordinates).
   ``curl_mean`` and ``curl_p95`` are the mean and 95th percentile of ``|c| / perimeter`` over the
-  interior faces (singular faces included). ``c = 0`` for a constant field (to round-off); for
-  a smooth field ``|c| ~ |curl(F^T dx)| area``, so the measure is O(h) (O(h^2) for an integrable
-  field, the trapezoid rule's error); it is invariant under ``F_i -> F_i h_i``, ``h_i in O``.
+  interior faces (singular faces included). ``c = 0`` for a constant field (to round-off). For a
+  smooth field with matchings ``I`` on the face, Stokes gives ``c_k = area (curl a_k) . n_hat +
+  O(h^3)`` with ``a_k = F e_k`` and ``n_hat`` the unit normal of the loop, so the measure is
+  ``O(h)``, proportional to the field's curl (an orthonormal frame field is integrable only where
+  it is locally constant). It is invariant under ``F_i -> F_i h_i``, ``h_i in O``.
 
 The boundary sets (feature vertices, aligned vertices and their normals, feature pairs) come from
 the mesh's :class:`~torchconn.frames.constraints.BoundaryConstraint`.
