@@ -19,7 +19,12 @@ from torchconn import io, so3
 from torchconn.frames import octahedral
 from torchconn.frames.export import read_singular_curves_vtk, write_singular_curves_vtk
 from torchconn.frames.metrics import METRIC_KEYS, face_closure, frame_metrics
-from torchconn.frames.singular import CURVE_TYPES, FACE_TYPES, classify_holonomy, singular_graph
+from torchconn.frames.singular import (
+    CURVE_TYPES,
+    FACE_TYPES,
+    classify_holonomy,
+    singular_graph,
+)
 from torchconn.mesh import TetMesh
 
 

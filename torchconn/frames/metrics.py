@@ -51,8 +51,8 @@ import torch
 
 from ..lie import so3
 from . import octahedral
-from .singular import edge_matchings, face_holonomy_from_matchings, singular_graph
 from .constraints import BoundaryConstraint, _require, feature_edges, feature_vertices
+from .singular import edge_matchings, face_holonomy_from_matchings, singular_graph
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
            "face_closure", "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
