@@ -1,6 +1,6 @@
 """Figures of a ``train_frames`` run: the loss history and the singular curves (matplotlib, Agg).
 
-Both write a PNG atomically (:func:`training.io_utils.atomic_write`); matplotlib is imported on
+Each writes a PNG atomically (:func:`training.io_utils.atomic_write`); matplotlib is imported on
 call, so importing this module does not need it.
 """
 from __future__ import annotations
@@ -8,11 +8,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from . import io_utils
 
-__all__ = ["plot_loss", "plot_singularities"]
+__all__ = ["plot_loss", "plot_singularities", "plot_singular_graph", "CURVE_COLORS"]
+
+CURVE_COLORS = {"valence3": "tab:blue", "valence5": "tab:red", "half": "tab:green",
+                "complex": "black", "mixed": "tab:purple"}
+"""Colour of a singular curve by its label (:data:`torchconn.frames.singular.CURVE_TYPES`)."""
 
 
 def plot_loss(path: Path, history: dict) -> None:
@@ -39,21 +42,53 @@ def plot_loss(path: Path, history: dict) -> None:
     plt.close(fig)
 
 
-def plot_singularities(path: Path, mesh, singular_faces: torch.Tensor) -> None:
-    """Boundary vertices (points) and singular curves: for every singular face ``(S, 3)`` (vertex
-    indices) the dual segments from the barycenters of its tets through the face barycenter."""
+def _boundary_axes(mesh):
+    """A 3D axes with the boundary surface drawn translucent and equal axis ranges."""
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    P = mesh.vertices.detach().cpu().double().numpy()
+    fig = plt.figure(figsize=(6.5, 6))
+    ax = fig.add_subplot(projection="3d")
+    tri = P[mesh.boundary_faces.cpu().numpy()]
+    ax.add_collection3d(Poly3DCollection(tri, facecolors=(0.6, 0.6, 0.65, 0.06),
+                                         edgecolors=(0.4, 0.4, 0.45, 0.05), linewidths=0.3))
+    lo, hi = P.min(0), P.max(0)
+    c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    return fig, ax
+
+
+def _save(fig, path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    io_utils.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+
+
+def plot_singularities(path: Path, mesh, singular) -> None:
+    """``singularities.png``: the boundary drawn translucent and the singular curves.
+
+    ``singular`` is either a :class:`~torchconn.frames.singular.SingularGraph` (curves coloured
+    by type, :func:`plot_singular_graph`) or the singular faces ``(S, 3)`` (vertex indices), drawn
+    as the dual segments from the barycenters of their tets through the face barycenter.
+    """
+    from torchconn.frames.singular import SingularGraph
+
+    if isinstance(singular, SingularGraph):
+        plot_singular_graph(path, mesh, singular)
+        return
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
     P = mesh.vertices.detach().cpu().double().numpy()
-    bv = mesh.boundary_vertices.cpu().numpy()
-    fig = plt.figure(figsize=(6, 6))
-    ax = fig.add_subplot(projection="3d")
-    ax.scatter(P[bv, 0], P[bv, 1], P[bv, 2], s=2, c="0.45", alpha=0.5, linewidths=0)
-    S = singular_faces.cpu().numpy().reshape(-1, 3)
+    fig, ax = _boundary_axes(mesh)
+    S = singular.cpu().numpy().reshape(-1, 3)
     if S.shape[0]:
         faces = mesh.faces.cpu().numpy()
         key = lambda a: (a[:, 0] * P.shape[0] + a[:, 1]) * P.shape[0] + a[:, 2]  # noqa: E731
@@ -65,11 +100,40 @@ def plot_singularities(path: Path, mesh, singular_faces: torch.Tensor) -> None:
         segs = np.concatenate(segs, 0)
         ax.add_collection3d(Line3DCollection(segs, colors="r", linewidths=1.5))
     ax.set_title(f"singular curves ({S.shape[0]} singular faces)")
-    lo, hi = P.min(0), P.max(0)
-    c, r = (lo + hi) / 2, (hi - lo).max() / 2
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
-    fig.tight_layout()
-    io_utils.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
+    _save(fig, path)
+
+
+def plot_singular_graph(path: Path, mesh, graph) -> None:
+    """The singular graph over the translucent boundary: each curve a polyline coloured by its
+    label (:data:`CURVE_COLORS`: valence 3 blue, valence 5 red, half turn green, complex black,
+    mixed purple), zipper faces (quarter turns whose axis is not tangent-dominant) as orange dots,
+    junctions as black dots; the title names the counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    fig, ax = _boundary_axes(mesh)
+    for label, color in CURVE_COLORS.items():
+        segs = [np.stack([c.points[:-1].detach().cpu().double().numpy(),
+                          c.points[1:].detach().cpu().double().numpy()], 1)
+                for c in graph.curves if c.label == label and c.points.shape[0] > 1]
+        if segs:
+            n = len(segs)
+            ax.add_collection3d(Line3DCollection(np.concatenate(segs), colors=color, linewidths=1.8,
+                                                 label=f"{label} ({n} curve{'s' * (n > 1)})"))
+    fb = mesh.face_barycenters.detach().cpu().double().numpy()
+    zip_faces = graph.face_index[(graph.face_type == 1) & ~graph.face_valid].cpu().numpy()
+    if zip_faces.size:
+        z = fb[zip_faces]
+        ax.scatter(z[:, 0], z[:, 1], z[:, 2], s=10, c="tab:orange", label=f"zipper faces ({z.shape[0]})")
+    if graph.junctions:
+        J = np.stack([j["point"].detach().cpu().double().numpy() for j in graph.junctions])
+        ax.scatter(J[:, 0], J[:, 1], J[:, 2], s=18, c="k", marker="o", label=f"junctions ({J.shape[0]})")
+    c = graph.counts()
+    bt = c["n_singular_faces_by_type"]
+    ax.set_title(f"{c['n_singular_curves']} singular curves, faces quarter/half/complex "
+                 f"{bt['quarter']}/{bt['half']}/{bt['complex']}, valid {c['valid_fraction']:.2f}", fontsize=9)
+    if ax.collections[1:]:
+        ax.legend(fontsize=7, loc="upper left")
+    _save(fig, path)

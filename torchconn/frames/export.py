@@ -1,10 +1,13 @@
-"""VTU export of a frame field and its singular faces (for ParaView), written atomically.
+"""VTK export of a frame field, its singular faces and its singular curves, written atomically.
 
 ``frames.vtu``: the tet mesh with point data ``axis0, axis1, axis2 (V, 3)``, the columns
 ``frames[:, :, k]`` (axis ``k`` at each vertex, world coordinates). ``singular_faces.vtu``: the
-singular faces ``(S, 3)`` as triangles on the same vertices. Each file goes to a temporary file
-in the target's directory first and is then moved over the target (``os.replace``), so a crash
-leaves the old file or the new one. Needs ``meshio`` (imported on call).
+singular faces ``(S, 3)`` as triangles on the same vertices. ``singular_curves.vtu`` (or
+``.vtk``): the curves of a :class:`~torchconn.frames.singular.SingularGraph` as polylines (one
+``line`` cell per segment, :func:`write_singular_curves_vtk`; :func:`read_singular_curves_vtk`
+reads it back). Each file goes to a temporary file in the target's directory first and is then
+moved over the target (``os.replace``), so a crash leaves the old file or the new one. Needs
+``meshio`` (imported on call).
 """
 from __future__ import annotations
 
@@ -14,14 +17,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["write_frames_vtu", "write_singular_faces_vtu"]
+__all__ = ["write_frames_vtu", "write_singular_faces_vtu", "write_singular_curves_vtk",
+           "read_singular_curves_vtk"]
 
 
 def _write(path, mesh) -> None:
     import meshio
 
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.vtu")  # meshio writes to a path and picks the format by suffix
+    # meshio writes to a path and picks the format by suffix: keep the target's
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix or '.vtu'}")
     meshio.write(str(tmp), mesh)
     os.replace(tmp, path)
 
@@ -43,3 +48,101 @@ def write_singular_faces_vtu(path, mesh, singular_faces: torch.Tensor) -> None:
     V = mesh.vertices.detach().cpu().double().numpy()
     S = singular_faces.cpu().numpy().astype(np.int64).reshape(-1, 3)
     _write(path, meshio.Mesh(V, [("triangle", S)]))
+
+
+_EMPTY_VTU = """<?xml version="1.0"?>
+<VTKFile type="UnstructuredGrid" version="0.1" byte_order="LittleEndian">
+<UnstructuredGrid>
+<Piece NumberOfPoints="0" NumberOfCells="0">
+<Points><DataArray type="Float64" NumberOfComponents="3" format="ascii"></DataArray></Points>
+<Cells>
+<DataArray type="Int64" Name="connectivity" format="ascii"></DataArray>
+<DataArray type="Int64" Name="offsets" format="ascii"></DataArray>
+<DataArray type="UInt8" Name="types" format="ascii"></DataArray>
+</Cells>
+</Piece>
+</UnstructuredGrid>
+</VTKFile>
+"""
+_EMPTY_VTK = ("# vtk DataFile Version 5.1\nsingular curves (none)\nASCII\nDATASET UNSTRUCTURED_GRID\n"
+              "POINTS 0 double\n\nCELLS 1 0\nOFFSETS vtktypeint64\n0\nCONNECTIVITY vtktypeint64\n\n"
+              "CELL_TYPES 0\n\n")
+
+
+def _write_empty(path) -> None:
+    path = Path(path)
+    if path.suffix not in (".vtu", ".vtk"):
+        raise ValueError(f"{path}: singular curves are written as .vtu or .vtk, got suffix {path.suffix!r}")
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    tmp.write_text(_EMPTY_VTU if path.suffix == ".vtu" else _EMPTY_VTK)
+    os.replace(tmp, path)
+
+
+def write_singular_curves_vtk(path, graph) -> None:
+    """Write the curves of ``graph`` (a :class:`~torchconn.frames.singular.SingularGraph`) to
+    ``path`` (``.vtu`` or ``.vtk``) as polylines.
+
+    Points: every curve's polyline points in order, curve after curve. Cells: one ``line``
+    ``(p_k, p_k+1)`` per segment. Cell data (one value per segment, constant along a curve):
+    ``curve`` (curve index), ``type`` (index into
+    :data:`~torchconn.frames.singular.CURVE_TYPES`: valence3, valence5, half, complex, mixed),
+    ``closed`` (0/1) and ``valid`` (the curve's valid quarter-turn faces over its quarter-turn
+    faces, ``-1`` without any). A graph without curves writes a valid file with no points and
+    no cells (which ParaView opens and :func:`read_singular_curves_vtk` reads as ``[]``).
+    """
+    import meshio
+
+    from .singular import CURVE_TYPES
+
+    if Path(path).suffix not in (".vtu", ".vtk"):
+        raise ValueError(f"{path}: singular curves are written as .vtu or .vtk, got suffix {Path(path).suffix!r}")
+    pts, segs, curve, typ, closed, valid = [], [], [], [], [], []
+    start = 0
+    for cid, c in enumerate(graph.curves):
+        P = c.points.detach().cpu().double().numpy()
+        n = P.shape[0] - 1
+        pts.append(P)
+        segs.append(start + np.stack([np.arange(n), np.arange(1, n + 1)], 1))
+        curve.append(np.full(n, cid))
+        typ.append(np.full(n, CURVE_TYPES.index(c.label)))
+        closed.append(np.full(n, int(c.closed)))
+        valid.append(np.full(n, c.n_valid / c.n_quarter if c.n_quarter else -1.0))
+        start += P.shape[0]
+    if not graph.curves:  # meshio cannot write (or read) a grid without cells: write it directly
+        _write_empty(path)
+        return
+    cat = lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt)  # noqa: E731
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    L = np.concatenate(segs).astype(np.int64) if segs else np.zeros((0, 2), np.int64)
+    data = {"curve": [cat(curve, np.int64)], "type": [cat(typ, np.int64)],
+            "closed": [cat(closed, np.int64)], "valid": [cat(valid, np.float64)]}
+    _write(path, meshio.Mesh(P, [("line", L)], cell_data=data))
+
+
+def read_singular_curves_vtk(path) -> list[dict]:
+    """Read a file of :func:`write_singular_curves_vtk` back: one dict per curve with ``points``
+    ``(m, 3)`` numpy, ``label`` (a :data:`~torchconn.frames.singular.CURVE_TYPES` entry),
+    ``closed`` and ``valid`` (``nan`` where the curve has no quarter-turn face)."""
+    import meshio
+
+    from .singular import CURVE_TYPES
+
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if b'NumberOfPoints="0"' in head or b"\nPOINTS 0 " in head:
+        return []
+    m = meshio.read(str(path))
+    lines = [b.data for b in m.cells if b.type == "line"]
+    if not lines:
+        return []
+    L = np.concatenate(lines)
+    get = lambda k: np.concatenate(m.cell_data[k])  # noqa: E731
+    curve, typ, closed, valid = get("curve"), get("type"), get("closed"), get("valid")
+    out = []
+    for cid in np.unique(curve):
+        sel = np.nonzero(curve == cid)[0]
+        idx = np.concatenate([L[sel, 0], L[sel[-1:], 1]])
+        out.append({"points": m.points[idx], "label": CURVE_TYPES[int(typ[sel[0]])],
+                    "closed": bool(closed[sel[0]]),
+                    "valid": float(valid[sel[0]]) if valid[sel[0]] >= 0 else float("nan")})
+    return out

@@ -13,8 +13,28 @@ coordinates):
 * **feature alignment** at feature vertices: for every (feature vertex, incident boundary face)
   pair, angle between the face normal and the closest frame axis; mean and max (``nan`` if the
   mesh has no feature vertex).
+* **dirichlet_energy_mean**: the discrete Dirichlet energy per edge, the mean of
+  ``||F_i g* - F_j||_F^2`` over all edges (the same number as the older key
+  ``smoothness_mean_sqfrob``, kept).
 * **singularities**: number of faces with non-identity matched holonomy and number of tets with
   exactly one such face (:mod:`torchconn.frames.octahedral`).
+* **singular graph** (:func:`~torchconn.frames.singular.singular_graph`, its ``counts()``):
+  ``n_singular_curves``, ``n_singular_faces_quarter`` / ``_half`` / ``_complex``,
+  ``n_singular_faces_valence3`` / ``_valence5`` (quarter turns), ``singular_valid_fraction``
+  (quarter-turn faces whose axis is the frame axis most aligned with the curve tangent, over all
+  quarter-turn faces; ``nan`` without any), ``n_singular_junctions``,
+  ``n_curves_ending_inside`` (0 for a valid field).
+* **integrability (curl)** :func:`face_closure`: for each interior face ``[a < b < c]``, traversed
+  ``a -> b -> c -> a``, the frames are carried to frame ``a``'s labeling through the matchings
+  along the loop, ``M_a = F_a``, ``M_b = F_b g_ab^T``, ``M_c = F_c (g_ab g_bc)^T``; each edge
+  vector ``x_j - x_i`` of the loop is expressed in the average of its endpoints' matched frames,
+  and the closure is ``c = sum_(i->j) ((M_i + M_j)/2)^T (x_j - x_i)`` (frame-``a`` coordinates).
+  ``curl_mean`` and ``curl_p95`` are the mean and 95th percentile of ``|c| / perimeter`` over the
+  interior faces (singular faces included). ``c = 0`` for a constant field (to round-off). For a
+  smooth field with matchings ``I`` on the face, Stokes gives ``c_k = area (curl a_k) . n_hat +
+  O(h^3)`` with ``a_k = F e_k`` and ``n_hat`` the unit normal of the loop, so the measure is
+  ``O(h)``, proportional to the field's curl (an orthonormal frame field is integrable only where
+  it is locally constant). It is invariant under ``F_i -> F_i h_i``, ``h_i in O``.
 
 The boundary sets (feature vertices, aligned vertices and their normals, feature pairs) come from
 the mesh's :class:`~torchconn.frames.constraints.BoundaryConstraint`.
@@ -32,9 +52,10 @@ import torch
 from ..lie import so3
 from . import octahedral
 from .constraints import BoundaryConstraint, _require, feature_edges, feature_vertices
+from .singular import edge_matchings, face_holonomy_from_matchings, singular_graph
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
-           "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
+           "face_closure", "edge_angles_deg", "edge_class_breakdown", "EDGE_CLASSES"]
 
 METRIC_KEYS = (
     "smoothness_mean_deg",
@@ -47,7 +68,44 @@ METRIC_KEYS = (
     "n_feature_vertices",
     "n_singular_faces",
     "n_tets_one_singular_face",
+    "dirichlet_energy_mean",
+    "n_singular_curves",
+    "n_singular_faces_quarter",
+    "n_singular_faces_half",
+    "n_singular_faces_complex",
+    "n_singular_faces_valence3",
+    "n_singular_faces_valence5",
+    "singular_valid_fraction",
+    "n_singular_junctions",
+    "n_curves_ending_inside",
+    "curl_mean",
+    "curl_p95",
 )
+
+
+def face_closure(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
+    """Integrability closure ``c (F, 3)`` of every face (module docstring, "integrability").
+
+    Args:
+        frames: ``(V, 3, 3)``; ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
+        mesh: a ``TetMesh`` (``faces [a < b < c]``, ``face_edges``).
+        matchings: optional ``(E, 3, 3)`` or ``(E,)`` group indices for ``mesh.edges``.
+
+    Returns:
+        ``c (F, 3)``: ``sum_(i->j) ((M_i + M_j)/2)^T (x_j - x_i)`` over the loop ``a -> b -> c -> a``,
+        in the coordinates of frame ``a``; divide by the perimeter for the relative measure.
+    """
+    g = edge_matchings(frames, mesh, matchings)
+    g_ab, g_abc, _ = face_holonomy_from_matchings(g, mesh)
+    f = mesh.faces
+    X = mesh.vertices.to(frames.dtype)[f]  # (F, 3, 3): rows x_a, x_b, x_c
+    Ma = frames[f[:, 0]]
+    Mb = frames[f[:, 1]] @ g_ab.transpose(-1, -2)
+    Mc = frames[f[:, 2]] @ g_abc.transpose(-1, -2)
+    M = torch.stack([Ma, Mb, Mc], 1)  # (F, 3, 3, 3)
+    Mn = M.roll(-1, 1)  # matched frame at the edge's end
+    d = X.roll(-1, 1) - X  # (F, 3, 3): x_b - x_a, x_c - x_b, x_a - x_c
+    return (0.5 * (M + Mn).transpose(-1, -2) @ d.unsqueeze(-1)).squeeze(-1).sum(1)
 
 
 def axis_alignment_angle(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
@@ -73,6 +131,8 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
 
     Returns:
         dict with exactly the keys of :data:`METRIC_KEYS` (floats, counts as ints).
+
+    The singular-graph chaining loops over the singular faces in Python (one-time work per call).
     """
     _require(mesh, "vertices", "edges", "faces", "tet_faces", "boundary_faces",
              "boundary_vertices", "boundary_vertex_normals")
@@ -98,6 +158,12 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
 
     mask, _ = octahedral.singular_faces(frames, mesh)
     one = octahedral.tets_with_one_singular_face(mask, mesh)
+    sg = singular_graph(frames, mesh, g).counts()
+    interior = (mesh.face_tets >= 0).all(1)
+    fi = mesh.faces[interior]
+    Xf = mesh.vertices.to(frames.dtype)[fi]
+    perim = (Xf.roll(-1, 1) - Xf).norm(dim=-1).sum(1)
+    curl = face_closure(frames, mesh, g)[interior].norm(dim=-1) / perim
 
     def _mean(x):
         return float(x.mean()) if x.numel() else float("nan")
@@ -116,6 +182,18 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
         "n_feature_vertices": int(bc.feature_vertices.numel()),
         "n_singular_faces": int(mask.sum()),
         "n_tets_one_singular_face": int(one.sum()),
+        "dirichlet_energy_mean": _mean(sqf),
+        "n_singular_curves": sg["n_singular_curves"],
+        "n_singular_faces_quarter": sg["n_singular_faces_by_type"]["quarter"],
+        "n_singular_faces_half": sg["n_singular_faces_by_type"]["half"],
+        "n_singular_faces_complex": sg["n_singular_faces_by_type"]["complex"],
+        "n_singular_faces_valence3": sg["n_quarter_faces_by_valence"][3],
+        "n_singular_faces_valence5": sg["n_quarter_faces_by_valence"][5],
+        "singular_valid_fraction": sg["valid_fraction"],
+        "n_singular_junctions": sg["n_junctions"],
+        "n_curves_ending_inside": sg["n_curves_ending_inside"],
+        "curl_mean": _mean(curl),
+        "curl_p95": float(torch.quantile(curl, 0.95)) if curl.numel() else float("nan"),
     }
 
 
