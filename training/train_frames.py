@@ -24,7 +24,8 @@ Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
 studies: ``docs/results/frame-fields.md``.
 
 Outputs in ``output_dir``: ``frames.npz`` (vertices, tets, frames, singular_faces),
-``metrics.json``, ``frames.vtu``, ``singular_faces.vtu``, ``loss.png``, ``singularities.png``,
+``metrics.json``, ``frames.vtu``, ``singular_faces.vtu``, ``singular_curves.vtu`` (the singular graph's
+polylines with their type), ``loss.png``, ``singularities.png``,
 ``checkpoint.pt`` (atomic, every ``checkpoint_every`` steps and at the end). ``resume=true``
 continues from the checkpoint to the same result as an uninterrupted run; a checkpoint of another
 configuration (mesh, method, optimizer, weights, ``steps``) is refused.
@@ -155,8 +156,9 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
     io_utils.atomic_write_json(out / "metrics.json", metrics)
     export.write_frames_vtu(out / "frames.vtu", mesh, frames)
     export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
+    export.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
     frame_plots.plot_loss(out / "loss.png", result.history)
-    frame_plots.plot_singularities(out / "singularities.png", mesh, sing_faces)
+    frame_plots.plot_singularities(out / "singularities.png", mesh, result.singular_graph)
 
 
 # ----------------------------------------------------------------------------- train
@@ -239,10 +241,14 @@ def main() -> None:
     def app(cfg: DictConfig) -> None:
         m = train(cfg)
         f, i = m["final"], m["init"]
+        by_type = f.get("n_singular_faces_by_type", {})
         print(f"[train_frames] {cfg.method}: smoothness {i['smoothness_mean_deg']:.2f} -> "
               f"{f['smoothness_mean_deg']:.2f} deg, alignment mean {f['alignment_mean_deg']:.3f} deg, "
-              f"singular faces {f['n_singular_faces']}, wall {m['timings']['wall_s']:.1f} s, "
-              f"output {cfg.output_dir}")
+              f"singular faces {f['n_singular_faces']} ({by_type.get('quarter', 0)} quarter, "
+              f"{by_type.get('half', 0)} half, {by_type.get('complex', 0)} complex), "
+              f"curves {f.get('n_singular_curves')} (valid fraction {f.get('valid_fraction', float('nan')):.3f}, "
+              f"{f.get('n_junctions')} junctions, {f.get('n_curves_ending_inside')} ending inside), "
+              f"wall {m['timings']['wall_s']:.1f} s, output {cfg.output_dir}")
 
     app()
 

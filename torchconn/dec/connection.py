@@ -239,7 +239,7 @@ class Connection:
                 f"{name}: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
                 f"indices {_list_some(shown.tolist(), idx.numel())} (vertex pairs "
                 f"{self.edges[shown].tolist()}): " + "; ".join(parts) + ". Pass rotations "
-                f"(orthogonal, det +1), e.g. project them with so3.project_to_rotation"
+                "(orthogonal, det +1), e.g. project them with so3.project_to_rotation"
             )
 
     # ------------------------------------------------------------------ lookups and transports

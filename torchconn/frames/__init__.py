@@ -4,7 +4,8 @@ Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-h
 Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
-:mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.export` (VTU),
+:mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.singular` (the
+singular graph), :mod:`.export` (VTU),
 :mod:`.design` (the whole method in one call: :func:`design` -> :class:`FrameFieldResult`).
 
 >>> from torchconn import io
@@ -26,7 +27,8 @@ The connection method in one call (no files written; ``method="sh"`` for the bas
 from . import propagate
 from .constraints import BoundaryConstraint, feature_edges, feature_vertices
 from .design import FrameFieldResult, design
-from .metrics import METRIC_KEYS, axis_alignment_angle, frame_metrics
+from .metrics import METRIC_KEYS, axis_alignment_angle, face_closure, frame_metrics
+from .export import read_singular_curves_vtk, write_singular_curves_vtk
 from .sh import (
     boundary_constraint,
     frame_to_sh,
@@ -37,6 +39,7 @@ from .sh import (
     sh_rotation,
     sh_to_frame,
 )
+from .singular import SingularCurve, SingularGraph, singular_graph
 
 __all__ = [
     "propagate",
@@ -56,4 +59,10 @@ __all__ = [
     "sh_generators",
     "sh_rotation",
     "sh_to_frame",
+    "singular_graph",
+    "SingularGraph",
+    "SingularCurve",
+    "face_closure",
+    "write_singular_curves_vtk",
+    "read_singular_curves_vtk",
 ]

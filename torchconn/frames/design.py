@@ -51,6 +51,7 @@ from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
 from .polish import polish_frames
 from .sh import sh_frame_field
+from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
 
 __all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options", "tet_frames"]
@@ -107,6 +108,8 @@ class FrameFieldResult:
         matchings: ``(E,)`` long, ``g*_ij = octahedral.group()[matchings[e]]`` with ``F_i g*_ij ~ F_j``
             (:func:`~torchconn.frames.octahedral.match_edges`, the matchings of the metrics).
         singular_faces: ``(F,)`` bool, faces of ``mesh.faces`` with non-identity matched holonomy.
+        singular_graph: the :class:`~torchconn.frames.singular.SingularGraph` of ``vertex_frames``
+            (curves through the singular faces, their holonomy types, junctions; ``counts()``).
         metrics: ``{"mesh", "method", "formulation", "final", "init", "edge_classes", "polish",
             "final_loss_terms", "invariants"}``: ``final``/``init`` are
             :func:`~torchconn.frames.metrics.frame_metrics` of the result and of the initialization,
@@ -123,6 +126,7 @@ class FrameFieldResult:
     edge_rot: torch.Tensor
     matchings: torch.Tensor
     singular_faces: torch.Tensor
+    singular_graph: Any
     metrics: dict
     history: dict[str, list[float]] = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
@@ -466,5 +470,6 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "stopped_early": stopped,
     }
     return FrameFieldResult(mesh=mesh, vertex_frames=F, tet_frames=tet_frames(F, mesh, matchings), edge_rot=R,
-                            matchings=matchings, singular_faces=mask, metrics=metrics, history=history,
+                            matchings=matchings, singular_faces=mask,
+                            singular_graph=singular_graph(F, mesh, matchings), metrics=metrics, history=history,
                             timings=timings)
