@@ -388,6 +388,35 @@ class TetMesh(MeshBase):
         kids[neg] = kids[neg][:, [0, 1, 3, 2]]
         return TetMesh(v, kids, dtype=self.dtype, device=self.device)
 
+    # ------------------------------------------------------------------ CAD tags, conversion
+    #: CAD entities (:class:`torchconn.mesh.cad.CadTags`) set by :func:`~torchconn.mesh.cad.load_cad`
+    #: and :func:`~torchconn.mesh.cad.load_tagged_msh`; ``None`` on an untagged mesh. Kept by
+    #: :meth:`to` (moved to the new device), dropped by :meth:`subdivide`.
+    cad = None
+
+    def to(self, device=None, dtype: torch.dtype | None = None) -> "TetMesh":
+        """:meth:`MeshBase.to`, with ``cad`` tags moved to ``device`` too."""
+        new = super().to(device=device, dtype=dtype)
+        if new.cad is not None:
+            new.cad = new.cad.to(device=device)
+        return new
+
+    @classmethod
+    def from_meshio(cls, m, **kwargs) -> "TetMesh":
+        """See :func:`torchconn.mesh.convert.from_meshio`."""
+        from .convert import from_meshio
+        return from_meshio(m, **kwargs)
+
+    def to_meshio(self, **kwargs):
+        """See :func:`torchconn.mesh.convert.to_meshio`."""
+        from .convert import to_meshio
+        return to_meshio(self, **kwargs)
+
+    def boundary_surface(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :func:`torchconn.mesh.convert.boundary_surface`."""
+        from .convert import boundary_surface
+        return boundary_surface(self)
+
 
 def _signed_volumes6(v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     p = v[t]
