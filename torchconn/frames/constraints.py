@@ -12,10 +12,16 @@ constrains the same boundary data:
 * **feature pairs**: one (feature vertex, incident boundary face) pair per corner of a boundary
   face at a feature vertex, with the face's outward unit normal; at a feature vertex the frame
   should follow every incident face normal.
-* **tangent pairs**: one (feature vertex, incident feature edge) pair per endpoint of a feature
-  edge, with the edge's unit direction: along a feature curve one frame axis should lie on the
-  curve tangent, the other two on the incident surfaces' normals as far as the dihedral angle
-  allows (the feature pairs). :func:`feature_curve_alignment` measures the tangent part.
+* **tangent pairs**: along a feature curve one frame axis should lie on the curve tangent, the
+  other two on the incident surfaces' normals as far as the dihedral angle allows (the feature
+  pairs). At a vertex inside a curve (two incident feature edges, no corner) the tangent is
+  ``(u_1 - u_2) / |u_1 - u_2|`` with ``u_1, u_2`` the unit edge vectors pointing away from the
+  vertex. On a circle this is off the exact tangent by a quarter of the difference of the two
+  edges' arc angles (exact for equal edges), where an edge's own direction is off by half its
+  arc angle. At a **corner** (a CAD corner point, a vertex with other
+  than two incident feature edges, or, without CAD tags, a turn sharper than the feature angle)
+  there is one pair per incident feature edge with that edge's direction.
+  :func:`feature_curve_alignment` measures the tangent part.
 
 Where the feature edges come from (``features=``): a mesh with CAD tags (``mesh.cad``, a
 :class:`~torchconn.mesh.cad.CadTags` from :func:`~torchconn.mesh.cad.load_cad` or
@@ -37,7 +43,7 @@ from dataclasses import dataclass
 import torch
 
 __all__ = ["BoundaryConstraint", "boundary_face_normals", "feature_edges", "feature_vertices", "cad_feature_edges",
-           "feature_curve_alignment", "feature_corners", "FEATURE_SOURCES"]
+           "feature_curve_alignment", "FEATURE_SOURCES"]
 
 FEATURE_SOURCES = ("auto", "cad", "dihedral")
 
@@ -61,10 +67,10 @@ class BoundaryConstraint:
       corners ``0, 1, 2`` before face ``f + 1``'s).
     * ``feature_source``: ``"cad"`` (the edges are the mesh's CAD curves) or ``"dihedral"``.
     * ``feature_edges (K, 2) long``: the feature edges, rows ``i < j`` sorted lexicographically.
-    * ``tangent_vertices (Q,) long``, ``tangent_edges (Q,) long`` (rows of ``feature_edges``) and
-      ``tangent_dirs (Q, 3)``: the tangent pairs, ``Q = 2K``, edge-major (edge ``k``'s endpoints
-      ``i`` then ``j``); ``tangent_dirs`` is the unit direction ``v_j - v_i`` of the edge (the
-      constraint is up to sign).
+    * ``corner_vertices (C,) long``: the sorted corners of the feature curves.
+    * ``tangent_vertices (Q,) long``, ``tangent_dirs (Q, 3)`` unit tangents (up to sign) and
+      ``tangent_at_corner (Q,) bool``: the tangent pairs, first one per curve-interior feature
+      vertex (ascending), then one per (corner, incident feature edge) in edge order.
     """
 
     feature_angle_deg: float
@@ -79,9 +85,10 @@ class BoundaryConstraint:
     pair_normals: torch.Tensor
     feature_source: str = "dihedral"
     feature_edges: torch.Tensor | None = None
+    corner_vertices: torch.Tensor | None = None
     tangent_vertices: torch.Tensor | None = None
-    tangent_edges: torch.Tensor | None = None
     tangent_dirs: torch.Tensor | None = None
+    tangent_at_corner: torch.Tensor | None = None
 
     @classmethod
     def from_mesh(cls, mesh, feature_angle_deg: float = 30.0, *, features: str = "auto") -> "BoundaryConstraint":
@@ -118,14 +125,13 @@ class BoundaryConstraint:
         bv = mesh.boundary_vertices
         if source == "cad":
             fe = cad_feature_edges(mesh)
-            corners = mesh.cad.corner_vertices.to(dev)
-            fv = torch.unique(torch.cat([fe.reshape(-1), corners]))
+            cad_corners = mesh.cad.corner_vertices.to(dev)
+            fv = torch.unique(torch.cat([fe.reshape(-1), cad_corners]))
         else:
             fe = feature_edges(mesh, angle)
             fv = torch.unique(fe.reshape(-1))
-        tv = fe.reshape(-1)
-        d = mesh.vertices[fe[:, 1]] - mesh.vertices[fe[:, 0]]
-        d = (d / d.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(d.dtype).tiny)).to(dtype)
+            cad_corners = None
+        corners, tv, td, tc = _curve_tangents(mesh.vertices, fe, cad_corners, angle)
         is_feat = torch.zeros(V, dtype=torch.bool, device=dev)
         is_feat[fv] = True
         bnormals = mesh.boundary_vertex_normals.to(dtype)
@@ -153,10 +159,55 @@ class BoundaryConstraint:
             pair_normals=boundary_face_normals(mesh).to(dtype)[pair_faces],
             feature_source=source,
             feature_edges=fe,
+            corner_vertices=corners,
             tangent_vertices=tv,
-            tangent_edges=torch.arange(fe.shape[0], device=dev).repeat_interleave(2),
-            tangent_dirs=d.repeat_interleave(2, dim=0),
+            tangent_dirs=td.to(dtype),
+            tangent_at_corner=tc,
         )
+
+
+def _curve_tangents(vertices: torch.Tensor, fe: torch.Tensor, cad_corners: torch.Tensor | None, angle: float):
+    """Corners and tangent pairs of the feature curves ``fe (K, 2)`` (see the module docstring).
+
+    Returns ``(corners (C,), tangent_vertices (Q,), tangent_dirs (Q, 3), tangent_at_corner (Q,))``.
+    """
+    V, dev = vertices.shape[0], vertices.device
+    if fe.shape[0] == 0:
+        none = torch.zeros(0, dtype=torch.long, device=dev)
+        return none, none, vertices.new_zeros(0, 3), torch.zeros(0, dtype=torch.bool, device=dev)
+    d = vertices[fe[:, 1]] - vertices[fe[:, 0]]
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(d.dtype).tiny)
+    end = fe.reshape(-1)  # (2K,) endpoint of each half: i of edge k, then j
+    away = torch.stack([d, -d], dim=1).reshape(-1, 3)  # unit edge vector pointing away from `end`
+    deg = torch.bincount(end, minlength=V)
+    # per endpoint, the first incident half (by position) is the reference u_1
+    order = torch.argsort(end, stable=True)
+    first = torch.full((V,), -1, dtype=torch.long, device=dev)
+    first.scatter_reduce_(0, end[order], order, reduce="amin", include_self=False)
+    ref = away[first[end]]
+    s = torch.where((away * ref).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
+    t = torch.zeros(V, 3, dtype=d.dtype, device=dev).index_add_(0, end, s[:, None] * away)
+    corner = (deg != 2) & (deg > 0)
+    if cad_corners is not None:
+        on = torch.zeros(V, dtype=torch.bool, device=dev)
+        on[cad_corners] = True
+        corner |= on & (deg > 0)
+    else:
+        # a turn sharper than the feature angle: u_1 and -u_2 differ by more than `angle`
+        not_ref = (first[end] != torch.arange(end.numel(), device=dev)).to(d.dtype)
+        other = torch.zeros(V, 3, dtype=d.dtype, device=dev).index_add_(0, end, not_ref[:, None] * away)
+        u1 = away[first.clamp_min(0)]
+        turn = torch.atan2(torch.linalg.cross(u1, -other, dim=-1).norm(dim=-1), (u1 * -other).sum(-1))
+        corner |= (deg == 2) & (turn > math.radians(angle))
+    inner = ((deg == 2) & ~corner).nonzero().flatten()
+    tn = t[inner]
+    tn = tn / tn.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(d.dtype).tiny)
+    at_c = corner[end]
+    tv = torch.cat([inner, end[at_c]])
+    td = torch.cat([tn, away[at_c]])
+    tc = torch.cat([torch.zeros(inner.numel(), dtype=torch.bool, device=dev),
+                    torch.ones(int(at_c.sum()), dtype=torch.bool, device=dev)])
+    return corner.nonzero().flatten(), tv, td, tc
 
 
 def _require(mesh, *names: str) -> None:
@@ -242,14 +293,13 @@ def cad_feature_edges(mesh) -> torch.Tensor:
 
 def feature_curve_alignment(frames: torch.Tensor, mesh, feature_angle_deg: float = 30.0, *,
                             features: str = "auto") -> dict:
-    """Feature-curve alignment: the angle between each feature edge's tangent and the closest
-    frame axis at its endpoints (the tangent pairs of :class:`BoundaryConstraint`).
+    """Feature-curve alignment: the angle between the feature-curve tangent and the closest
+    frame axis (the tangent pairs of :class:`BoundaryConstraint`).
 
     For each tangent pair ``(i, t)``: ``atan2(|a x t|, |a . t|)`` with ``a`` the axis of
-    ``frames[i]`` maximizing ``|a . t|`` (no ``acos``; up to sign). Pairs are split by where
-    the vertex lies: on a curve (``feature_curve_alignment_*``), or at a **corner** (a CAD
-    corner point, or a vertex with other than two incident feature edges), where curves meet
-    at angles that one frame generally cannot all follow (``feature_curve_corner_alignment_*``).
+    ``frames[i]`` maximizing ``|a . t|`` (no ``acos``; up to sign). Pairs inside the curves
+    give ``feature_curve_alignment_*``; pairs at the corners, where curves meet at angles that
+    one frame generally cannot all follow, give ``feature_curve_corner_alignment_*``.
 
     Args:
         frames: ``(V, 3, 3)``, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
@@ -274,10 +324,7 @@ def feature_curve_alignment(frames: torch.Tensor, mesh, feature_angle_deg: float
     a = torch.gather(F, -1, k[:, None, :].expand(-1, 3, 1)).squeeze(-1)
     ang = torch.rad2deg(torch.atan2(torch.linalg.cross(a, t, dim=-1).norm(dim=-1),
                                     torch.gather(c, -1, k).squeeze(-1).abs()))
-    corner = feature_corners(mesh, feature_angle_deg, features=features)
-    at_corner = torch.zeros(V, dtype=torch.bool, device=ang.device)
-    at_corner[corner] = True
-    at_corner = at_corner[bc.tangent_vertices]
+    at_corner = bc.tangent_at_corner
 
     def _stat(x, f):
         return float(f(x)) if x.numel() else float("nan")
@@ -288,24 +335,8 @@ def feature_curve_alignment(frames: torch.Tensor, mesh, feature_angle_deg: float
         "feature_curve_corner_alignment_mean_deg": _stat(ang[at_corner], torch.mean),
         "feature_curve_corner_alignment_max_deg": _stat(ang[at_corner], torch.max),
         "n_feature_curve_edges": int(bc.feature_edges.shape[0]),
-        "n_feature_corners": int(corner.numel()),
+        "n_feature_corners": int(bc.corner_vertices.numel()),
     }
-
-
-def feature_corners(mesh, feature_angle_deg: float = 30.0, *, features: str = "auto") -> torch.Tensor:
-    """Sorted corner vertices ``(C,)`` long of the feature curves: the CAD corner points on
-    feature edges (with CAD tags) and every feature vertex with other than two incident
-    feature edges (curve ends and junctions)."""
-    bc = BoundaryConstraint.from_mesh(mesh, feature_angle_deg, features=features)
-    V = mesh.vertices.shape[0]
-    deg = torch.bincount(bc.feature_edges.reshape(-1), minlength=V)
-    odd = bc.is_feature & (deg != 2)
-    if bc.feature_source == "cad":
-        on_curve = torch.zeros_like(odd)
-        on_curve[bc.feature_edges.reshape(-1)] = True
-        odd[mesh.cad.corner_vertices.to(odd.device)] = True
-        odd &= on_curve | (deg != 2)
-    return odd.nonzero().flatten()
 
 
 def feature_vertices(mesh, angle_deg: float = 30.0) -> torch.Tensor:

@@ -105,8 +105,10 @@ def cad_tags_from_elements(mesh: TetMesh, triangles=None, triangle_tags=None, li
     V = mesh.n_vertices
 
     def arr(a, k):
-        a = np.zeros((0,) + ((k,) if k else ()), np.int64) if a is None else np.asarray(a, dtype=np.int64)
-        return a.reshape((-1, k) if k else (-1,))
+        if a is None:
+            return np.zeros((0, k) if k else (0,), np.int64)
+        a = a.detach().cpu().numpy() if torch.is_tensor(a) else np.asarray(a)
+        return a.astype(np.int64).reshape((-1, k) if k else (-1,))
 
     tri, tri_t = arr(triangles, 3), arr(triangle_tags, 0)
     lin, lin_t = arr(lines, 2), arr(line_tags, 0)
@@ -114,7 +116,7 @@ def cad_tags_from_elements(mesh: TetMesh, triangles=None, triangle_tags=None, li
     for what, a, t in (("triangle", tri, tri_t), ("line", lin, lin_t), ("point", pts, pts_t)):
         if a.shape[0] != t.shape[0]:
             raise MeshError(f"{source}: {a.shape[0]} {what}s but {t.shape[0]} {what} tags")
-        bad = np.nonzero(((a < 0) | (a >= V)).reshape(a.shape[0], -1).any(axis=1))[0]
+        bad = np.nonzero(((a < 0) | (a >= V)).reshape(a.shape[0], -1).any(axis=1))[0] if a.size else a[:0]
         if bad.size:
             raise MeshError(f"{source}: {what}s with vertex indices outside [0, {V}): {what} indices {_few(bad)}")
 
@@ -288,8 +290,10 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
     Args:
         path: ``.step/.stp/.brep/.iges/.igs`` (imported with OpenCASCADE) or ``.geo`` (gmsh
             script, merged; it may set its own mesh options, which ``meta``/``size`` override).
-        size: target maximal edge length (``Mesh.MeshSizeMax``). ``None``: taken from ``meta``
-            when given, else ``size_factor`` times the bounding-box diagonal.
+        size: uniform target edge length (``Mesh.MeshSizeMin = Mesh.MeshSizeMax = size``,
+            overriding ``meta`` and the script). ``None``: the sizes of ``meta`` when it sets
+            ``Mesh.CharacteristicLengthMax``/``Mesh.MeshSizeMax``, else ``size_factor`` times
+            the bounding-box diagonal.
         size_factor: see ``size``.
         meta: a HexMe parameter file (``hexme/meta/XNN{c,u}_name.yaml``): its
             ``gmsh.option.setNumber`` entries are applied before meshing, as the dataset does.
@@ -301,6 +305,9 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
     Returns:
         a :class:`TetMesh` with ``mesh.cad`` (:class:`CadTags`): CAD surface per face, CAD
         curve per feature edge, CAD point per corner vertex.
+
+    Physical groups defined by a ``.geo`` script are replaced by one group per CAD entity
+    (use :func:`load_tagged_msh` on gmsh's own output to keep a script's groups).
 
     gmsh is initialized with ``General.Terminal = 0`` and finalized on every path (when this
     call initialized it; an already initialized gmsh session is left running, its current
@@ -345,6 +352,7 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
         if not gmsh.model.getEntities(3):
             raise MeshError(f"{path} has no volume (only {len(gmsh.model.getEntities(2))} surfaces); "
                             f"load_cad meshes solids")
+        gmsh.model.removePhysicalGroups()  # the script's own groups would hide untagged entities
         for dim in range(4):  # one physical group per entity, with its own tag (HexMe's procedure)
             for d, tag in gmsh.model.getEntities(dim):
                 gmsh.model.addPhysicalGroup(d, [tag], tag)
@@ -355,8 +363,9 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
             hi = np.array(gmsh.model.getBoundingBox(-1, -1)[3:])
             size = size_factor * float(np.linalg.norm(hi - lo))
         if size is not None:
+            # both bounds: the sizes gmsh attaches to CAD points would otherwise win
             gmsh.option.setNumber("Mesh.MeshSizeMax", float(size))
-            gmsh.option.setNumber("Mesh.MeshSizeMin", min(gmsh.option.getNumber("Mesh.MeshSizeMin"), float(size)))
+            gmsh.option.setNumber("Mesh.MeshSizeMin", float(size))
         if threads is not None:
             gmsh.option.setNumber("General.NumThreads", int(threads))
         try:
