@@ -148,6 +148,9 @@ def test_tags_that_are_not_mesh_faces_raise(cube):
         cad_tags_from_elements(cube, bad, torch.zeros(bf.shape[0], dtype=torch.long))
     with pytest.raises(MeshError, match="not edges"):
         cad_tags_from_elements(cube, lines=[[0, cube.n_vertices - 1]], line_tags=[1])
+    other = io.box(3)
+    with pytest.raises(MeshError, match="another mesh"):
+        other.cad = cad_tags_from_elements(cube, bf, torch.zeros(bf.shape[0], dtype=torch.long))
 
 
 def test_feature_curve_alignment_on_a_tagged_cube(cube):

@@ -389,17 +389,23 @@ class TetMesh(MeshBase):
         return TetMesh(v, kids, dtype=self.dtype, device=self.device)
 
     # ------------------------------------------------------------------ CAD tags, conversion
-    #: CAD entities (:class:`torchconn.mesh.cad.CadTags`) set by :func:`~torchconn.mesh.cad.load_cad`
-    #: and :func:`~torchconn.mesh.cad.load_tagged_msh`; ``None`` on an untagged mesh. Kept by
-    #: :meth:`to` (moved to the new device), dropped by :meth:`subdivide`.
-    cad = None
+    @property
+    def cad(self):
+        """CAD entities (:class:`torchconn.mesh.cad.CadTags`) set by
+        :func:`~torchconn.mesh.cad.load_cad` and :func:`~torchconn.mesh.cad.load_tagged_msh`;
+        ``None`` on an untagged mesh. Read on the mesh's device (a copy made by :meth:`to` moves
+        them when first read); :meth:`subdivide` drops them."""
+        tags = self.__dict__.get("_cad")
+        if tags is not None and tags.face_surface.device != self.device:
+            tags = self.__dict__["_cad"] = tags.to(device=self.device)
+        return tags
 
-    def to(self, device=None, dtype: torch.dtype | None = None) -> "TetMesh":
-        """:meth:`MeshBase.to`, with ``cad`` tags moved to ``device`` too."""
-        new = super().to(device=device, dtype=dtype)
-        if new.cad is not None:
-            new.cad = new.cad.to(device=device)
-        return new
+    @cad.setter
+    def cad(self, tags) -> None:
+        if tags is not None and tuple(tags.face_surface.shape) != (self.n_faces,):
+            raise MeshError(f"CAD tags of another mesh: face_surface has shape {tuple(tags.face_surface.shape)}, "
+                            f"this mesh has F = {self.n_faces} faces")
+        self.__dict__["_cad"] = tags
 
     @classmethod
     def from_meshio(cls, m, **kwargs) -> "TetMesh":
