@@ -235,3 +235,24 @@ def test_curve_tangents_on_a_circle():
     v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0]], dtype=torch.float64)
     corners, *_ = _curve_tangents(v, torch.tensor([[0, 1], [1, 2]]), None, 30.0)
     assert corners.tolist() == [0, 1, 2]
+
+
+@pytest.mark.parametrize("suffix", [".brep", ".step", ".iges"])
+def test_load_cad_exchange_formats(tmp_path, suffix):
+    """A box written by gmsh's OpenCASCADE kernel in each exchange format reads back with its
+    6 faces, 12 edges and 8 corners (IGES stores the faces only: they are sewn into a solid)."""
+    gmsh = _gmsh()
+    path = tmp_path / f"box{suffix}"
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addBox(0, 0, 0, 1, 2, 3)
+        gmsh.model.occ.synchronize()
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    mesh = load_cad(path, 0.8)
+    tags = mesh.cad
+    assert (tags.n_surfaces, tags.n_curves, tags.corner_vertices.numel()) == (6, 12, 8)
+    torch.testing.assert_close(mesh.volume(), torch.tensor(6.0, dtype=mesh.dtype))
+    assert BoundaryConstraint.from_mesh(mesh).feature_edges.shape[0] == tags.feature_edges.shape[0]

@@ -288,7 +288,8 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
     """Tetrahedralize a CAD model with gmsh and keep its entities as tags (``mesh.cad``).
 
     Args:
-        path: ``.step/.stp/.brep/.iges/.igs`` (imported with OpenCASCADE) or ``.geo`` (gmsh
+        path: ``.step/.stp/.brep/.iges/.igs`` (imported with OpenCASCADE; a file of faces
+            without a solid, as IGES stores a body, is sewn into solids) or ``.geo`` (gmsh
             script, merged; it may set its own mesh options, which ``meta``/``size`` override).
         size: uniform target edge length (``Mesh.MeshSizeMin = Mesh.MeshSizeMax = size``,
             overriding ``meta`` and the script). ``None``: the sizes of ``meta`` when it sets
@@ -347,6 +348,10 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
             else:
                 gmsh.model.occ.importShapes(str(path))
                 gmsh.model.occ.synchronize()
+                if not gmsh.model.getEntities(3) and gmsh.model.getEntities(2):
+                    # IGES (and some STEP files) hold trimmed faces, not solids: sew them
+                    gmsh.model.occ.healShapes(sewFaces=True, makeSolids=True)
+                    gmsh.model.occ.synchronize()
         except Exception as err:  # noqa: BLE001 - gmsh raises bare Exception
             raise MeshError(f"gmsh could not read {path}: {err}") from err
         if not gmsh.model.getEntities(3):
