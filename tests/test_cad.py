@@ -97,6 +97,18 @@ def test_periodic_seams_are_no_feature():
     assert 0 < fe.shape[0] == int((dz < 1e-9).sum()) < mesh.cad.feature_edges.shape[0]
 
 
+def test_sphere_seam_and_poles_are_no_features():
+    _gmsh()
+    stp = HEXME / "original" / "s17o_sphere.stp"
+    if not stp.exists():
+        pytest.skip(f"{stp} not found")
+    mesh = load_cad(stp, size_factor=0.25)
+    assert mesh.cad.n_curves == 1 and mesh.cad.corner_vertices.numel() == 2  # the seam and its poles
+    bc = BoundaryConstraint.from_mesh(mesh)
+    assert bc.feature_edges.shape[0] == 0 and bc.feature_vertices.numel() == 0
+    assert int(bc.constrained.sum()) == mesh.boundary_vertices.numel()  # every boundary vertex aligned
+
+
 @pytest.mark.parametrize("name", ["prism", "notch"])
 def test_sh_field_follows_the_cad_curves(name, request):
     """Tangent to the closest axis along the CAD curves, away from the corners, at most 1 degree

@@ -27,8 +27,8 @@ Where the feature edges come from (``features=``): a mesh with CAD tags (``mesh.
 :class:`~torchconn.mesh.cad.CadTags` from :func:`~torchconn.mesh.cad.load_cad` or
 :func:`~torchconn.mesh.cad.load_tagged_msh`) uses its CAD curves, exactly: every tagged mesh edge
 on the boundary whose two boundary faces lie on different CAD surfaces (a periodic surface's
-seam, with the same surface on both sides, is no feature), and its CAD corner points are
-feature vertices too. An untagged mesh (or ``features="dihedral"``) detects sharp edges by the
+seam, with the same surface on both sides, is no feature), and its CAD corner points on those
+edges are corners of the curves. An untagged mesh (or ``features="dihedral"``) detects sharp edges by the
 dihedral angle (:func:`feature_edges`).
 
 :meth:`BoundaryConstraint.from_mesh` caches the object on the mesh (``mesh.require``), so it is
@@ -125,12 +125,12 @@ class BoundaryConstraint:
         bv = mesh.boundary_vertices
         if source == "cad":
             fe = cad_feature_edges(mesh)
+            # CAD points off the feature curves (a sphere's poles on its seam) are no corners
             cad_corners = mesh.cad.corner_vertices.to(dev)
-            fv = torch.unique(torch.cat([fe.reshape(-1), cad_corners]))
         else:
             fe = feature_edges(mesh, angle)
-            fv = torch.unique(fe.reshape(-1))
             cad_corners = None
+        fv = torch.unique(fe.reshape(-1))
         corners, tv, td, tc = _curve_tangents(mesh.vertices, fe, cad_corners, angle)
         is_feat = torch.zeros(V, dtype=torch.bool, device=dev)
         is_feat[fv] = True
