@@ -388,6 +388,41 @@ class TetMesh(MeshBase):
         kids[neg] = kids[neg][:, [0, 1, 3, 2]]
         return TetMesh(v, kids, dtype=self.dtype, device=self.device)
 
+    # ------------------------------------------------------------------ CAD tags, conversion
+    @property
+    def cad(self):
+        """CAD entities (:class:`torchconn.mesh.cad.CadTags`) set by
+        :func:`~torchconn.mesh.cad.load_cad` and :func:`~torchconn.mesh.cad.load_tagged_msh`;
+        ``None`` on an untagged mesh. Read on the mesh's device (a copy made by :meth:`to` moves
+        them when first read); :meth:`subdivide` drops them."""
+        tags = self.__dict__.get("_cad")
+        if tags is not None and tags.face_surface.device != self.device:
+            tags = self.__dict__["_cad"] = tags.to(device=self.device)
+        return tags
+
+    @cad.setter
+    def cad(self, tags) -> None:
+        if tags is not None and tuple(tags.face_surface.shape) != (self.n_faces,):
+            raise MeshError(f"CAD tags of another mesh: face_surface has shape {tuple(tags.face_surface.shape)}, "
+                            f"this mesh has F = {self.n_faces} faces")
+        self.__dict__["_cad"] = tags
+
+    @classmethod
+    def from_meshio(cls, m, **kwargs) -> "TetMesh":
+        """See :func:`torchconn.mesh.convert.from_meshio`."""
+        from .convert import from_meshio
+        return from_meshio(m, **kwargs)
+
+    def to_meshio(self, **kwargs):
+        """See :func:`torchconn.mesh.convert.to_meshio`."""
+        from .convert import to_meshio
+        return to_meshio(self, **kwargs)
+
+    def boundary_surface(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :func:`torchconn.mesh.convert.boundary_surface`."""
+        from .convert import boundary_surface
+        return boundary_surface(self)
+
 
 def _signed_volumes6(v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     p = v[t]
