@@ -241,13 +241,13 @@ def main() -> None:
     def app(cfg: DictConfig) -> None:
         m = train(cfg)
         f, i = m["final"], m["init"]
-        by_type = f.get("n_singular_faces_by_type", {})
         print(f"[train_frames] {cfg.method}: smoothness {i['smoothness_mean_deg']:.2f} -> "
               f"{f['smoothness_mean_deg']:.2f} deg, alignment mean {f['alignment_mean_deg']:.3f} deg, "
-              f"singular faces {f['n_singular_faces']} ({by_type.get('quarter', 0)} quarter, "
-              f"{by_type.get('half', 0)} half, {by_type.get('complex', 0)} complex), "
-              f"curves {f.get('n_singular_curves')} (valid fraction {f.get('valid_fraction', float('nan')):.3f}, "
-              f"{f.get('n_junctions')} junctions, {f.get('n_curves_ending_inside')} ending inside), "
+              f"singular faces {f['n_singular_faces']} ({f['n_singular_faces_quarter']} quarter turns: "
+              f"{f['n_singular_faces_valence3']} valence 3, {f['n_singular_faces_valence5']} valence 5; "
+              f"{f['n_singular_faces_half']} half, {f['n_singular_faces_complex']} complex), "
+              f"{f['n_singular_curves']} curves (valid fraction {f['singular_valid_fraction']:.3f}, "
+              f"{f['n_singular_junctions']} junctions, {f['n_curves_ending_inside']} ending inside), "
               f"wall {m['timings']['wall_s']:.1f} s, output {cfg.output_dir}")
 
     app()

@@ -51,7 +51,7 @@ import torch
 
 from ..lie import so3
 from . import octahedral
-from .constraints import BoundaryConstraint, _require, feature_edges, feature_vertices
+from .constraints import BoundaryConstraint, _require, feature_curve_alignment, feature_edges, feature_vertices
 from .singular import edge_matchings, face_holonomy_from_matchings, singular_graph
 
 __all__ = ["feature_edges", "feature_vertices", "axis_alignment_angle", "frame_metrics", "METRIC_KEYS",
@@ -80,6 +80,8 @@ METRIC_KEYS = (
     "n_curves_ending_inside",
     "curl_mean",
     "curl_p95",
+    "feature_curve_alignment_mean_deg",
+    "feature_curve_alignment_max_deg",
 )
 
 
@@ -164,6 +166,7 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
     Xf = mesh.vertices.to(frames.dtype)[fi]
     perim = (Xf.roll(-1, 1) - Xf).norm(dim=-1).sum(1)
     curl = face_closure(frames, mesh, g)[interior].norm(dim=-1) / perim
+    fca = feature_curve_alignment(frames, mesh, angle_deg)  # tangent pairs inside the feature curves
 
     def _mean(x):
         return float(x.mean()) if x.numel() else float("nan")
@@ -194,6 +197,8 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
         "n_curves_ending_inside": sg["n_curves_ending_inside"],
         "curl_mean": _mean(curl),
         "curl_p95": float(torch.quantile(curl, 0.95)) if curl.numel() else float("nan"),
+        "feature_curve_alignment_mean_deg": fca["feature_curve_alignment_mean_deg"],
+        "feature_curve_alignment_max_deg": fca["feature_curve_alignment_max_deg"],
     }
 
 
