@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 import warnings
 
 import numpy as np
@@ -60,7 +61,7 @@ def _positive(name: str, value, what: str = "length in the model's units") -> fl
 def _max_tets(value) -> int | None:
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
         raise MeshError(f"max_tets must be a positive integer or None (no limit), got {value!r}")
     return int(value)
 
@@ -130,7 +131,7 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
         raise MeshError(f"tetrahedralize needs V (N, 3) and F (M, 3), got {V.shape} and {F.shape}")
     edge_length = _positive("edge_length", edge_length)
     max_volume = _positive("max_volume", max_volume, "volume in the model's units cubed")
-    if isinstance(quality, bool) or not (isinstance(quality, (int, float)) and math.isfinite(quality) and quality >= 1):
+    if isinstance(quality, bool) or not (isinstance(quality, numbers.Real) and math.isfinite(quality) and quality >= 1):
         raise MeshError(f"quality must be a finite number >= 1 (tetgen's radius-edge bound; smaller bounds "
                         f"may never be met), got {quality!r}")
     max_tets = _max_tets(max_tets)
@@ -154,7 +155,8 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
     _check_budget(estimate, max_tets, f"enclosed volume {volume:.4g} / volume bound {bound:.4g}, "
                                       f"{F.shape[0]} surface triangles; bounding-box diagonal {diag:.4g}")
     if bound > _regular_tet_volume(0.5 * diag):
-        warnings.warn(f"tetrahedralize: the size (volume bound {bound:.4g}, edge_length {edge_length}) is coarser "
+        size = f"edge_length {edge_length:g}" if edge_length is not None else f"max_volume {max_volume:g}"
+        warnings.warn(f"tetrahedralize: the size ({size}, volume bound {bound:.4g}) is coarser "
                       f"than the model (bounding-box diagonal {diag:.4g}): the surface alone sets the mesh, about "
                       f"{estimate} tets. Sizes are absolute, in the model's units: pass e.g. "
                       f"edge_length={DEFAULT_EDGE_FRACTION * diag:.3g} ({DEFAULT_EDGE_FRACTION:g} x diagonal)",

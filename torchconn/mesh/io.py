@@ -96,7 +96,7 @@ def _read_medit(path: Path) -> tuple[np.ndarray, np.ndarray]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)  # a short parse is checked below
             nums = np.fromstring(sec, dtype=np.float64, sep=" ")
-        count = int(nums[0]) if nums.size and nums[0] == int(nums[0]) and nums[0] >= 0 else -1
+        count = int(nums[0]) if nums.size and np.isfinite(nums[0]) and nums[0] == int(nums[0]) and nums[0] >= 0 else -1
         if count < 0 or nums.size != 1 + count * width:
             got = "no count" if count < 0 else f"{nums.size - 1} numbers"
             raise MeshError(f"{path}: section '{key.capitalize()}' is malformed: expected a count N then N rows of "
