@@ -103,8 +103,10 @@ class TetMesh(MeshBase):
         MeshError: wrong shapes, empty mesh, indices out of range, NaN/inf coordinates, a
             repeated vertex in a tet, duplicate tets, zero-volume tets
             (``|6 vol| <= 10 * get_eps("degenerate", dtype) * L_max^3``, ``L_max`` the tet's
-            longest edge), inverted tets (unless ``reorient``), a face shared by more than two
-            tets, two tets on the same side of a face (overlap), unreferenced vertices with
+            longest edge), tet volumes that overflow/underflow the dtype, inverted tets (unless
+            ``reorient``), a face shared by more than two tets, two tets on the same side of a
+            face (overlap), non-manifold vertices (tets meeting only at a vertex or along an
+            edge, or a vertex link that is not a disc or sphere), unreferenced vertices with
             ``unreferenced="error"``.
     """
 
@@ -174,6 +176,7 @@ class TetMesh(MeshBase):
         p = v[tt]
         L = torch.stack([(p[:, j] - p[:, i]).norm(dim=-1) for i, j in pair_list(4)], dim=1).amax(dim=1)
         tol = DEGENERATE_FACTOR * get_eps("degenerate", v.dtype)
+        _check_volume_range(vol6, L)
         flat = (vol6.abs() <= tol * L**3).cpu().numpy()
         if flat.any():
             idx = np.nonzero(flat)[0]
@@ -230,6 +233,7 @@ class TetMesh(MeshBase):
             raise MeshError(f"overlapping tets: faces with both tets on the same side {_few_rows(faces[bad])}; "
                             f"e.g. face {faces[bad[0]].tolist()} with tets {tets_of}")
         face_tets[f_inv, col] = flat_tet
+        _check_vertex_manifold(t, V, edges, faces, f_cnt, face_tets)
 
         # face edges: bc, ac, ab of the sorted face, coefficients +1, -1, +1
         fe = np.stack([_edge_keys(faces[:, [1, 2]], V), _edge_keys(faces[:, [0, 2]], V),
@@ -422,6 +426,69 @@ class TetMesh(MeshBase):
         """See :func:`torchconn.mesh.convert.boundary_surface`."""
         from .convert import boundary_surface
         return boundary_surface(self)
+
+
+def _check_volume_range(vol6: torch.Tensor, L: torch.Tensor) -> None:
+    """MeshError when ``|6 vol|`` or ``L_max^3`` of a tet overflows to inf or underflows to 0 in
+    the working dtype (float32 coordinates near 1e13 or 1e-13), which the zero-volume test
+    would otherwise misreport as degenerate tets."""
+    L3 = L**3
+    over = ~(torch.isfinite(vol6) & torch.isfinite(L3))
+    under = (L > 0) & (L3 < torch.finfo(L.dtype).tiny)
+    for bad, what, fix in ((over, "overflow", "large"), (under, "underflow", "small")):
+        if bool(bad.any()):
+            idx = torch.nonzero(bad).flatten().cpu().numpy()
+            raise MeshError(f"tet volumes {what} in {L.dtype} (longest edge {float(L[idx[0]]):.3g}, cubed is out of "
+                            f"range): tet indices {_few(idx)}; the coordinates are too {fix} for this dtype: "
+                            f"pass dtype=torch.float64 or rescale the vertices")
+
+
+def _check_vertex_manifold(t: np.ndarray, V: int, edges: np.ndarray, faces: np.ndarray, f_cnt: np.ndarray,
+                           face_tets: np.ndarray) -> None:
+    """MeshError naming the vertices whose star is not a ball or half-ball.
+
+    A vertex ``v`` is manifold when its link (the triangles opposite ``v`` in its tets) is one
+    connected sphere (interior vertex) or disc (boundary vertex):
+
+    - connected: the tet corners at ``v`` form one component when corners of two tets sharing a
+      face that contains ``v`` are joined (two tets meeting only at ``v`` or along an edge give
+      two components);
+    - sphere / disc: ``χ(link v) = deg_E(v) - deg_F(v) + deg_T(v)`` is 2 for an interior and 1
+      for a boundary vertex (a connected link with handles or pinched points has a smaller χ).
+
+    Vertices used by no tet are skipped (``unreferenced`` handles them).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    T = t.shape[0]
+    inner = np.nonzero((face_tets >= 0).all(axis=1))[0]
+    t0, t1 = face_tets[inner, 0], face_tets[inner, 1]
+    fv = faces[inner]  # (Fi,3)
+    loc0 = np.argmax(t[t0][:, None, :] == fv[:, :, None], axis=2)  # local index of each face vertex
+    loc1 = np.argmax(t[t1][:, None, :] == fv[:, :, None], axis=2)
+    a = (4 * t0[:, None] + loc0).reshape(-1)
+    b = (4 * t1[:, None] + loc1).reshape(-1)
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(4 * T, 4 * T))
+    _, label = connected_components(graph, directed=False)
+    corner_vertex = t.reshape(-1)
+    keys = np.unique(corner_vertex.astype(np.int64) * (4 * T) + label)  # distinct (vertex, component)
+    n_comp = np.bincount(keys // (4 * T), minlength=V)
+    deg_t = np.bincount(corner_vertex, minlength=V)
+    chi = np.bincount(edges.reshape(-1), minlength=V) - np.bincount(faces.reshape(-1), minlength=V) + deg_t
+    on_boundary = np.zeros(V, dtype=bool)
+    on_boundary[faces[f_cnt == 1].reshape(-1)] = True
+    expected = np.where(on_boundary, 1, 2)
+    bad = np.nonzero((deg_t > 0) & ((n_comp > 1) | (chi != expected)))[0]
+    if bad.size:
+        v0 = int(bad[0])
+        tets_of = np.nonzero((t == v0).any(axis=1))[0]
+        how = (f"its {tets_of.size} tets {_few(tets_of)} form {int(n_comp[v0])} groups that meet only at the vertex "
+               f"or along an edge" if n_comp[v0] > 1 else
+               f"its link has Euler characteristic {int(chi[v0])}, not {int(expected[v0])}")
+        raise MeshError(f"non-manifold vertices (the tets around each do not form one ball or half-ball): vertex "
+                        f"indices {_few(bad)}; e.g. vertex {v0}: {how}. Give each group of tets its own copy of the "
+                        f"vertex, or remove the tets that touch only there")
 
 
 def _signed_volumes6(v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
