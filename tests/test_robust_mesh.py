@@ -7,6 +7,7 @@ No test runs tetgen on a self-intersecting surface: ``_no_tetgen`` replaces it w
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -301,3 +302,37 @@ def test_obj_without_faces(tmp_path):
     (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     with pytest.raises(MeshError, match=r"empty surface: no faces in .*points\.obj \(3 vertices\)"):
         load_mesh(tmp_path / "points.obj", edge_length=0.1)
+
+
+# ----------------------------------------------------------------------------- tetgen crashes
+def _unit_cube_surface():
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                  [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    return V, F
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="tetgen runs in a forked child only where fork exists")
+def test_tetgen_segfault_becomes_a_mesh_error(monkeypatch):
+    """tetgen segfaults on some valid surfaces (e.g. cylinder(edge_length=0.2)); it runs in a forked
+    child, so the caller gets a MeshError instead of losing its interpreter."""
+    import os
+    import signal
+
+    import igl.copyleft.tetgen as tg
+
+    monkeypatch.setattr(tg, "tetrahedralize", lambda *a, **k: os.kill(os.getpid(), signal.SIGSEGV))
+    V, F = _unit_cube_surface()
+    with pytest.raises(MeshError, match=r"tetgen crashed \(signal 11\).*8 vertices / 12 triangles"):
+        builtin.tetrahedralize(V, F, edge_length=0.5)
+
+
+def test_tetgen_in_a_child_gives_the_same_mesh_as_in_process():
+    import igl.copyleft.tetgen as tg
+
+    V, F = _unit_cube_surface()
+    m = builtin.tetrahedralize(V, F, edge_length=0.5)
+    a = 0.5**3 / (6 * math.sqrt(2))
+    TV, TT = tg.tetrahedralize(V, F.astype(np.int64), flags=f"pq1.414a{a:.9g}Q")[:2]
+    assert m.n_vertices == TV.shape[0] and m.n_tets == TT.shape[0]
+    assert torch.equal(m.vertices, torch.as_tensor(TV, dtype=m.vertices.dtype))

@@ -123,7 +123,7 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
             edges as vertex pairs), has degenerate or self-intersecting triangles (naming them);
             the estimate is above ``max_tets``; tetgen fails or returns no tets.
     """
-    import igl.copyleft.tetgen as tg
+    import igl.copyleft.tetgen  # noqa: F401  (fail here, in this process, when libigl is missing)
 
     V = np.ascontiguousarray(np.asarray(V, dtype=np.float64))
     F = np.ascontiguousarray(np.asarray(F)).astype(np.int64)
@@ -165,11 +165,7 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
     if keep_surface:
         flags += "Y"
     flags += "Q"
-    try:
-        out = tg.tetrahedralize(V, F, flags=flags)
-    except Exception as err:  # noqa: BLE001 - tetgen errors come as RuntimeError or worse
-        raise MeshError(f"tetgen failed with flags {flags!r}: {err}") from err
-    TV, TT = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
+    TV, TT = _run_tetgen(V, F, flags, keep_surface)
     if TT.ndim != 2 or TT.shape[0] == 0:
         raise MeshError(f"tetgen returned no tets (flags {flags!r})")
     # tetgen's orientation convention is opposite to ours; orient each tet explicitly
@@ -179,6 +175,61 @@ def tetrahedralize(V, F, max_volume: float | None = None, edge_length: float | N
     TT[neg] = TT[neg][:, [0, 1, 3, 2]]
     kwargs.setdefault("unreferenced", "drop")
     return TetMesh(TV, TT, **kwargs)
+
+
+def _tetgen_child(conn, V, F, flags) -> None:
+    """Child side of :func:`_run_tetgen`: send ``("ok", TV, TT)`` or ``("error", message)``."""
+    import faulthandler
+
+    faulthandler.disable()  # a crash is reported by the parent as a MeshError, not as a C traceback
+    try:
+        import igl.copyleft.tetgen as tg
+
+        out = tg.tetrahedralize(V, F, flags=flags)
+        conn.send(("ok", np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)))
+    except BaseException as err:  # noqa: BLE001 - everything goes back to the parent as a message
+        conn.send(("error", f"{type(err).__name__}: {err}"))
+    finally:
+        conn.close()
+
+
+def _run_tetgen(V: np.ndarray, F: np.ndarray, flags: str, keep_surface: bool) -> tuple[np.ndarray, np.ndarray]:
+    """tetgen in a forked child process: tetgen can abort or segfault on some inputs (e.g. a
+    refinement of long thin surface triangles without ``Y``), which would end the caller's
+    interpreter; in a child that becomes a :class:`MeshError`. Without ``fork`` (Windows,
+    macOS spawn) tetgen runs in-process."""
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():
+        import igl.copyleft.tetgen as tg
+
+        try:
+            out = tg.tetrahedralize(V, F, flags=flags)
+        except Exception as err:  # noqa: BLE001 - tetgen errors come as RuntimeError or worse
+            raise MeshError(f"tetgen failed with flags {flags!r}: {err}") from err
+        return np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_tetgen_child, args=(send, V, F, flags), daemon=True)
+    proc.start()
+    send.close()
+    try:
+        msg = recv.recv()
+    except EOFError:  # the child died without answering (signal)
+        msg = None
+    finally:
+        recv.close()
+        proc.join()
+    if msg is None:
+        code = proc.exitcode
+        how = f"signal {-code}" if code is not None and code < 0 else f"exit status {code}"
+        hint = ("keep the surface (keep_surface=True)" if not keep_surface else "a different edge_length")
+        raise MeshError(f"tetgen crashed ({how}) on this surface of {V.shape[0]} vertices / {F.shape[0]} "
+                        f"triangles with flags {flags!r}; the surface is valid for us (closed, manifold, no "
+                        f"self-intersection), so try {hint} or remesh the surface more uniformly")
+    if msg[0] == "error":
+        raise MeshError(f"tetgen failed with flags {flags!r}: {msg[1]}")
+    return msg[1], msg[2]
 
 
 def _builtin_budget(name: str, volume: float, edge_length, kwargs: dict) -> float:
