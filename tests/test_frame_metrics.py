@@ -130,7 +130,27 @@ def _reference_metrics(frames, vertices, tets, angle_deg=30.0):
         clos = sum(0.5 * (M[k] + M[(k + 1) % 3]).T @ (X[(k + 1) % 3] - X[k]) for k in range(3))
         perim = sum(np.linalg.norm(X[(k + 1) % 3] - X[k]) for k in range(3))
         curl.append(np.linalg.norm(clos) / perim)
+    # feature-curve alignment: inside a curve (two feature edges turning by at most angle_deg) the
+    # tangent is the sum of the two edge directions oriented alike; angle to the closest axis
+    away = {}
+    for i, j in feat_edges:
+        d = (vertices[j] - vertices[i]) / np.linalg.norm(vertices[j] - vertices[i])
+        away.setdefault(i, []).append(d)
+        away.setdefault(j, []).append(-d)
+    fca = []
+    for vtx, us in away.items():
+        if len(us) != 2:
+            continue
+        u1, u2 = us
+        if np.degrees(np.arctan2(np.linalg.norm(np.cross(u1, -u2)), np.dot(u1, -u2))) > angle_deg:
+            continue
+        t = u1 + (1.0 if np.dot(u1, u2) >= 0 else -1.0) * u2
+        t /= np.linalg.norm(t)
+        a = frames[vtx][:, np.argmax(np.abs(frames[vtx].T @ t))]
+        fca.append(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, t)), abs(np.dot(a, t)))))
     return {
+        "feature_curve_alignment_mean_deg": float(np.mean(fca)) if fca else float("nan"),
+        "feature_curve_alignment_max_deg": float(np.max(fca)) if fca else float("nan"),
         "smoothness_mean_deg": float(np.mean(angles)),
         "smoothness_rms_deg": float(np.sqrt(np.mean(np.square(angles)))),
         "smoothness_mean_sqfrob": float(np.mean(sq)),

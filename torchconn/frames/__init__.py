@@ -5,7 +5,7 @@ Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built o
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
 :mod:`.solver` (schedule, optimizer, loop), :mod:`.polish`, :mod:`.metrics`, :mod:`.singular` (the
-singular graph), :mod:`.export` (VTU),
+singular graph), :mod:`.export` (VTU), :mod:`.formats` (``.fra``, mouette's ``.frame``),
 :mod:`.design` (the whole method in one call: :func:`design` -> :class:`FrameFieldResult`).
 
 >>> from torchconn import io
@@ -29,6 +29,7 @@ from .constraints import BoundaryConstraint, feature_edges, feature_vertices
 from .design import FrameFieldResult, design
 from .metrics import METRIC_KEYS, axis_alignment_angle, face_closure, frame_metrics
 from .export import read_singular_curves_vtk, write_singular_curves_vtk
+from .formats import read_fra, read_mouette_frame, write_fra, write_mouette_frame
 from .sh import (
     boundary_constraint,
     frame_to_sh,
@@ -65,4 +66,8 @@ __all__ = [
     "face_closure",
     "write_singular_curves_vtk",
     "read_singular_curves_vtk",
+    "write_fra",
+    "read_fra",
+    "write_mouette_frame",
+    "read_mouette_frame",
 ]

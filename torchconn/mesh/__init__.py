@@ -7,19 +7,22 @@ differentiate through them. Shapes and orientations: ``docs/architecture.md``.
 Modules: :mod:`.base` (:class:`MeshBase`, what both complexes share: edge lookup, face loops,
 buffers, device moves, the ``require`` cache), :mod:`.tet`, :mod:`.cells`, :mod:`.simplex`
 (local simplex templates), :mod:`.errors`, :mod:`.io` (files), :mod:`.builtin` (meshes
-without files).
+without files), :mod:`.cad` (CAD models through gmsh, tagged ``.msh``; the ``cad`` extra),
+:mod:`.convert` (meshio conversion, the boundary surface).
 """
-from . import builtin, io, simplex
+from . import builtin, cad, convert, io, simplex
 from .base import FaceGroup, MeshBase
 from .builtin import ball, box, cylinder, tetrahedralize, torus
+from .cad import CadTags, load_cad, load_hexme, load_tagged_msh
 from .cells import CellComplex, tet_mesh_as_cell_complex
 from .errors import MeshError
 from .io import load_mesh, load_polygon_surface, load_surface, load_tet_mesh
 from .tet import TetMesh
 
 __all__ = [
-    "io", "builtin", "simplex",
+    "io", "builtin", "simplex", "cad", "convert",
     "MeshError", "MeshBase", "TetMesh", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
     "box", "ball", "cylinder", "torus",
+    "CadTags", "load_cad", "load_tagged_msh", "load_hexme",
 ]
