@@ -189,3 +189,20 @@ def test_feature_sources():
 
     m = feature_curve_alignment(torch.eye(3, dtype=torch.float64).expand(ball.n_vertices, 3, 3), ball, 60.0)
     assert m["n_feature_curve_edges"] == 0 and np.isnan(m["feature_curve_alignment_mean_deg"])
+
+
+def test_frames_vtu_with_tet_frames_round_trip(tmp_path):
+    from torchconn.frames.export import read_frames_vtu, write_frames_vtu
+
+    m = io.box(2)
+    gen = torch.Generator().manual_seed(3)
+    Fv = so3.random_rotation(m.n_vertices, generator=gen, dtype=torch.float64)
+    Ft = so3.random_rotation(m.n_tets, generator=gen, dtype=torch.float64)
+    write_frames_vtu(tmp_path / "f.vtu", m, Fv, Ft)
+    V, T, Fv2, Ft2 = read_frames_vtu(tmp_path / "f.vtu")
+    assert np.array_equal(V, m.vertices.numpy()) and np.array_equal(T, m.tets.numpy())
+    assert np.array_equal(Fv2, Fv.numpy()) and np.array_equal(Ft2, Ft.numpy())
+    write_frames_vtu(tmp_path / "g.vtu", m, Fv)  # per-vertex only
+    assert read_frames_vtu(tmp_path / "g.vtu")[3] is None
+    with pytest.raises(ValueError, match=r"tet_frames must have shape \(T, 3, 3\)"):
+        write_frames_vtu(tmp_path / "h.vtu", m, Fv, Ft[:-1])

@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # a tiny generated mesh with singular curves and sharp rims (about 180 vertices)
 TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1,
         "polish": {"steps": 40, "check_every": 20}}
-OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "singular_faces.vtu", "singular_curves.vtu", "loss.png",
+OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "frames.fra", "singular_faces.vtu", "singular_curves.vtu",
+           "loss.png",
            "singularities.png",
            "checkpoint.pt")
 

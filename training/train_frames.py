@@ -24,7 +24,8 @@ Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
 studies: ``docs/results/frame-fields.md``.
 
 Outputs in ``output_dir``: ``frames.npz`` (vertices, tets, frames, singular_faces),
-``metrics.json``, ``frames.vtu``, ``singular_faces.vtu``, ``singular_curves.vtu`` (the singular graph's
+``metrics.json``, ``frames.vtu`` (per-vertex and per-tet frames), ``frames.fra`` (per-tet frames for
+CubeCover / HexFrameFlow), ``singular_faces.vtu``, ``singular_curves.vtu`` (the singular graph's
 polylines with their type), ``loss.png``, ``singularities.png``,
 ``checkpoint.pt`` (atomic, every ``checkpoint_every`` steps and at the end). ``resume=true``
 continues from the checkpoint to the same result as an uninterrupted run; a checkpoint of another
@@ -59,7 +60,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import io as tio
 from torchconn.dec import bianchi
-from torchconn.frames import export
+from torchconn.frames import export, formats
 from torchconn.frames.design import FrameFieldResult, design, method_options
 from torchconn.frames.metrics import METRIC_KEYS
 from torchconn.frames.solver import NonFiniteLossError
@@ -154,7 +155,8 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
                           frames=frames.detach().cpu().double().numpy(),
                           singular_faces=sing_faces.cpu().numpy().astype(np.int64).reshape(-1, 3))
     io_utils.atomic_write_json(out / "metrics.json", metrics)
-    export.write_frames_vtu(out / "frames.vtu", mesh, frames)
+    export.write_frames_vtu(out / "frames.vtu", mesh, frames, result.tet_frames)
+    formats.write_fra(out / "frames.fra", result.tet_frames, mesh)
     export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
     export.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
     frame_plots.plot_loss(out / "loss.png", result.history)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["write_frames_vtu", "write_singular_faces_vtu", "write_singular_curves_vtk",
+__all__ = ["write_frames_vtu", "read_frames_vtu", "write_singular_faces_vtu", "write_singular_curves_vtk",
            "read_singular_curves_vtk"]
 
 
@@ -31,14 +31,38 @@ def _write(path, mesh) -> None:
     os.replace(tmp, path)
 
 
-def write_frames_vtu(path, mesh, frames: torch.Tensor) -> None:
-    """Write the tets of ``mesh`` with ``frames (V, 3, 3)`` as point data ``axis0..2`` to ``path``."""
+def write_frames_vtu(path, mesh, frames: torch.Tensor, tet_frames: torch.Tensor | None = None) -> None:
+    """Write the tets of ``mesh`` with ``frames (V, 3, 3)`` as point data ``axis0..2`` (column
+    ``k`` of each frame) to ``path``, and ``tet_frames (T, 3, 3)`` (e.g.
+    :attr:`~torchconn.frames.design.FrameFieldResult.tet_frames`) as cell data ``tet_axis0..2``
+    when given. ParaView: Glyph filter on ``axis0`` etc. :func:`read_frames_vtu` reads it back."""
     import meshio
 
     V = mesh.vertices.detach().cpu().double().numpy()
     T = mesh.tets.cpu().numpy().astype(np.int64)
     F = frames.detach().cpu().double().numpy()
-    _write(path, meshio.Mesh(V, [("tetra", T)], point_data={f"axis{k}": F[:, :, k] for k in range(3)}))
+    cell_data = {}
+    if tet_frames is not None:
+        if tuple(tet_frames.shape) != (T.shape[0], 3, 3):
+            raise ValueError(f"tet_frames must have shape (T, 3, 3) = ({T.shape[0]}, 3, 3), got {tuple(tet_frames.shape)}")
+        Ft = tet_frames.detach().cpu().double().numpy()
+        cell_data = {f"tet_axis{k}": [Ft[:, :, k]] for k in range(3)}
+    _write(path, meshio.Mesh(V, [("tetra", T)], point_data={f"axis{k}": F[:, :, k] for k in range(3)},
+                             cell_data=cell_data))
+
+
+def read_frames_vtu(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a file of :func:`write_frames_vtu`: ``(vertices (V,3), tets (T,4), frames (V,3,3),
+    tet_frames (T,3,3) or None)`` as numpy arrays."""
+    import meshio
+
+    m = meshio.read(path)
+    T = np.concatenate([c.data for c in m.cells if c.type == "tetra"]).astype(np.int64)
+    F = np.stack([np.asarray(m.point_data[f"axis{k}"], dtype=np.float64) for k in range(3)], axis=-1)
+    Ft = None
+    if "tet_axis0" in m.cell_data:
+        Ft = np.stack([np.concatenate(m.cell_data[f"tet_axis{k}"]).astype(np.float64) for k in range(3)], axis=-1)
+    return np.asarray(m.points, dtype=np.float64), T, F, Ft
 
 
 def write_singular_faces_vtu(path, mesh, singular_faces: torch.Tensor) -> None:

@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from .builtin import ball, box, cylinder, tetrahedralize, torus
+from . import cad as _cad
+from .cad import CAD_SUFFIXES as _CAD_SUFFIXES
 from .cells import CellComplex
 from .errors import MeshError, _few
 from .tet import TetMesh
@@ -327,8 +329,19 @@ def load_polygon_surface(path, **kwargs) -> CellComplex:
 def load_mesh(path, edge_length: float | None = None, max_volume: float | None = None, **kwargs) -> TetMesh:
     """Load any supported file as a :class:`TetMesh`: tet formats directly (the size
     arguments are ignored), surface formats through :func:`tetrahedralize` (``kwargs`` such as
-    ``max_tets`` go there; its errors are prefixed with the file name)."""
+    ``max_tets`` go there; its errors are prefixed with the file name), CAD models
+    (``.step .stp .brep .geo .iges .igs``, the ``cad`` extra) through
+    :func:`torchconn.mesh.cad.load_cad` with ``size=edge_length`` (``mesh.cad`` holds the CAD
+    surfaces, curves and corners), and a HexMe parameter file (``.yaml``) through
+    :func:`torchconn.mesh.cad.load_hexme`."""
     suf = Path(path).suffix.lower()
+    if suf in _CAD_SUFFIXES or suf in (".yaml", ".yml"):
+        if max_volume is not None:
+            raise MeshError(f"{path}: CAD models are meshed by gmsh with an edge length; pass edge_length, "
+                            f"not max_volume")
+        kwargs.pop("max_tets", None)
+        load = _cad.load_hexme if suf in (".yaml", ".yml") else _cad.load_cad
+        return load(path, edge_length, **kwargs)
     if suf in TET_SUFFIXES:
         kwargs.pop("max_tets", None)  # a size argument of tetrahedralize, ignored like edge_length
         return load_tet_mesh(path, **kwargs)
@@ -338,4 +351,5 @@ def load_mesh(path, edge_length: float | None = None, max_volume: float | None =
             return tetrahedralize(V, F, max_volume=max_volume, edge_length=edge_length, **kwargs)
         except MeshError as err:
             raise MeshError(f"{path}: {err}") from err
-    raise MeshError(f"unsupported mesh suffix {suf!r} of {path}; supported: {', '.join(TET_SUFFIXES + SURFACE_SUFFIXES)}")
+    raise MeshError(f"unsupported mesh suffix {suf!r} of {path}; supported: "
+                    f"{', '.join(TET_SUFFIXES + SURFACE_SUFFIXES + _CAD_SUFFIXES)}, .yaml (HexMe parameters)")
