@@ -90,6 +90,23 @@ class BoundaryConstraint:
     tangent_dirs: torch.Tensor | None = None
     tangent_at_corner: torch.Tensor | None = None
 
+    def feature_targets(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(vertices (P', ) long, directions (P', 3))``: the directions a frame axis should follow
+        at the feature vertices: every feature pair's face normal and, on CAD curves
+        (``feature_source == "cad"``), the curve tangent at each curve-interior vertex.
+
+        A CAD curve is a feature whatever its dihedral angle, so the incident face normals alone
+        may leave the tangent free (a smooth crease); a dihedral feature edge is sharp, so its
+        two normals already fix the tangent and no tangent pair is added (the field of an
+        untagged mesh is the same as before CAD input existed). Corners keep only their normals:
+        the curves meeting there generally cannot all be followed by one frame.
+        """
+        if self.feature_source != "cad" or self.tangent_vertices is None:
+            return self.pair_vertices, self.pair_normals
+        inner = ~self.tangent_at_corner
+        return (torch.cat([self.pair_vertices, self.tangent_vertices[inner]]),
+                torch.cat([self.pair_normals, self.tangent_dirs[inner].to(self.pair_normals.dtype)]))
+
     @classmethod
     def from_mesh(cls, mesh, feature_angle_deg: float = 30.0, *, features: str = "auto") -> "BoundaryConstraint":
         """The constraint of ``mesh`` (a ``TetMesh``), cached on the mesh.

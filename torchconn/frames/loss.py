@@ -36,7 +36,9 @@ dimensionless):
 * ``align``   — at non-feature boundary vertices with unit normal ``n``:
   ``mean (1 - sum_k (F[:, k] . n)^4)``, zero iff one axis is ``±n``.
 * ``feature`` — the same for every (feature vertex, incident boundary face normal) pair, so
-  that at sharp edges the frame follows every incident face. With ``align_kind="angle"``
+  that at sharp edges the frame follows every incident face, and, on CAD feature curves, for
+  the curve tangent at each curve-interior vertex
+  (:meth:`~torchconn.frames.constraints.BoundaryConstraint.feature_targets`). With ``align_kind="angle"``
   (:func:`axis_angle_loss`) both alignment terms are instead the smoothed *angle* between the
   normal and the closest axis, i.e. the quantity the fixed alignment metrics average: an
   L1-type penalty. At a feature vertex whose incident face normals cannot all be matched by
@@ -221,7 +223,7 @@ class FrameFieldLoss:
         con = self.constraint = BoundaryConstraint.from_mesh(mesh, feature_angle_deg)
         self.is_feature = con.is_feature
         self.align_vertices, self.align_normals = con.align_vertices, con.align_normals
-        self.feature_vertices_rep, self.feature_normals = con.pair_vertices, con.pair_normals
+        self.feature_vertices_rep, self.feature_normals = con.feature_targets()
         # face areas for the torsion normalization
         p = mesh.vertices[mesh.faces]
         self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)

@@ -53,7 +53,7 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
     dtype = mesh.vertices.dtype
     F0 = frames.detach().to(dtype)
     bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
-    fv, fn = bc.pair_vertices, bc.pair_normals
+    fv, fn = bc.feature_targets()
     e0, e1 = mesh.edges[:, 0], mesh.edges[:, 1]
 
     def score(F):
