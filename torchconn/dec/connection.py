@@ -25,6 +25,7 @@ from typing import Any
 import torch
 
 from ..lie import so3, son
+from ..lie._validate import rotation_defects
 from ..mesh.base import lookup_edges
 from .transport import dense_simplex_transports, orient, pair_list, path_product
 from ..tolerances import get_eps
@@ -207,17 +208,7 @@ class Connection:
         if atol is None:
             atol = get_eps("rotation", self.dtype)
         with torch.no_grad():
-            R = self.edge_rot.detach()
-            work = torch.promote_types(R.dtype, torch.float32)  # det/matrix_norm need >= float32
-            R = R.to(work)
-            eye = torch.eye(self.n, dtype=work, device=R.device)
-            finite = torch.isfinite(R).all(-1).all(-1)
-            Rs = torch.where(finite[..., None, None], R, eye)
-            err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
-            det = torch.linalg.det(Rs)
-            bad_fin = ~finite
-            bad_orth = finite & (err > atol)
-            bad_det = finite & ~bad_orth & (det < 0)
+            bad_fin, bad_orth, bad_det, err, det = rotation_defects(self.edge_rot, atol)
             bad = bad_fin | bad_orth | bad_det
             if not bool(bad.any()):
                 return

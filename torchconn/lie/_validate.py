@@ -32,6 +32,24 @@ def check_float_tensor(x, fn: str, arg: str) -> None:
         )
 
 
+def rotation_defects(R: torch.Tensor, atol: float):
+    """Per-matrix defects of ``R (..., n, n)`` (no sync, no gradient):
+    ``(non_finite, not_orthogonal, reflection, err, det)``, the three masks of shape ``(...)``
+    disjoint (a non-finite matrix is only ``non_finite``; a reflection is orthogonal within
+    ``atol``), ``err = ||R^T R - I||_F`` and ``det`` computed in at least float32."""
+    with torch.no_grad():
+        n = R.shape[-1]
+        work = torch.promote_types(R.dtype, torch.float32)  # det/matrix_norm need >= float32
+        Rd = R.detach().to(work)
+        eye = torch.eye(n, dtype=work, device=R.device)
+        finite = torch.isfinite(Rd).all(-1).all(-1)
+        Rs = torch.where(finite[..., None, None], Rd, eye)
+        err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
+        det = torch.linalg.det(Rs)
+        not_orth = finite & (err > atol)
+        return ~finite, not_orth, finite & ~not_orth & (det < 0), err, det
+
+
 def _check_square(K: torch.Tensor, fn: str) -> int:
     if K.dim() < 2 or K.shape[-1] != K.shape[-2]:
         raise ValueError(f"{fn} expects a tensor of shape (..., n, n), got {tuple(K.shape)}")
@@ -56,16 +74,7 @@ def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) 
     if atol is None:
         atol = get_eps("rotation", R.dtype)
     with torch.no_grad():
-        work = torch.promote_types(R.dtype, torch.float32)
-        Rd = R.detach().to(work)
-        eye = torch.eye(n, dtype=work, device=R.device)
-        finite = torch.isfinite(Rd).all(-1).all(-1)
-        Rs = torch.where(finite[..., None, None], Rd, eye)
-        err = torch.linalg.matrix_norm(Rs.transpose(-1, -2) @ Rs - eye)
-        det = torch.linalg.det(Rs)
-        bad_fin = ~finite
-        bad_orth = finite & (err > atol)
-        bad_det = finite & ~bad_orth & (det < 0)
+        bad_fin, bad_orth, bad_det, err, det = rotation_defects(R, atol)
         bad = bad_fin | bad_orth | bad_det
         if not bool(bad.any()):
             return

@@ -13,6 +13,7 @@ Conventions (docs/architecture.md, docs/conventions.md §1):
 """
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass
 from typing import Callable
 
@@ -167,7 +168,7 @@ class _Derived:
         return new
 
 
-class MeshBase(_Derived):
+class MeshBase(_Derived, abc.ABC):
     """Shared base of :class:`~torchconn.mesh.TetMesh` and :class:`~torchconn.mesh.CellComplex`.
 
     A subclass stores ``vertices (V,3)`` float and ``edges (E,2)`` long (canonical, sorted) and
@@ -245,6 +246,7 @@ class MeshBase(_Derived):
         """``(E,)`` ascending keys ``edges[:,0] * V + edges[:,1]`` (cached by :meth:`require`)."""
         return self.require("edge_keys", lambda m: m.edges[:, 0] * m.n_vertices + m.edges[:, 1])
 
+    @abc.abstractmethod
     def face_loops(self) -> dict[int, FaceGroup]:
-        """Faces as oriented vertex loops grouped by size ``m`` (:class:`FaceGroup`)."""
-        raise NotImplementedError
+        """Faces as oriented vertex loops grouped by size ``m`` (:class:`FaceGroup`); each
+        complex defines its own (sorted triangles of a tet mesh, polygons of a cell complex)."""
