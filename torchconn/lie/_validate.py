@@ -70,7 +70,7 @@ def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) 
     (explicit validation, keep it out of hot paths). Returns ``None``.
     """
     check_float_tensor(R, "check_rotation", name)
-    n = _check_square(R, "check_rotation")
+    _check_square(R, "check_rotation")
     if atol is None:
         atol = get_eps("rotation", R.dtype)
     with torch.no_grad():
