@@ -1,7 +1,8 @@
 """Face curvature of sorted-triangle meshes as an op (report Sec. 3.2, (3.2.1)).
 
 Written-out 3x3 products on unbound components, component-major, with a hand-written backward
-(:class:`_FaceCurvatureFn`); other ranks use batched matrix products. The gather table is
+(:class:`_FaceCurvatureFn`) that is itself differentiable (double backward, ``create_graph``
+and Hessian-vector products are exact); other ranks use batched matrix products. The gather table is
 built once per mesh (``mesh.require``). :func:`face_curvature` is the op that
 :func:`torchconn.dec.curvature.face_curvature` (the public entry point) calls; it returns
 ``None`` where it does not apply (a mesh without sorted triangles, a non-integer cut), and the
@@ -10,7 +11,6 @@ caller then evaluates its generic loop formula.
 from __future__ import annotations
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._cache import require as _require
 
@@ -57,12 +57,20 @@ def _face_formula(kind: int, ab, bc, ac):
     return _mm(_mm(ab, bc), _tr(ac))
 
 
+def _gather(edge_rot: torch.Tensor, face_index: torch.Tensor) -> torch.Tensor:
+    """``(9, 3, F)``: component ``q`` of ``R_ab, R_bc, R_ac`` of every face (``index_select``, differentiable)."""
+    E, F = edge_rot.shape[0], face_index.shape[1]
+    table = edge_rot.reshape(E, 9).t().contiguous()  # (9, E)
+    flat = face_index.reshape(-1)
+    return torch.stack([table[q].index_select(0, flat) for q in range(9)], 0).reshape(9, 3, F)
+
+
 class _FaceCurvatureFn(torch.autograd.Function):
     """Gather + written-out 3x3 products + scatter for the face curvature, component-major.
 
     Forward ``(edge_rot (E, 3, 3), face_index (3, F)) -> (F, 3, 3)``; the three rows of
     ``face_index`` are the canonical edges ``ab, bc, ac`` of each sorted face. Backward
-    (hand-written, first order): with ``G = ∂L/∂H``,
+    (hand-written) with ``G = ∂L/∂H``:
 
     * cut c, ``H = R_ab R_bc - R_ac``: ``G R_bcᵀ``, ``R_abᵀ G``, ``-G``;
     * cut b, ``H = R_ab - R_ac R_bcᵀ``: ``G``, ``-Gᵀ R_ac``, ``-G R_bc``;
@@ -70,29 +78,35 @@ class _FaceCurvatureFn(torch.autograd.Function):
       ``R_abᵀ (G R_ac)``, ``Gᵀ P``;
 
     scattered onto the edges with ``index_add_`` (the gradients of ``R_ab, R_bc, R_ac``).
+    The backward is made of differentiable torch operations on the saved input ``edge_rot``
+    and on ``G``: when it is recorded (``create_graph=True``, i.e. grad mode on inside the
+    backward: double backward, ``autograd.grad(..., create_graph=True)``, Hessian-vector
+    products) it re-gathers the face rotations from ``edge_rot`` so that autograd sees their
+    dependence on the input; otherwise it reuses the gathered table saved by the forward.
     """
 
     @staticmethod
     def forward(ctx, edge_rot, face_index, kind):
-        E, F = edge_rot.shape[0], face_index.shape[1]
-        table = edge_rot.reshape(E, 9).t().contiguous()  # (9, E)
-        flat = face_index.reshape(-1)
-        g = torch.stack([table[q].index_select(0, flat) for q in range(9)], 0).reshape(9, 3, F)
+        F = face_index.shape[1]
+        g = _gather(edge_rot, face_index)
         ab, bc, ac = (tuple(g[q, k] for q in range(9)) for k in range(3))
         H = _face_formula(kind, ab, bc, ac)
         if kind == 0:
             H = tuple(h - 1.0 if q in (0, 4, 8) else h for q, h in enumerate(H))
-        ctx.save_for_backward(g, face_index)
-        ctx.kind, ctx.n_edges = kind, E
+        ctx.save_for_backward(edge_rot, g, face_index)
+        ctx.kind = kind
         # component-major (9, F) viewed as (F, 3, 3) (strides (1, 3F, F)): stacking along a new
         # leading dim is a plain copy, twice as fast as interleaving the 9 components
         return torch.stack(H, 0).t().reshape(F, 3, 3)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad):
-        g, face_index = ctx.saved_tensors
-        kind, E = ctx.kind, ctx.n_edges
+        edge_rot, g, face_index = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            # a recorded backward: the saved table g carries no graph, so gather again from the
+            # input (the forward ran without recording); every step below is differentiable
+            g = _gather(edge_rot, face_index)
+        kind, E = ctx.kind, edge_rot.shape[0]
         F = face_index.shape[1]
         ab, bc, ac = (tuple(g[q, k] for q in range(9)) for k in range(3))
         Gt = grad.reshape(F, 9).t().contiguous()  # no copy when grad kept the output's layout
@@ -105,8 +119,8 @@ class _FaceCurvatureFn(torch.autograd.Function):
             GR = _mm(G, ac)
             gab, gbc, gac = _mm(GR, _tr(bc)), _mm(_tr(ab), GR), _mm(_tr(G), _mm(ab, bc))
         vals = torch.stack([x for q in range(9) for x in (gab[q], gbc[q], gac[q])], 0).reshape(9, -1)
-        gtab = vals.new_zeros(9, E)
-        gtab.index_add_(1, face_index.reshape(-1), vals)  # one call for the 9 components
+        # out-of-place index_add: one call for the 9 components, and differentiable in vals
+        gtab = vals.new_zeros(9, E).index_add(1, face_index.reshape(-1), vals)
         return gtab.t().reshape(E, 3, 3), None, None
 
 
@@ -121,7 +135,7 @@ def face_curvature(edge_rot: torch.Tensor, mesh, cut=-1, kind: str = "two_prong"
     * holonomy (``kind="holonomy"``, or cut ``0`` / ``-3``): ``R_ab R_bc R_acᵀ - I``.
 
     For ``n = 3`` the fused component-major kernel ``_FaceCurvatureFn`` (hand-written
-    backward); other ranks use batched matrix products. ``None`` for a mesh without sorted
+    backward, itself differentiable: higher-order gradients are exact); other ranks use batched matrix products. ``None`` for a mesh without sorted
     triangles or a ``cut`` that is not an integer in ``[-3, 2]`` (two-prong). ``edge_rot`` with
     another number of rows than ``mesh.edges`` raises ``ValueError`` naming both shapes.
     """

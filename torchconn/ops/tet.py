@@ -3,7 +3,8 @@
 The end-of-Ch. 5 tetrahedron formula (:func:`torchconn.dec.dnabla.wedge_curvature_solder_tet`)
 regrouped as three rounds of batched matrix-vector products on the 6 edge rotations of each
 tet, with ``θ̃`` formed once per *edge* (both directions), never per tet, evaluated
-component-major with a hand-written backward on gather tables built once per mesh
+component-major with a hand-written backward (itself differentiable: double backward,
+``create_graph`` and Hessian-vector products are exact) on gather tables built once per mesh
 (:class:`TetKernel`, cached with ``mesh.require``). Any float dtype and device; constants
 follow the input. :func:`tet_dd_solder` is the op that
 :func:`torchconn.dec.dnabla.averaged_dd_solder` and :func:`torchconn.dec.dnabla.wedge_solder`
@@ -13,7 +14,6 @@ then evaluates its generic operators.
 from __future__ import annotations
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ._cache import require as _require
 from ._mat import _matTvec, _matvec
@@ -158,6 +158,34 @@ def _outer_into(G, a, b, acc: bool):
                 torch.mul(a[i], b[j], out=G[3 * i + j])
 
 
+class _OuterInPlace:
+    """Sink of :func:`_soa_backward`: ``∂L/∂R_p`` written into preallocated component views.
+
+    The first-order backward (no graph recorded): no temporaries, no final stack."""
+
+    def __init__(self, gR):
+        self.gR = gR
+
+    def __call__(self, p: int, a, b, acc: bool) -> None:
+        _outer_into(self.gR[p], a, b, acc)
+
+
+class _OuterRecorded:
+    """Sink of :func:`_soa_backward`: ``∂L/∂R_p`` built out of place (``mul``, ``addcmul``).
+
+    For a recorded backward (``create_graph``): ``out=`` and in-place writes into a buffer
+    that autograd does not track are not differentiable. ``gR[p]`` is 9 tensors ``(T,)``."""
+
+    def __init__(self):
+        self.gR = [None] * 6
+
+    def __call__(self, p: int, a, b, acc: bool) -> None:
+        if acc:
+            self.gR[p] = tuple(torch.addcmul(self.gR[p][3 * i + j], a[i], b[j]) for i in range(3) for j in range(3))
+        else:
+            self.gR[p] = tuple(a[i] * b[j] for i in range(3) for j in range(3))
+
+
 def _soa_forward(R, t):
     """Component form of :func:`_tet_dd_forward`; ``R`` 6 x 9 and ``t`` 7 x 3 tensors ``(T,)``."""
     Rab, Rac, Rad, Rbc, Rbd, Rcd = R
@@ -180,29 +208,31 @@ def _add3(a, b):
     return tuple(a[i] + b[i] for i in range(3))
 
 
-def _soa_backward(R, t, inter, g, gR, gt):
-    """Reverse of :func:`_soa_forward` written into ``gR`` (6 x 9 views) and ``gt`` (7 x 3 views)."""
+def _soa_backward(R, t, inter, g, outer):
+    """Reverse of :func:`_soa_forward`: returns ``∂L/∂θ̃`` (7 x 3 tensors) and hands every
+    ``∂L/∂R_p`` term ``a bᵀ`` to ``outer(p, a, b, acc)`` (:class:`_OuterInPlace`,
+    :class:`_OuterRecorded`). Differentiable when ``outer`` is (all other steps are out of place)."""
     Rab, Rac, Rad, Rbc, Rbd, Rcd = R
     t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = t
     y_c, y_d, x_b, x_c, x_d = inter
     s6 = 1.0 / 6.0
-    _outer_into(gR[0], g, x_b, False)
-    _outer_into(gR[1], g, x_c, False)
-    _outer_into(gR[2], g, x_d, False)
+    outer(0, g, x_b, False)
+    outer(1, g, x_c, False)
+    outer(2, g, x_d, False)
     gx_b, gx_c, gx_d = _mtv(Rab, g), _mtv(Rac, g), _mtv(Rad, g)
-    _outer_into(gR[3], gx_b, y_c, False)
-    _outer_into(gR[4], gx_b, y_d, False)
+    outer(3, gx_b, y_c, False)
+    outer(4, gx_b, y_d, False)
     gy_c, gy_d = _mtv(Rbc, gx_b), _mtv(Rbd, gx_b)
     gp_cd0, gp_dc0 = _lin((s6, gy_c)), _lin((-s6, gy_d))
     gp_cb, gp_cd1 = _lin((s6, gx_c)), _lin((-s6, gx_c))
     gp_dc1, gp_db = _lin((s6, gx_d)), _lin((-s6, gx_d))
-    _outer_into(gR[5], gp_cd0, t_db, False)
-    _outer_into(gR[5], gp_cd1, t_da, True)
-    _outer_into(gR[5], t_cb, gp_dc0, True)
-    _outer_into(gR[5], t_ca, gp_dc1, True)
-    _outer_into(gR[3], t_ba, gp_cb, True)
-    _outer_into(gR[4], t_ba, gp_db, True)
-    vals = (
+    outer(5, gp_cd0, t_db, False)
+    outer(5, gp_cd1, t_da, True)
+    outer(5, t_cb, gp_dc0, True)
+    outer(5, t_ca, gp_dc1, True)
+    outer(3, t_ba, gp_cb, True)
+    outer(4, t_ba, gp_db, True)
+    return (
         _mv2(Rbc, gp_cb, Rbd, gp_db),                                    # θ̃_ba
         _lin((1.0, _mv(Rcd, gp_dc1)), (-s6, gy_c)),                      # θ̃_ca
         _lin((1.0, _mtv(Rcd, gp_cd1)), (s6, gy_d)),                      # θ̃_da
@@ -211,9 +241,6 @@ def _soa_backward(R, t, inter, g, gR, gt):
         _lin((-0.5, gy_d), (0.5, gx_d)),                                 # θ̃_dc
         _lin((0.5, gy_c), (-0.5, gx_c)),                                 # θ̃_cd
     )
-    for k in range(7):
-        for c in range(3):
-            gt[k][c].copy_(vals[k][c])
 
 
 def _soa_gather(table: torch.Tensor, base: torch.Tensor, comps: int, E: int) -> torch.Tensor:
@@ -232,6 +259,21 @@ def _soa_scatter(vals: torch.Tensor, base: torch.Tensor, rows: int, E: int) -> t
     return out
 
 
+def _soa_tables(edge_rot, edge_theta, rot_base, theta_base):
+    """Per-tet component arrays: ``rot (9, 6, T)`` of the oriented ``R_p`` and ``th (3, 7, T)``
+    of the seven ``θ̃`` (``index_select`` of edge tables, differentiable)."""
+    E = edge_rot.shape[0]
+    table = torch.cat((edge_rot.reshape(E, 9).t(), edge_rot.transpose(-1, -2).reshape(E, 9).t()), 0)
+    rot = _soa_gather(table.reshape(-1), rot_base, 9, E)  # (9, 6, T)
+    tt = edge_theta.permute(1, 2, 0).reshape(-1)  # (2, 3, E): θ̃_ij rows then θ̃_ji rows
+    return rot, _soa_gather(tt, theta_base, 3, E)  # (3, 7, T)
+
+
+def _unbind_tables(rot, th):
+    """``R`` 6 x 9 and ``t`` 7 x 3 component tensors ``(T,)`` (views) of :func:`_soa_tables`."""
+    return [[rot[q, p] for q in range(9)] for p in range(6)], [[th[c, k] for c in range(3)] for k in range(7)]
+
+
 class _TetDDSoAFn(torch.autograd.Function):
     """Gather + closed form + scatter, component-major: ``(edge_rot (E,3,3), edge_theta (E,2,3)) -> (T,3)``.
 
@@ -240,40 +282,50 @@ class _TetDDSoAFn(torch.autograd.Function):
     which is itself several times faster than a broadcast multiply and a sum). The edge tables
     are laid out as ``(18, E)`` (``R`` then ``Rᵀ`` components) and ``(6, E)`` (``θ̃_ij`` then
     ``θ̃_ji``); the per-tet data is gathered with 9 + 3 ``index_select`` of ``(6T,)`` / ``(7T,)``
-    and the backward scatters with ``index_add_``. First order only (``once_differentiable``).
+    and the backward scatters with ``index_add``.
+
+    The backward is differentiable: when it is recorded (``create_graph=True``, i.e. grad mode
+    on inside the backward: double backward, Hessian-vector products) it gathers the per-tet
+    data and the forward intermediates again from the saved inputs and builds the gradient out
+    of place (:class:`_OuterRecorded`), so autograd sees every dependence on ``edge_rot``,
+    ``edge_theta`` and the incoming gradient; otherwise it reuses the tables saved by the
+    forward and writes into preallocated buffers (:class:`_OuterInPlace`).
     """
 
     @staticmethod
     def forward(ctx, edge_rot, edge_theta, rot_base, theta_base):
-        E = edge_rot.shape[0]
-        table = torch.cat((edge_rot.reshape(E, 9).t(), edge_rot.transpose(-1, -2).reshape(E, 9).t()), 0)
-        rot = _soa_gather(table.reshape(-1), rot_base, 9, E)  # (9, 6, T)
-        tt = edge_theta.permute(1, 2, 0).reshape(-1)  # (2, 3, E): θ̃_ij rows then θ̃_ji rows
-        th = _soa_gather(tt, theta_base, 3, E)  # (3, 7, T)
-        R = [[rot[q, p] for q in range(9)] for p in range(6)]
-        t = [[th[c, k] for c in range(3)] for k in range(7)]
-        out, inter = _soa_forward(R, t)
-        ctx.save_for_backward(rot, th, *[c for v in inter for c in v], rot_base, theta_base)
-        ctx.n_edges = E
+        rot, th = _soa_tables(edge_rot, edge_theta, rot_base, theta_base)
+        out, inter = _soa_forward(*_unbind_tables(rot, th))
+        ctx.save_for_backward(edge_rot, edge_theta, rot, th, *[c for v in inter for c in v], rot_base, theta_base)
         return torch.stack(out, -1)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, g):
         saved = ctx.saved_tensors
-        rot, th = saved[0], saved[1]
-        inter_flat = saved[2:17]
-        rot_base, theta_base = saved[17], saved[18]
-        E = ctx.n_edges
-        inter = tuple(tuple(inter_flat[3 * k:3 * k + 3]) for k in range(5))
-        R = [[rot[q, p] for q in range(9)] for p in range(6)]
-        t = [[th[c, k] for c in range(3)] for k in range(7)]
+        edge_rot, edge_theta, rot, th = saved[:4]
+        rot_base, theta_base = saved[19], saved[20]
+        E = edge_rot.shape[0]
         gc = tuple(g[:, i].contiguous() for i in range(3))
-        g_rot = torch.empty_like(rot)
-        g_th = torch.empty_like(th)
-        gR = [[g_rot[q, p] for q in range(9)] for p in range(6)]
-        gt = [[g_th[c, k] for c in range(3)] for k in range(7)]
-        _soa_backward(R, t, inter, gc, gR, gt)
+        if torch.is_grad_enabled():
+            # a recorded backward: the saved tables carry no graph (the forward ran without
+            # recording), so rebuild them and the intermediates from the inputs
+            rot, th = _soa_tables(edge_rot, edge_theta, rot_base, theta_base)
+            R, t = _unbind_tables(rot, th)
+            _, inter = _soa_forward(R, t)
+            sink = _OuterRecorded()
+            vals = _soa_backward(R, t, inter, gc, sink)
+            g_rot = torch.stack([torch.stack(sink.gR[p], 0) for p in range(6)], 1)  # (9, 6, T)
+            g_th = torch.stack([torch.stack([vals[k][c] for k in range(7)], 0) for c in range(3)], 0)  # (3, 7, T)
+        else:
+            inter_flat = saved[4:19]
+            inter = tuple(tuple(inter_flat[3 * k:3 * k + 3]) for k in range(5))
+            R, t = _unbind_tables(rot, th)
+            g_rot = torch.empty_like(rot)
+            g_th = torch.empty_like(th)
+            vals = _soa_backward(R, t, inter, gc, _OuterInPlace([[g_rot[q, p] for q in range(9)] for p in range(6)]))
+            for k in range(7):
+                for c in range(3):
+                    g_th[c, k].copy_(vals[k][c])
         g_edge_rot = g_edge_theta = None
         if ctx.needs_input_grad[0]:
             gtab = _soa_scatter(g_rot, rot_base, 18, E).reshape(18, E)
@@ -302,7 +354,8 @@ def tet_dd_from_rotations(rot: torch.Tensor, theta: torch.Tensor) -> torch.Tenso
     Three rounds of batched matrix-vector products (6, then 2, then 3 per tet) instead of the
     8 matrix-matrix products and 16 matrix-vector products of the printed formula.
     Differentiated by plain autograd: the reference of the fused component-major kernel
-    (``_TetDDSoAFn``, hand-written backward) that the mesh-level :func:`tet_dd_solder` uses.
+    (``_TetDDSoAFn``, hand-written differentiable backward) that the mesh-level
+    :func:`tet_dd_solder` uses.
     """
     return _tet_dd_forward(rot, theta)[0]
 
