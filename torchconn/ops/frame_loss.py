@@ -26,6 +26,14 @@ COMPILED_TERMS = ("smooth", "tie", "flat", "torsion")
 _GRAD = 16
 
 
+_CREATE_GRAPH_ERROR = (
+    "torchconn.ops.frame_loss: the compiled frame-field loss kernel (csrc/frame_loss.c, terms "
+    f"{', '.join(COMPILED_TERMS)}) computes a first-order gradient only and cannot be differentiated "
+    "again (create_graph=True, double backward, a Hessian-vector product); evaluate the loss with the "
+    "compiled kernels off, `with torchconn.ops.compiled(False): out = loss(edge_rot, frames)`, whose torch "
+    "terms give exact higher-order gradients")
+
+
 class _CompiledFrameLossFn(torch.autograd.Function):
     """``(edge_rot (E,3,3), frames (V,3,3)) -> (4,)`` values of smooth, tie, flat, torsion.
 
@@ -38,8 +46,15 @@ class _CompiledFrameLossFn(torch.autograd.Function):
     ``I + (A - Aᵀ)/(4c) + (A + Aᵀ - 2I)/(4(1+c))``, ``c = cos(angle/2)``, equal to
     :func:`torchconn.ops.so3.sqrt` on rotations; its gradient agrees with the torch path along
     rotations (the tangent directions a parametrization through ``so3.exp`` sees), not for
-    arbitrary off-manifold perturbations of the matrices. First order only
-    (``once_differentiable``).
+    arbitrary off-manifold perturbations of the matrices.
+
+    First order only: the gradient comes out of the C sweep as numbers, so a recorded backward
+    (``create_graph=True``: double backward, ``autograd.grad(..., create_graph=True)``,
+    Hessian-vector products; detected as grad mode on inside the backward) raises
+    ``RuntimeError`` rather than return a gradient without its own derivative. Whether the
+    graph will be recorded is only known at backward time, and the torch terms live above
+    this layer (:mod:`torchconn.frames.loss`), so the caller switches the kernel off for
+    higher-order gradients (:func:`torchconn.ops.compiled`).
     """
 
     @staticmethod
@@ -51,8 +66,9 @@ class _CompiledFrameLossFn(torch.autograd.Function):
         return sums[:4].to(edge_rot.dtype)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, g):
+        if torch.is_grad_enabled():
+            raise RuntimeError(_CREATE_GRAPH_ERROR)
         edge_rot, frames, group, gR, gF = ctx.saved_tensors
         gv = [float(x) for x in g.to(torch.float64)]
         on = [b for b in range(4) if ctx.flags & (1 << b)]
@@ -146,8 +162,8 @@ def frame_loss_terms(edge_rot: torch.Tensor, frames: torch.Tensor, mesh, group: 
         order), or ``None`` when the kernel cannot run: no such term, a mesh without sorted
         triangles, shapes other than ``(E, 3, 3)`` / ``(V, 3, 3)``, or
         :func:`torchconn.ops.backend.can_use_compiled` false. A recorded backward
-        (``create_graph``) is not supported by the kernel: switch it off
-        (:func:`torchconn.ops.compiled`) for higher-order gradients.
+        (``create_graph``) through these terms raises ``RuntimeError``: switch the kernel off
+        (``with torchconn.ops.compiled(False):``) for higher-order gradients.
     """
     if not any(weights.get(k, 0.0) for k in COMPILED_TERMS):
         return None
