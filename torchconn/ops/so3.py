@@ -13,7 +13,9 @@ it (switch on, CPU float32/float64, library built, no ``torch.compile`` trace, n
 the torch code. The C backward is first order: when the backward itself is recorded
 (``create_graph``, e.g. ``gradgradcheck`` or ``autograd.functional.jvp``, detected by grad mode
 being on inside backward) it is computed by the torch code instead.
-:mod:`torchconn.lie.so3` validates its arguments and calls these ops.
+:mod:`torchconn.lie.so3` validates its arguments and calls these ops; its ``log`` calls
+:func:`log_checked`, which also reports the matrices that are not rotations (computed inside
+the compiled log kernel, in the same pass), while :func:`log` here stays unvalidated.
 """
 from __future__ import annotations
 
