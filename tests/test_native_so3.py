@@ -171,6 +171,25 @@ def test_threads_do_not_change_results():
         assert torch.equal(u, v)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_log_checked_kernel_same_values_any_threads(dtype):
+    # so3_log_fwd_checked: the same ω as so3_log_fwd bitwise on every edge case, and the same
+    # count and first index with 1 or 2 threads (OpenMP reductions over blocks)
+    x = _inputs("log", dtype, n=20_000)
+    bad = x.clone()
+    bad[[17_000, 9_000, 4_500]] = -bad[[17_000, 9_000, 4_500]]
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            w, n_bad, first = ops_so3.log_checked(x, 1e-4)
+            assert torch.equal(w, ops_so3.log(x)) and (n_bad, first) == (0, -1)
+            w, n_bad, first = ops_so3.log_checked(bad, 1e-4)
+            assert torch.equal(w, ops_so3.log(bad)) and (n_bad, first) == (3, 4_500)
+    finally:
+        torch.set_num_threads(before)
+
+
 # ---------------------------------------------------------------- gradients
 
 

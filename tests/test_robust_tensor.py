@@ -153,14 +153,19 @@ def test_check_rotation_rejects_int_with_name():
         so3.check_rotation(torch.eye(3, dtype=torch.long), name="frames")
 
 
-def test_so3_log_of_non_rotations_is_unvalidated_but_finite():
-    # documented garbage-in behaviour: finite, |omega| <= pi, exp(log(M)) != M; NaN stays local
+def test_so3_log_of_non_rotations_raises_and_the_op_stays_unvalidated():
+    # so3.log names the first bad index (tests/test_so3_log_validation.py has every case);
+    # the op below it (torchconn.ops.so3.log) keeps the garbage-in behaviour: finite,
+    # |omega| <= pi, exp(log(M)) != M; NaN stays local
     M = torch.stack([2.0 * torch.eye(3, dtype=F64), torch.zeros(3, 3, dtype=F64), -torch.eye(3, dtype=F64)])
-    w = so3.log(M)
+    with pytest.raises(ValueError, match=r"so3\.log: .* at batch index \(0,\) is not a rotation: not orthogonal"
+                       r".*3 of 3 matrices .*project_to_rotation"):
+        so3.log(M)
+    w = ops.so3.log(M)
     assert torch.isfinite(w).all() and (w.norm(dim=-1) <= torch.pi + 1e-12).all()
     assert not torch.allclose(so3.exp(w), M)
     M[1, 0, 0] = float("nan")
-    w = so3.log(M)
+    w = ops.so3.log(M)
     assert torch.isnan(w[1]).all() and torch.isfinite(w[[0, 2]]).all()
     with pytest.raises(ValueError, match=r"3 of 3 matrices are not rotations; non-finite .* at index \(1,\)"):
         so3.check_rotation(M)

@@ -180,7 +180,8 @@ def log(R: torch.Tensor) -> torch.Tensor:
       affecting the other batch elements. Differentiable (only matmul, inverse and solve).
 
     ``exp(log(R)) == R``; ``log(exp(K)) == K`` for skew ``K`` with all angles ``< pi``.
-    The input is not validated (see :func:`check_rotation`).
+    For ``n = 3`` the input is validated by :func:`so3.log` (``ValueError`` naming the batch
+    index); other ``n`` are not (see :func:`check_rotation`).
     """
     n = _check_square(R, "log")
     if n == 1:

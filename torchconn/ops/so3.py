@@ -13,7 +13,9 @@ it (switch on, CPU float32/float64, library built, no ``torch.compile`` trace, n
 the torch code. The C backward is first order: when the backward itself is recorded
 (``create_graph``, e.g. ``gradgradcheck`` or ``autograd.functional.jvp``, detected by grad mode
 being on inside backward) it is computed by the torch code instead.
-:mod:`torchconn.lie.so3` validates its arguments and calls these ops.
+:mod:`torchconn.lie.so3` validates its arguments and calls these ops; its ``log`` calls
+:func:`log_checked`, which also reports the matrices that are not rotations (computed inside
+the compiled log kernel, in the same pass), while :func:`log` here stays unvalidated.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from . import native as _native
 from .backend import _plain, can_use_compiled
 from ..tolerances import get_eps
 
-__all__ = ["exp", "log", "sqrt", "half_exp", "exp_autograd"]
+__all__ = ["exp", "log", "log_checked", "sqrt", "half_exp", "exp_autograd"]
 
 
 def _c_call(name: str, out_shape, *inputs: torch.Tensor) -> torch.Tensor:
@@ -50,12 +52,15 @@ class _CompiledMapFn(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(x, kind):
+    def forward(x, kind, check=None):
         batch = x.shape[:-1] if kind == "exp" else x.shape[:-2]
         n = batch.numel()
         out_tail = (3,) if kind == "log" else (3, 3)
         flat = x.reshape(n, 3 if kind == "exp" else 9)
-        out = _c_call(f"{kind}_fwd", (n, 3 if kind == "log" else 9), flat)
+        if check is not None:  # log validated in the same pass (_LogCheck receives the result)
+            out = _log_fwd_checked_c(flat, check)
+        else:
+            out = _c_call(f"{kind}_fwd", (n, 3 if kind == "log" else 9), flat)
         return out.reshape(*batch, *out_tail)
 
     @staticmethod
@@ -71,22 +76,50 @@ class _CompiledMapFn(torch.autograd.Function):
         # (autograd.functional.jacobian(vectorize=True)): the torch formulas
         if torch.is_grad_enabled() or not _plain(g):
             if kind == "exp":
-                return _exp_backward(x, g), None
+                return _exp_backward(x, g), None, None
             torch_fn = _log_torch if kind == "log" else _sqrt_torch
             with torch.enable_grad():
                 out = torch_fn(x)
                 (gx,) = torch.autograd.grad(out, x, g, create_graph=True)
-            return gx, None
+            return gx, None, None
         m = 3 if kind == "exp" else 9  # components of x per element
         n = x.numel() // m
         gx = _c_call(f"{kind}_bwd", (n, m), x.reshape(n, m), g.reshape(n, 3 if kind == "log" else 9))
-        return gx.reshape(x.shape), None
+        return gx.reshape(x.shape), None, None
 
 
-def _compiled_map(x: torch.Tensor, kind: str) -> torch.Tensor:
+def _compiled_map(x: torch.Tensor, kind: str, check: "_LogCheck | None" = None) -> torch.Tensor:
     if x.requires_grad and torch.is_grad_enabled():
-        return _CompiledMapFn.apply(x, kind)
-    return _CompiledMapFn.forward(x, kind)
+        return _CompiledMapFn.apply(x, kind, check)
+    return _CompiledMapFn.forward(x, kind, check)
+
+
+class _LogCheck:
+    """Tolerance in, ``(n_bad, first)`` out: the validation result of one compiled log call."""
+
+    __slots__ = ("atol", "n_bad", "first")
+
+    def __init__(self, atol: float):
+        self.atol, self.n_bad, self.first = atol, 0, -1
+
+
+def _log_fwd_checked_c(flat: torch.Tensor, check: _LogCheck) -> torch.Tensor:
+    """``so3_log_fwd_checked_<f32|f64>`` on ``flat (n, 9)``: ω ``(n, 3)``; fills ``check``."""
+    n = flat.shape[0]
+    out = torch.empty((n, 3), dtype=flat.dtype)
+    check.n_bad, check.first = 0, -1
+    if n:
+        fn = _native.function(
+            "so3", f"so3_log_fwd_checked_{'f32' if flat.dtype == torch.float32 else 'f64'}",
+            [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_double,
+             ctypes.c_double, ctypes.POINTER(ctypes.c_long)], ctypes.c_long)
+        src = flat.contiguous()  # kept alive until the call returns
+        first = ctypes.c_long(n)
+        n_bad = fn(_native.ptr(src), _native.ptr(out), ctypes.c_long(n), ctypes.c_int(torch.get_num_threads()),
+                   ctypes.c_double(get_eps("small_angle", flat.dtype)), ctypes.c_double(check.atol),
+                   ctypes.byref(first))
+        check.n_bad, check.first = int(n_bad), (int(first.value) if n_bad else -1)
+    return out
 
 
 # ----------------------------------------------------------------------------- exp
@@ -280,6 +313,56 @@ def log(R: torch.Tensor) -> torch.Tensor:
 def _log_torch(R: torch.Tensor) -> torch.Tensor:
     w, _ = _log_parts(R.flatten(-2).unbind(-1), get_eps("small_angle", R.dtype))
     return torch.stack(w, -1)
+
+
+def _rotation_flags(R: torch.Tensor, atol: float):
+    """Per matrix of ``R (..., 3, 3)``, flattened: ``(bad (N,) bool, e2 (N,), det (N,))``.
+
+    ``e2 = ||Rᵀ R - I||_F²`` from the dot products of the columns, ``bad = ¬(e2 ≤ atol²) ∨
+    det < 0`` (true for NaN/inf entries too, whose ``e2`` is NaN or inf): the expressions of
+    ``not_rotation`` in ``csrc/so3.c``, in the same order, so both paths flag the same
+    matrices. Computed in at least float32 (float16/bfloat16 would round the residual away),
+    on the components made contiguous first (one copy; the ~40 elementwise ops that follow
+    then stream instead of striding by 9). No gradient, no sync.
+    """
+    with torch.no_grad():
+        work = torch.promote_types(R.dtype, torch.float32)
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = R.detach().to(work).reshape(-1, 9).T.contiguous()
+        aa = r0 * r0 + r3 * r3 + r6 * r6 - 1.0
+        bb = r1 * r1 + r4 * r4 + r7 * r7 - 1.0
+        cc = r2 * r2 + r5 * r5 + r8 * r8 - 1.0
+        ab = r0 * r1 + r3 * r4 + r6 * r7
+        ac = r0 * r2 + r3 * r5 + r6 * r8
+        bc = r1 * r2 + r4 * r5 + r7 * r8
+        e2 = aa * aa + bb * bb + cc * cc + 2.0 * (ab * ab + ac * ac + bc * bc)
+        det = r0 * (r4 * r8 - r5 * r7) - r1 * (r3 * r8 - r5 * r6) + r2 * (r3 * r7 - r4 * r6)
+        tol2 = torch.tensor(atol * atol, dtype=work).item()  # rounded as C's (T)(tol * tol)
+        return ~(e2 <= tol2) | (det < 0.0), e2, det
+
+
+def log_checked(R: torch.Tensor, atol: float) -> tuple[torch.Tensor, int, int]:
+    """:func:`log` of ``R (..., 3, 3)`` and its validation: ``(ω (..., 3), n_bad, first)``.
+
+    ``n_bad`` counts the matrices that are not rotations within ``atol``
+    (``||Rᵀ R - I||_F > atol``, ``det R < 0`` or a NaN/inf entry; :func:`_rotation_flags`),
+    ``first`` is the flat batch index of the first one (``-1`` if none); ``ω`` is exactly
+    :func:`log`'s. Compiled: computed inside the log kernel from the nine entries already
+    loaded (no second pass over memory, no torch op). Torch path: one fused elementwise check
+    and one ``any()``, which **synchronizes** with the device off the CPU. Call it only on
+    eager tensors with data (not under ``torch.compile``, vmap or on ``meta``):
+    :func:`torchconn.lie.so3.log` decides that.
+    """
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"log expects a tensor of shape (..., 3, 3), got {tuple(R.shape)}")
+    if can_use_compiled("so3", R):
+        check = _LogCheck(atol)
+        w = _compiled_map(R, "log", check)
+        return w, check.n_bad, check.first
+    w = _log_torch(R)
+    bad = _rotation_flags(R, atol)[0]
+    if not bool(bad.any()):
+        return w, 0, -1
+    return w, int(bad.sum()), int(torch.nonzero(bad)[0, 0])
 
 
 # ----------------------------------------------------------------------------- sqrt
