@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import MeshError, _few
+from .errors import MeshError, _checked_path, _few
 from .tet import TetMesh
 
 __all__ = ["CadTags", "CAD_SUFFIXES", "load_cad", "load_tagged_msh", "load_hexme", "cad_tags_from_elements"]
@@ -320,12 +320,7 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
         MeshError: unsupported suffix, a model without volumes, or a gmsh failure (its message).
         ValueError: a bad ``size``/``meta``.
     """
-    path = Path(path)
-    suf = path.suffix.lower()
-    if suf not in CAD_SUFFIXES:
-        raise MeshError(f"unsupported CAD suffix {suf!r} of {path}; supported: {', '.join(CAD_SUFFIXES)}")
-    if not path.exists():
-        raise FileNotFoundError(f"no such CAD file: {path}")
+    path, suf = _checked_path(path, CAD_SUFFIXES, "CAD")
     if size is not None and not (math.isfinite(size) and size > 0):
         raise ValueError(f"size must be a positive number, got {size}")
     if not size_factor > 0:

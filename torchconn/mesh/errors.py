@@ -1,6 +1,8 @@
 """:class:`MeshError` and the helpers that name offending elements in its messages."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 __all__ = ["MeshError"]
@@ -25,3 +27,13 @@ def _few_rows(rows, k: int = 5) -> str:
     head = ", ".join("(" + ", ".join(str(int(x)) for x in r) + ")" for r in rows[:k])
     more = ", ..." if len(rows) > k else ""
     return f"{head}{more} (count {len(rows)})"
+
+def _checked_path(path, suffixes, kind: str) -> tuple[Path, str]:
+    """``(Path, lower-case suffix)``; MeshError for an unsupported suffix, FileNotFoundError if absent."""
+    path = Path(path)
+    suf = path.suffix.lower()
+    if suf not in suffixes:
+        raise MeshError(f"unsupported {kind} suffix {suf!r} of {path}; supported: {', '.join(suffixes)}")
+    if not path.exists():
+        raise FileNotFoundError(f"no such {kind} file: {path}")
+    return path, suf

@@ -36,7 +36,7 @@ from .builtin import ball, box, cylinder, tetrahedralize, torus
 from . import cad as _cad
 from .cad import CAD_SUFFIXES as _CAD_SUFFIXES
 from .cells import CellComplex
-from .errors import MeshError, _few
+from .errors import MeshError, _checked_path, _few
 from .tet import TetMesh
 
 __all__ = [
@@ -156,15 +156,6 @@ def _guarded(reader, path: Path):
     return res, None
 
 
-def _checked_path(path, suffixes, kind: str) -> tuple[Path, str]:
-    """``(Path, lower-case suffix)``; MeshError for an unsupported suffix, FileNotFoundError if absent."""
-    path = Path(path)
-    suf = path.suffix.lower()
-    if suf not in suffixes:
-        raise MeshError(f"unsupported {kind} suffix {suf!r} of {path}; supported: {', '.join(suffixes)}")
-    if not path.exists():
-        raise FileNotFoundError(f"no such {kind} file: {path}")
-    return path, suf
 
 
 def _clean_vertices(V: np.ndarray, T: np.ndarray, path: Path, merge_duplicates: bool):

@@ -206,21 +206,22 @@ def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None)
     the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
     generic operators.
     """
-    _check_dd_args(edge_rot, mesh, frames, half_rot, "averaged_dd_solder")
-    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
-    if fused is not None:
-        return fused
-    T = tet_transports(edge_rot, mesh)
-    return averaged_dd_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
+    return _dd_solder(edge_rot, mesh, frames, half_rot, "averaged_dd_solder", averaged_dd_tet)
 
 
-def _check_dd_args(edge_rot, mesh, frames, half_rot, fn) -> None:
-    """The argument checks of :func:`averaged_dd_solder` and :func:`wedge_solder` (every rank)."""
+def _dd_solder(edge_rot, mesh, frames, half_rot, fn, generic) -> torch.Tensor:
+    """:func:`averaged_dd_solder` and :func:`wedge_solder` (the same value, two formulas): the
+    argument checks (every rank), then the fused ``n = 3`` kernel or ``generic(T, θ̃)`` on the
+    dense per-tet tables."""
     _check_mesh_rot(edge_rot, mesh, fn)
     if half_rot is not None and half_rot.shape != edge_rot.shape:
         raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
     if frames is not None:
         _check_frames(frames, mesh, edge_rot, fn)
+    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    if fused is not None:
+        return fused
+    return generic(tet_transports(edge_rot, mesh), tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
 
 
 def behs21_dd_solder(edge_rot: torch.Tensor, mesh, frames=None) -> torch.Tensor:
@@ -235,9 +236,4 @@ def wedge_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> to
     For ``n = 3`` evaluated by the fused regrouping of the same formula
     (:func:`torchconn.ops.tet.tet_dd_solder`); other ranks use the dense tables.
     """
-    _check_dd_args(edge_rot, mesh, frames, half_rot, "wedge_solder")
-    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
-    if fused is not None:
-        return fused
-    T = tet_transports(edge_rot, mesh)
-    return wedge_curvature_solder_tet(T, tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
+    return _dd_solder(edge_rot, mesh, frames, half_rot, "wedge_solder", wedge_curvature_solder_tet)
