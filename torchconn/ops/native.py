@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["library", "function", "ptr", "CSRC"]
+__all__ = ["library", "function", "declare", "CFunction", "ptr", "CSRC"]
 
 #: Folder of the C sources.
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -133,3 +133,35 @@ def ptr(t: torch.Tensor) -> ctypes.c_void_p:
     if not t.is_contiguous():
         raise ValueError("native kernels need contiguous tensors")
     return ctypes.c_void_p(t.data_ptr())
+
+
+class CFunction:
+    """A C function of ``csrc/<lib>.c`` whose signature is declared once, where it is defined.
+
+    Op modules declare each symbol they call at import time (nothing is built then); the
+    library is built and the symbol resolved, with ``argtypes``/``restype`` set once, on the
+    first call. Calling checks the number and kinds of the arguments (``ctypes.ArgumentError``
+    on a mismatch).
+
+    >>> _EXP = {torch.float32: declare("so3", "so3_exp_fwd_f32", [c_void_p, c_void_p, c_long])}
+    """
+
+    __slots__ = ("lib", "symbol", "argtypes", "restype", "_fn")
+
+    def __init__(self, lib: str, symbol: str, argtypes: list, restype=None):
+        self.lib, self.symbol, self.argtypes, self.restype = lib, symbol, list(argtypes), restype
+        self._fn = None
+
+    def __call__(self, *args):
+        fn = self._fn
+        if fn is None:
+            fn = self._fn = function(self.lib, self.symbol, self.argtypes, self.restype)
+        return fn(*args)
+
+    def __repr__(self) -> str:
+        return f"CFunction({self.lib}:{self.symbol})"
+
+
+def declare(lib: str, symbol: str, argtypes: list, restype=None) -> CFunction:
+    """Declare the C function ``symbol`` of ``csrc/<lib>.c`` (see :class:`CFunction`)."""
+    return CFunction(lib, symbol, argtypes, restype)

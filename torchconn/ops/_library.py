@@ -1,0 +1,57 @@
+"""The ``torchconn`` namespace of ``torch.library`` custom ops and the rules every op shares.
+
+Every hot op of :mod:`torchconn.ops` is declared once with :func:`torch.library.custom_op` as
+``torchconn::<name>`` (see :data:`NAMESPACE`), with
+
+* a default implementation in torch operations (the *generic* kernel: every device, every dtype);
+* a CPU kernel that runs the compiled C code when :func:`torchconn.ops.backend.can_use_compiled`
+  allows it and the generic code otherwise (the one switch lives in :mod:`.backend`);
+* a fake implementation (shapes only: ``meta`` tensors, ``torch.compile``, ``torch.export``);
+* an autograd registration whose backward is itself made of differentiable pieces (another
+  custom op with its own autograd registration, or torch operations), so double backward,
+  ``create_graph=True`` and Hessian-vector products are exact on every path;
+* a vmap rule (:func:`leading_vmap`) where the op takes native leading batch dimensions.
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import torch
+
+__all__ = ["NAMESPACE", "qualname", "leading_vmap"]
+
+#: The ``torch.library`` namespace of every torchconn op (``torch.ops.torchconn.<name>``).
+NAMESPACE = "torchconn"
+
+
+def qualname(name: str) -> str:
+    """``"torchconn::<name>"``."""
+    return f"{NAMESPACE}::{name}"
+
+
+def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1):
+    """A vmap rule for an op whose arguments ``batched`` take native leading batch dimensions.
+
+    The vmapped dimension of each of those arguments is moved to the front (an argument that is
+    not vmapped is expanded to the batch size); the op then runs once on the whole batch and
+    every output carries the batch at dimension 0. Any other argument (index tables, scalars)
+    must not be vmapped: that raises ``NotImplementedError`` naming the op and the argument.
+    """
+    batched = tuple(batched)
+
+    def rule(info, in_dims, *args):
+        args = list(args)
+        for i, d in enumerate(in_dims):
+            if i in batched:
+                if d is None:
+                    args[i] = args[i].unsqueeze(0).expand(info.batch_size, *args[i].shape)
+                elif d != 0:
+                    args[i] = args[i].movedim(d, 0)
+            elif d is not None:
+                raise NotImplementedError(
+                    f"torchconn::{name}: vmap over argument {i} is not supported "
+                    f"(only arguments {list(batched)} take leading batch dimensions)")
+        out = op(*args)
+        return out, (0 if n_out == 1 else (0,) * n_out)
+
+    return rule
