@@ -10,12 +10,13 @@ custom ops take native leading dims and have a vmap rule). :func:`ask_op` falls 
 generic torch formula of the caller, which broadcasts over the leading dims, when the op
 
 * returns ``None`` (it does not apply: rank, cut, mesh kind);
-* raises ``ValueError``, ``RuntimeError`` or ``IndexError`` for an input with leading dims: the caller has
-  already checked the shape ``(*batch, E, n, n)`` against the mesh, so this can only be an op
-  that refuses (or, with an unchecked reshape, fails on) batch dims — the pre-issue-11 kernels
-  take ``(E, 3, 3)`` only (``ops.curvature``/``ops.torsion`` raise ``ValueError``,
-  ``ops.tet`` fails in a reshape or an index with ``RuntimeError`` / ``IndexError``). Once every op takes native leading
-  dims this case never triggers and the batched tensor goes straight to the op;
+* raises ``ValueError``, ``RuntimeError`` or ``IndexError`` for an input with leading dims:
+  the caller has already checked the shape ``(*batch, E, n, n)`` against the mesh, so this can
+  only be an op that refuses (or, with an unchecked reshape, fails on) batch dims — the
+  pre-issue-11 kernels take ``(E, 3, 3)`` only (``ops.curvature``/``ops.torsion`` raise
+  ``ValueError``, ``ops.tet`` fails in a reshape or an index with ``RuntimeError`` /
+  ``IndexError``). Once every op takes native leading dims this case never triggers and the
+  batched tensor goes straight to the op;
 * raises ``RuntimeError`` while a functorch transform (``vmap``, ``grad``) wraps the input:
   an op without a rule for that transform (an ``autograd.Function`` without
   ``setup_context``/``vmap``, e.g. ``aten::nonzero`` under ``vmap``).

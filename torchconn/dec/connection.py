@@ -255,8 +255,9 @@ class Connection:
                 elif mask is bad_det:
                     value = f" (det = {float(det[first]):.6f} at edge {first})"
                 parts.append(f"{label} at edge indices {_list_some(e[:_MAX_LISTED].tolist(), e.numel())}{value}")
+            where = f" (in at least one item of the batch {tuple(self.batch_shape)})" if len(self.batch_shape) else ""
             raise ValueError(
-                f"{name}: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
+                f"{name}: {idx.numel()} of {self.n_edges} edge matrices{where} are not rotations, at edge "
                 f"indices {_list_some(shown.tolist(), idx.numel())} (vertex pairs "
                 f"{self.edges[shown].tolist()}): " + "; ".join(parts) + ". Pass rotations "
                 "(orthogonal, det +1), e.g. project them with so3.project_to_rotation"
