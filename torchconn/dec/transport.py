@@ -41,6 +41,8 @@ def orient(edge_rot: torch.Tensor, edge_idx: torch.Tensor, edge_sign: torch.Tens
     n = edge_rot.shape[-1]
     batch = edge_rot.shape[:-3]
     # index_select (backward: index_add) on the edge dim rather than advanced indexing
+    dev = edge_rot.device
+    edge_idx, edge_sign = torch.as_tensor(edge_idx, device=dev), torch.as_tensor(edge_sign, device=dev)
     R = edge_rot.index_select(-3, edge_idx.reshape(-1)).reshape(*batch, *edge_idx.shape, n, n)
     return torch.where((edge_sign > 0)[..., None, None], R, R.transpose(-1, -2))
 
