@@ -183,6 +183,11 @@ def test_transport_and_connection_batched(mesh):
     idx = torch.tensor([[0, 3], [5, 1]])
     sgn = torch.tensor([[1, -1], [-1, 1]])
     assert_close(transport.orient(R, idx, sgn), torch.stack([transport.orient(R[b], idx, sgn) for b in range(2)]))
+    # the flat connection of a batch of frame fields
+    cf = Connection.from_frames(G, mesh.edges)
+    assert cf.batch_shape == (2,)
+    assert_close(cf.edge_rot, torch.stack([Connection.from_frames(G[b], mesh.edges).edge_rot for b in range(2)]))
+    assert float(curvature.face_curvature(cf, mesh, kind="holonomy").abs().max()) < 1e-12
     # identity/random with batch_shape
     ci = Connection.identity(mesh.edges, mesh.n_vertices, dtype=F64, batch_shape=(3,))
     assert ci.edge_rot.shape == (3, mesh.n_edges, 3, 3)

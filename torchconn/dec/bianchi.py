@@ -168,7 +168,7 @@ def check(edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=Non
 
 def _check(edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
     if not torch.is_tensor(edge_rot) or not edge_rot.is_floating_point():
-        raise TypeError(f"check: edge_rot must be a floating tensor (E, n, n), got "
+        raise TypeError(f"check: edge_rot must be a floating tensor (..., E, n, n), got "
                         f"{edge_rot.dtype if torch.is_tensor(edge_rot) else type(edge_rot).__name__}")
     eps = get_eps("identity", edge_rot.dtype) if atol is None else float(atol)
     n = edge_rot.shape[-1]

@@ -140,7 +140,7 @@ class Connection:
         if not isinstance(edge_rot, torch.Tensor) or not edge_rot.is_floating_point():
             got = f"dtype {edge_rot.dtype}" if isinstance(edge_rot, torch.Tensor) else type(edge_rot).__name__
             raise TypeError(
-                f"Connection: edge_rot must be a floating-point tensor of shape (E, n, n), got {got}; "
+                f"Connection: edge_rot must be a floating-point tensor of shape (..., E, n, n), got {got}; "
                 f"convert it first, e.g. torch.as_tensor(edge_rot, dtype=torch.float64)"
             )
         if edge_rot.dim() < 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
@@ -473,13 +473,14 @@ class Connection:
         ``F_j X``; read in ``F_i`` it has coordinates ``F_iᵀ F_j X``, so ``R_ij`` maps the fiber
         at ``v_j`` to the fiber at ``v_i`` as required. Every closed path has trivial holonomy
         (``T(p0..p0) = I``); equivalently this is ``identity.gauge(G)`` with ``G_i = F_iᵀ``.
+        ``frames (*batch, V, n, n)`` with leading batch dims gives a batched connection.
         """
-        if frames.dim() != 3 or frames.shape[-1] != frames.shape[-2]:
-            raise ValueError(f"frames must have shape (V, n, n), got {tuple(frames.shape)}")
+        if frames.dim() < 3 or frames.shape[-1] != frames.shape[-2]:
+            raise ValueError(f"frames must have shape (V, n, n) or (..., V, n, n), got {tuple(frames.shape)}")
         edges = _as_edges(edges, device=frames.device)
-        V = frames.shape[0]
+        V = frames.shape[-3]
         lookup = _check_edges(edges, V)
-        R = frames[edges[:, 0]].transpose(-1, -2) @ frames[edges[:, 1]]
+        R = frames.index_select(-3, edges[:, 0]).transpose(-1, -2) @ frames.index_select(-3, edges[:, 1])
         return cls._trusted(R, edges, V, lookup)
 
     @classmethod

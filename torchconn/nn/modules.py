@@ -79,7 +79,7 @@ def edge_rotations(connection: Any, who: str = "edge_rotations") -> torch.Tensor
     R = connection if isinstance(connection, torch.Tensor) else getattr(connection, "edge_rot", None)
     if not isinstance(R, torch.Tensor):
         raise TypeError(
-            f"{who}: expected a Connection, a ConnectionField or an (E, n, n) tensor, got "
+            f"{who}: expected a Connection, a ConnectionField or an (..., E, n, n) tensor, got "
             f"{type(connection).__name__}; convert an array first, e.g. torch.as_tensor(R, dtype=torch.float64)"
         )
     if not R.is_floating_point():
