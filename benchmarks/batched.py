@@ -9,7 +9,7 @@ For each device present (CPU; CUDA when available), float32 and float64, and eac
 ("batched") and item by item ("loop"). Prints a markdown table: best of ``repeats`` seconds and
 ``batched / loop`` (below 1: the batched call is faster).
 
-Until the ops of :mod:`torchconn.ops` take native leading dims (issue 11, in progress), a
+Until the ops of :mod:`torchconn.ops` take leading batch dims themselves (issue 11, in progress), a
 batched call runs the generic torch formula of :mod:`torchconn.dec` (see
 :mod:`torchconn.dec._batch`) while the loop runs the fused op on every item.
 """

@@ -6,7 +6,7 @@ of one mesh (``batch`` may be empty) and returns its values with the same leadin
 carries no batch dims and is shared by every item.
 
 The kernels of :mod:`torchconn.ops` are asked first, with the batched tensor (the issue-11
-custom ops take native leading dims and have a vmap rule). :func:`ask_op` falls back to the
+custom ops take leading batch dims themselves and have a vmap rule). :func:`ask_op` falls back to the
 generic torch formula of the caller, which broadcasts over the leading dims, when the op
 
 * returns ``None`` (it does not apply: rank, cut, mesh kind);
@@ -15,7 +15,7 @@ generic torch formula of the caller, which broadcasts over the leading dims, whe
   only be an op that refuses (or, with an unchecked reshape, fails on) batch dims — the
   pre-issue-11 kernels take ``(E, 3, 3)`` only (``ops.curvature``/``ops.torsion`` raise
   ``ValueError``, ``ops.tet`` fails in a reshape or an index with ``RuntimeError`` /
-  ``IndexError``). Once every op takes native leading dims this case never triggers and the
+  ``IndexError``). Once every op takes leading batch dims itself this case never triggers and the
   batched tensor goes straight to the op;
 * raises ``RuntimeError`` while a functorch transform (``vmap``, ``grad``) wraps the input:
   an op without a rule for that transform (an ``autograd.Function`` without
