@@ -26,3 +26,23 @@ def data_path(name: str) -> Path:
 def gen() -> torch.Generator:
     """A CPU generator seeded identically for every test."""
     return torch.Generator().manual_seed(1234)
+
+
+def _device_params() -> list:
+    """CPU always; CUDA when present, else a skipped case that says why (never silently absent)."""
+    params = [pytest.param("cpu", id="cpu")]
+    if torch.cuda.is_available():
+        params.append(pytest.param("cuda", id="cuda"))
+    else:
+        params.append(pytest.param("cuda", id="cuda", marks=pytest.mark.skip(
+            reason="no CUDA device on this machine (torch.cuda.is_available() is False)")))
+    return params
+
+
+DEVICES = _device_params()
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """Every device present: ``cpu``, and ``cuda`` when available (skipped with a reason otherwise)."""
+    return torch.device(request.param)

@@ -266,7 +266,7 @@ def test_errors_name_offenders(gen):
         Connection(c.edge_rot[:2], torch.tensor([[0, 1], [1, 7]]), V)
     with pytest.raises(ValueError, match="edge_rot has 3 matrices but edges has 2"):
         Connection(c.edge_rot[:3], torch.tensor([[0, 1], [1, 2]]), V)
-    with pytest.raises(ValueError, match=r"\(E, n, n\)"):
+    with pytest.raises(ValueError, match=r"\(\.\.\., E, n, n\)"):
         Connection(c.edge_rot[:, :2], edges, V)
     with pytest.raises(TypeError, match="integer"):
         Connection(c.edge_rot, edges.double(), V)

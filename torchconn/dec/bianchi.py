@@ -52,8 +52,9 @@ def differential_residual(edge_rot: torch.Tensor, mesh, reduce: bool = True, *, 
     ``alternate=True`` the averaged ``d∇Ω = 𝔡∇ Alt Ω`` (Def. 5.2, Lie Alt of Ch. 5) is used.
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations of ``mesh.edges``; mesh: a ``TetMesh``.
-        reduce: return Frobenius norms ``(T,)``; else the raw residual ``(T, n, n)``.
+        edge_rot: ``(*batch, E, n, n)`` rotations of ``mesh.edges`` (``batch`` may be empty);
+            mesh: a ``TetMesh``.
+        reduce: return Frobenius norms ``(*batch, T)``; else the raw residual ``(*batch, T, n, n)``.
     """
     res = _differential(dnabla.tet_transports(edge_rot, mesh), alternate)
     return _norm_or_raw(res, reduce, 2)
@@ -76,9 +77,9 @@ def algebraic_residual(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None,
     wedge (:func:`torchconn.dnabla.wedge_solder`), both at ``tets[t,0]``.
 
     Args:
-        edge_rot: ``(E, n, n)``; mesh: ``TetMesh``; frames ``(V, 3, n)`` and half_rot ``(E, n, n)``
-            as in :func:`torchconn.dnabla.tet_solder_sqrt`.
-        reduce: norms ``(T,)``; else raw ``(T, n)``.
+        edge_rot: ``(*batch, E, n, n)``; mesh: ``TetMesh``; frames ``([*batch,] V, 3, 3)`` and
+            half_rot ``(*batch, E, n, n)`` as in :func:`torchconn.dnabla.tet_solder_sqrt`.
+        reduce: norms ``(*batch, T)``; else raw ``(*batch, T, n)``.
     """
     T = dnabla.tet_transports(edge_rot, mesh)
     theta = dnabla.tet_solder_sqrt(edge_rot, mesh, frames, half_rot)
@@ -90,7 +91,8 @@ def primal_dual_residual(tet_face_rot: torch.Tensor, face_edge_rot: torch.Tensor
                          mesh, reduce: bool = True) -> torch.Tensor:
     """Primal-dual residual ``d∇d∇α - Σ_(e,e') ⟨Ω,[c_fe,c_e,c_fe',c_t]⟩ α_e`` on every tet (Ch. 4).
 
-    Arguments as :func:`torchconn.dnabla.primal_dual_dd_mesh`; norms ``(T,)`` or raw ``(T, n)``.
+    Arguments as :func:`torchconn.dnabla.primal_dual_dd_mesh` (leading batch dims allowed);
+    norms ``(*batch, T)`` or raw ``(*batch, T, n)``.
     """
     res = (dnabla.primal_dual_dd_mesh(tet_face_rot, face_edge_rot, edge_values, mesh)
            - dnabla.primal_dual_wedge_mesh(tet_face_rot, face_edge_rot, edge_values, mesh))
@@ -101,16 +103,28 @@ def assert_residual(residual: torch.Tensor, name: str, tol: float | torch.Tensor
     """Raise :class:`BianchiError` if any per-tet residual is NaN/inf or exceeds ``tol``.
 
     Args:
-        residual: ``(T,)`` non-negative residual norms.
+        residual: ``(*batch, T)`` non-negative residual norms (``batch`` may be empty; a tet is
+            reported with the batch item where it is worst relative to ``tol``).
         name: identity name used in the message.
-        tol: scalar or ``(T,)`` per-tet threshold.
+        tol: scalar or ``(*batch, T)`` (broadcastable) per-tet threshold.
         k: how many of the worst tets the message names.
 
     Returns:
         The maximum residual (a Python float; this synchronizes, by design).
+
+    Raises:
+        ValueError: on ``meta`` tensors (a check needs values).
     """
     residual = residual.detach()
+    if residual.device.type == "meta":
+        raise ValueError(f"{name} Bianchi check: meta tensors carry no values to check; run it on a real device")
     tol = torch.as_tensor(tol, dtype=residual.dtype, device=residual.device).expand_as(residual)
+    if residual.ndim > 1:  # worst batch item per tet (NaN first)
+        Tn = residual.shape[-1]
+        r, t = residual.reshape(-1, Tn), tol.reshape(-1, Tn)
+        score = torch.where(torch.isfinite(r), r / t, torch.full_like(r, float("inf")))
+        pick = score.argmax(0, keepdim=True)
+        residual, tol = r.gather(0, pick).squeeze(0), t.gather(0, pick).squeeze(0)
     bad_nf = ~torch.isfinite(residual)
     if bad_nf.any():
         idx = torch.nonzero(bad_nf).flatten()[:k].tolist()
@@ -132,19 +146,21 @@ def check(edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=Non
     """Evaluate the exact Bianchi identities on every tet and raise if one fails.
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations of ``mesh.edges``; mesh: ``TetMesh``.
+        edge_rot: ``(*batch, E, n, n)`` rotations of ``mesh.edges`` (``batch`` may be empty: every
+            item is checked, the messages name the tets where an item is worst); mesh: ``TetMesh``.
         atol: relative tolerance (default ``get_eps("identity", dtype)``), multiplied by the
             per-tet scale (1 for the differential identity, ``1 + max |θ̃|`` for the algebraic one,
             ``1 + max |α_e|`` for the primal-dual one).
         frames, half_rot: forwarded to :func:`algebraic_residual`.
-        dual: optional ``(tet_face_rot (T,4,n,n), face_edge_rot (F,3,n,n), edge_values (E,n))``
-            for the primal-dual identity.
+        dual: optional ``(tet_face_rot (...,T,4,n,n), face_edge_rot (...,F,3,n,n), edge_values
+            (...,E,n))`` for the primal-dual identity.
 
     Returns:
         ``{"differential": max, "algebraic": max[, "primal_dual": max]}`` (Python floats).
 
     Raises:
         BianchiError: naming the worst tets and their residuals, or the NaN/inf tets.
+        ValueError: on ``meta`` tensors (the check needs values; skipped nowhere silently).
     """
     with torch.no_grad():  # a diagnostic: no graph is needed for the returned floats
         return _check(edge_rot, mesh, atol, frames, half_rot, dual)
@@ -152,7 +168,7 @@ def check(edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=Non
 
 def _check(edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
     if not torch.is_tensor(edge_rot) or not edge_rot.is_floating_point():
-        raise TypeError(f"check: edge_rot must be a floating tensor (E, n, n), got "
+        raise TypeError(f"check: edge_rot must be a floating tensor (..., E, n, n), got "
                         f"{edge_rot.dtype if torch.is_tensor(edge_rot) else type(edge_rot).__name__}")
     eps = get_eps("identity", edge_rot.dtype) if atol is None else float(atol)
     n = edge_rot.shape[-1]
@@ -161,12 +177,12 @@ def _check(edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
     diff = _norm_or_raw(_differential(T, False), True, 2)
     out["differential"] = assert_residual(diff, "differential", eps * n)
     theta = dnabla.tet_solder_sqrt(edge_rot, mesh, frames, half_rot)
-    scale = 1.0 + torch.linalg.vector_norm(theta, dim=-1).flatten(1).amax(1)
+    scale = 1.0 + torch.linalg.vector_norm(theta, dim=-1).flatten(-2).amax(-1)
     alg = torch.linalg.vector_norm(dnabla.averaged_dd_tet(T, theta) - dnabla.wedge_curvature_solder_tet(T, theta), dim=-1)
     out["algebraic"] = assert_residual(alg, "algebraic", eps * n * scale)
     if dual is not None:
         tfr, fer, ev = dual
         pd = primal_dual_residual(tfr, fer, ev, mesh)
-        evs = torch.linalg.vector_norm(ev.detach(), dim=-1)[mesh.tet_edges.to(ev.device)].amax(1)
+        evs = torch.linalg.vector_norm(ev.detach(), dim=-1)[..., mesh.tet_edges.to(ev.device)].amax(-1)
         out["primal_dual"] = assert_residual(pd, "primal-dual", eps * n * (1.0 + evs))
     return out

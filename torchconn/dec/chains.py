@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ..mesh import CellComplex
+from ._batch import edge_batch
 from .curvature import _edge_rot_of, two_prong
 from .transport import orient
 
@@ -366,12 +367,13 @@ def patch(cx: Any, seed_face: int, n_faces: int) -> torch.Tensor:
 
 
 def _scan(M: torch.Tensor, left: bool) -> torch.Tensor:
-    """Inclusive prefix products along dim 0 by doubling: ``M_0 ... M_k`` (left) or ``M_k ... M_0``."""
-    N = M.shape[0]
+    """Inclusive prefix products along dim -3 by doubling: ``M_0 ... M_k`` (left) or ``M_k ... M_0``."""
+    N = M.shape[-3]
     s = 1
     while s < N:
-        new = M[:-s] @ M[s:] if left else M[s:] @ M[:-s]
-        M = torch.cat([M[:s], new], 0)
+        a, b = M[..., :-s, :, :], M[..., s:, :, :]
+        new = a @ b if left else b @ a
+        M = torch.cat([M[..., :s, :, :], new], -3)
         s *= 2
     return M
 
@@ -386,20 +388,21 @@ def curvature_over_chain(edge_rot: Any, cx: Any, face_ids: Any, eval_vertex: int
     ``cut_vertex``, to round-off.
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations of the canonical edges of ``cx`` (or a ``Connection``),
-            any ``SO(n)``, any dtype/device. Differentiable.
+        edge_rot: ``(*batch, E, n, n)`` rotations of the canonical edges of ``cx`` (or a
+            ``Connection``; ``batch`` may be empty), any ``SO(n)``, any dtype/device. Differentiable.
         cx: ``CellComplex``; face_ids: ``(k,)`` consistently oriented faces forming a disk.
         eval_vertex, cut_vertex: vertex ids on the region boundary. ``cut_vertex == eval_vertex``
             gives the holonomy form of the boundary loop at ``eval_vertex``.
 
     Returns:
-        ``(n, n)``: maps the fiber of ``cut_vertex`` to the fiber of ``eval_vertex``.
+        ``(*batch, n, n)``: maps the fiber of ``cut_vertex`` to the fiber of ``eval_vertex``.
 
     Raises:
         ValueError: patch not a disk, a vertex not on the region boundary, bad ids.
     """
     R = _edge_rot_of(edge_rot)
     n = R.shape[-1]
+    batch = edge_batch(R, int(cx.edges.shape[0]), "curvature_over_chain")
     ids = torch.as_tensor(face_ids).reshape(-1).tolist()
     faces = _Faces(cx, ids)
     ids = faces.check_ids(ids)
@@ -438,7 +441,7 @@ def curvature_over_chain(edge_rot: Any, cx: Any, face_ids: Any, eval_vertex: int
     # --- numerics: face values, batched per face size ------------------------------------------
     N = len(steps)
     dev = R.device
-    Xf = R.new_zeros(N, n, n)
+    Xf = R.new_zeros(*batch, N, n, n)
     by_m: dict[int, list[int]] = {}
     for t, (g, *_rest) in enumerate(steps):
         by_m.setdefault(len(faces.loops[g]), []).append(t)
@@ -446,7 +449,7 @@ def curvature_over_chain(edge_rot: Any, cx: Any, face_ids: Any, eval_vertex: int
         le = torch.tensor([np.roll(faces.edges[steps[t][0]], -face_roll[t]).tolist() for t in ts], dtype=torch.long, device=dev)
         ls = torch.tensor([np.roll(faces.signs[steps[t][0]], -face_roll[t]).tolist() for t in ts], dtype=torch.long, device=dev)
         cuts = torch.tensor([face_cut[t] for t in ts], dtype=torch.long, device=dev)
-        Xf = Xf.index_copy(0, torch.tensor(ts, dtype=torch.long, device=dev), two_prong(orient(R, le, ls), cuts))
+        Xf = Xf.index_copy(-3, torch.tensor(ts, dtype=torch.long, device=dev), two_prong(orient(R, le, ls), cuts))
 
     # --- re-expression transports as padded path products --------------------------------------
     def step_edge(u: int, v: int) -> tuple[int, int]:
@@ -459,14 +462,15 @@ def curvature_over_chain(edge_rot: Any, cx: Any, face_ids: Any, eval_vertex: int
         j = faces.loops[f].index(v)
         return faces.edges[f][j], -faces.signs[f][j]
 
-    Rext = torch.cat([R, torch.eye(n, dtype=R.dtype, device=dev)[None]], 0)  # index E = identity
+    eye = torch.eye(n, dtype=R.dtype, device=dev).expand(*batch, 1, n, n)
+    Rext = torch.cat([R, eye], -3)  # index E = identity
 
     def products(paths: list[list[int]]) -> torch.Tensor:
         """Transports along vertex paths, batched in bins of similar length (power-of-two padding)."""
-        E = R.shape[0]
+        E = R.shape[-3]
         lens = np.array([max(len(pth) - 1, 1) for pth in paths])
         bins = np.ceil(np.log2(lens)).astype(np.int64)
-        out = R.new_empty(len(paths), n, n)
+        out = R.new_empty(*batch, len(paths), n, n)
         for b in np.unique(bins):  # loop over length bins (at most log2 of the longest path)
             rows = np.nonzero(bins == b)[0]
             Lb = 1 << int(b)
@@ -477,13 +481,13 @@ def curvature_over_chain(edge_rot: Any, cx: Any, face_ids: Any, eval_vertex: int
                 for k, (u, v) in enumerate(zip(pth[:-1], pth[1:])):
                     idx[r, k], sgn[r, k] = step_edge(u, v)
             rots = orient(Rext, torch.as_tensor(idx, device=dev), torch.as_tensor(sgn, device=dev))
-            while rots.shape[1] > 1:  # pairwise tree reduction, order kept: log2(Lb) batched products
-                rots = rots[:, 0::2] @ rots[:, 1::2]
-            out = out.index_copy(0, torch.as_tensor(rows, device=dev), rots[:, 0])
+            while rots.shape[-3] > 1:  # pairwise tree reduction, order kept: log2(Lb) batched products
+                rots = rots[..., 0::2, :, :] @ rots[..., 1::2, :, :]
+            out = out.index_copy(-3, torch.as_tensor(rows, device=dev), rots[..., 0, :, :])
         return out
 
     A = products(pre_paths)  # A[t-1] moves the prongs of step t-1 to those of step t (t = 1..N)
     B = products(post_paths)
-    Lpre = _scan(A.flip(0), left=True).flip(0)  # Lpre[t] = A_N ... A_{t+1}
-    Rpost = _scan(B.flip(0), left=False).flip(0)  # Rpost[t] = B_{t+1} ... B_N
-    return (Lpre @ Xf @ Rpost).sum(0)
+    Lpre = _scan(A.flip(-3), left=True).flip(-3)  # Lpre[t] = A_N ... A_{t+1}
+    Rpost = _scan(B.flip(-3), left=False).flip(-3)  # Rpost[t] = B_{t+1} ... B_N
+    return (Lpre @ Xf @ Rpost).sum(-3)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..lie import so3, son
@@ -51,6 +52,8 @@ def _as_edges(edges: Any, device=None) -> torch.Tensor:
 
 def _raise_on_rows(edges: torch.Tensor, bad_mask: torch.Tensor, what: str) -> None:
     """Raise ``ValueError`` naming the first offending edge indices and rows where ``bad_mask``."""
+    if bad_mask.device.type == "meta":  # no values to check (see _check_edges)
+        return
     if bool(bad_mask.any()):
         bad = torch.nonzero(bad_mask).flatten()
         raise ValueError(
@@ -63,7 +66,8 @@ def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, to
     """Validate canonical edges; return ``(sorted_keys, perm)`` of keys ``i*V + j``.
 
     Raises ``ValueError`` naming the offending edge indices (out of range, not ``i < j``,
-    duplicated).
+    duplicated). On ``meta`` tensors there are no values: the checks are skipped and only the
+    shapes of the lookup are produced (validate the edges on a real device first).
     """
     E = edges.shape[0]
     V = int(n_vertices)
@@ -74,7 +78,7 @@ def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, to
     _raise_on_rows(edges, i >= j, "edges must be canonical (edges[e,0] < edges[e,1]); violated")
     keys = i * V + j
     sorted_keys, perm = torch.sort(keys, stable=True)
-    if E > 1:
+    if E > 1 and keys.device.type != "meta":
         dup = sorted_keys[1:] == sorted_keys[:-1]
         if bool(dup.any()):
             pos = torch.nonzero(dup).flatten()
@@ -86,8 +90,8 @@ def _check_edges(edges: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, to
     return sorted_keys, perm
 
 
-def _identity(E: int, n: int, dtype, device) -> torch.Tensor:
-    return torch.eye(n, dtype=dtype, device=device).expand(E, n, n).clone()
+def _identity(E: int, n: int, dtype, device, batch_shape=()) -> torch.Tensor:
+    return torch.eye(n, dtype=dtype, device=device).expand(*batch_shape, E, n, n).clone()
 
 
 def _exp_params(params: torch.Tensor, n: int) -> torch.Tensor:
@@ -109,11 +113,18 @@ class Connection:
     """A discrete connection ``∇ = {R_ij}``: one rotation per canonical edge (report eq. 3.1.1).
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations, ``edge_rot[e] = R_ij`` for ``edges[e] = (i, j)``,
-            ``i < j``: maps the fiber at ``v_j`` to the fiber at ``v_i``.
+        edge_rot: ``(*batch, E, n, n)`` rotations, ``edge_rot[..., e, :, :] = R_ij`` for
+            ``edges[e] = (i, j)``, ``i < j``: maps the fiber at ``v_j`` to the fiber at ``v_i``.
+            ``batch`` (:attr:`batch_shape`, may be empty) holds a batch of connections on the
+            same edges, as roma / pytorch3d take leading batch dims: every operator of
+            :mod:`torchconn.dec` and module of :mod:`torchconn.nn` returns its values with
+            the same leading dims.
         edges: ``(E, 2)`` integer tensor of canonical edges (``i < j``, unique rows, any order).
         n_vertices: number of vertices ``V`` (indices in ``[0, V)``).
-        validate: also check that every ``edge_rot[e]`` is a rotation (synchronizes).
+        validate: also check that every ``edge_rot[..., e, :, :]`` is a rotation (synchronizes).
+
+    On the ``meta`` device (shapes only) the checks that need values (edge ranges, duplicates,
+    ``validate``) are skipped; shapes are still checked.
 
     Raises:
         ValueError: bad shapes; edges out of range, not canonical or duplicated (the message
@@ -129,15 +140,19 @@ class Connection:
         if not isinstance(edge_rot, torch.Tensor) or not edge_rot.is_floating_point():
             got = f"dtype {edge_rot.dtype}" if isinstance(edge_rot, torch.Tensor) else type(edge_rot).__name__
             raise TypeError(
-                f"Connection: edge_rot must be a floating-point tensor of shape (E, n, n), got {got}; "
+                f"Connection: edge_rot must be a floating-point tensor of shape (..., E, n, n), got {got}; "
                 f"convert it first, e.g. torch.as_tensor(edge_rot, dtype=torch.float64)"
             )
-        if edge_rot.dim() != 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
-            raise ValueError(f"edge_rot must have shape (E, n, n), got {tuple(edge_rot.shape)}")
+        if edge_rot.dim() < 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
+            raise ValueError(f"edge_rot must have shape (..., E, n, n) (optional leading batch dims), "
+                             f"got {tuple(edge_rot.shape)}")
         edges = _as_edges(edges, device=edge_rot.device)
-        if edges.shape[0] != edge_rot.shape[0]:
+        if edges.shape[0] != edge_rot.shape[-3]:
+            batch = "".join(f"{b}, " for b in edge_rot.shape[:-3])
             raise ValueError(
-                f"edge_rot has {edge_rot.shape[0]} matrices but edges has {edges.shape[0]} rows"
+                f"edge_rot has {edge_rot.shape[-3]} matrices but edges has {edges.shape[0]} rows: expected "
+                f"shape ({batch}{edges.shape[0]}, {edge_rot.shape[-1]}, {edge_rot.shape[-1]}) (one matrix per "
+                f"edge after the leading batch dims {tuple(edge_rot.shape[:-3])}), got {tuple(edge_rot.shape)}"
             )
         self.edge_rot = edge_rot
         self.edges = edges
@@ -178,7 +193,12 @@ class Connection:
 
     @property
     def n_edges(self) -> int:
-        return self.edge_rot.shape[0]
+        return self.edge_rot.shape[-3]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading batch dims of ``edge_rot`` (``torch.Size([])`` for a single connection)."""
+        return self.edge_rot.shape[:-3]
 
     @property
     def dtype(self) -> torch.dtype:
@@ -189,8 +209,9 @@ class Connection:
         return self.edge_rot.device
 
     def __repr__(self) -> str:
+        b = f"batch_shape={tuple(self.batch_shape)}, " if len(self.batch_shape) else ""
         return (
-            f"Connection(n={self.n}, n_vertices={self.n_vertices}, n_edges={self.n_edges}, "
+            f"Connection({b}n={self.n}, n_vertices={self.n_vertices}, n_edges={self.n_edges}, "
             f"dtype={self.dtype}, device={self.device})"
         )
 
@@ -203,12 +224,20 @@ class Connection:
         then each defect found with its edge indices: ``non-finite entries (NaN/inf)``, ``not
         orthogonal`` (with the value of ``||Rᵀ R - I||_F`` at the first one) and ``det -1 (a
         reflection)``; and says what to do. Synchronizes (explicit validation; not called by
-        the operators).
+        the operators). With batch dims an edge is reported when its matrix is bad in at least
+        one batch item (the largest defect / smallest determinant over the batch is shown).
+        Skipped on the ``meta`` device (no values).
         """
+        if self.edge_rot.device.type == "meta":
+            return
         if atol is None:
             atol = get_eps("rotation", self.dtype)
         with torch.no_grad():
             bad_fin, bad_orth, bad_det, err, det = rotation_defects(self.edge_rot, atol)
+            if len(self.batch_shape):  # reduce over the batch: per edge
+                E = self.n_edges
+                bad_fin, bad_orth, bad_det = (m.reshape(-1, E).any(0) for m in (bad_fin, bad_orth, bad_det))
+                err, det = err.reshape(-1, E).amax(0), det.reshape(-1, E).amin(0)
             bad = bad_fin | bad_orth | bad_det
             if not bool(bad.any()):
                 return
@@ -226,8 +255,9 @@ class Connection:
                 elif mask is bad_det:
                     value = f" (det = {float(det[first]):.6f} at edge {first})"
                 parts.append(f"{label} at edge indices {_list_some(e[:_MAX_LISTED].tolist(), e.numel())}{value}")
+            where = f" (in at least one item of the batch {tuple(self.batch_shape)})" if len(self.batch_shape) else ""
             raise ValueError(
-                f"{name}: {idx.numel()} of {self.n_edges} edge matrices are not rotations, at edge "
+                f"{name}: {idx.numel()} of {self.n_edges} edge matrices{where} are not rotations, at edge "
                 f"indices {_list_some(shown.tolist(), idx.numel())} (vertex pairs "
                 f"{self.edges[shown].tolist()}): " + "; ".join(parts) + ". Pass rotations "
                 "(orthogonal, det +1), e.g. project them with so3.project_to_rotation"
@@ -258,7 +288,7 @@ class Connection:
         return lookup_edges(sorted_keys, self.n_vertices, i, j, perm=perm, owner="connection")
 
     def transport(self, i: Any, j: Any) -> torch.Tensor:
-        """``R_ij`` for batches of vertex pairs: ``i, j (S)`` -> ``(S, n, n)``.
+        """``R_ij`` for batches of vertex pairs: ``i, j (S)`` -> ``(*batch_shape, S, n, n)``.
 
         Fiber at ``v_j`` -> fiber at ``v_i``: ``edge_rot[e]`` for a canonical pair, its transpose
         for ``i > j``. Raises :class:`~torchconn.mesh.MeshError` naming the pairs that are not edges.
@@ -273,8 +303,8 @@ class Connection:
             vertices: ``(..., k+1)`` integer vertex sequences; consecutive vertices must be edges.
 
         Returns:
-            ``(..., n, n)``, mapping the fiber at ``pk`` to the fiber at ``p0`` (identity for
-            ``k = 0``). A closed path ``[p0, ..., p0]`` gives the holonomy at ``p0`` (eq. 3.2.1
+            ``(*batch_shape, ..., n, n)``, mapping the fiber at ``pk`` to the fiber at ``p0``
+            (identity for ``k = 0``). A closed path ``[p0, ..., p0]`` gives the holonomy at ``p0`` (eq. 3.2.1
             plus ``I``).
         """
         v = torch.as_tensor(vertices, device=self.edges.device)
@@ -282,7 +312,7 @@ class Connection:
             raise ValueError(f"path expects vertices of shape (..., k+1), k >= 0, got {tuple(v.shape)}")
         if v.shape[-1] == 1:
             eye = torch.eye(self.n, dtype=self.dtype, device=self.device)
-            return eye.expand(*v.shape[:-1], self.n, self.n).clone()
+            return eye.expand(*self.batch_shape, *v.shape[:-1], self.n, self.n).clone()
         return path_product(self.transport(v[..., :-1], v[..., 1:]), dim=-3)
 
     def oriented(self, edge_idx: torch.Tensor, edge_sign: torch.Tensor) -> torch.Tensor:
@@ -302,7 +332,7 @@ class Connection:
             s: vertices per simplex.
 
         Returns:
-            ``(N, s, s, n, n)`` with ``[t, a, b] = R_{x_a x_b}`` (fiber at ``x_b`` -> ``x_a``),
+            ``(*batch_shape, N, s, s, n, n)`` with ``[..., t, a, b, :, :] = R_{x_a x_b}`` (fiber at ``x_b`` -> ``x_a``),
             identity on the diagonal.
         """
         P = len(pair_list(s))
@@ -315,27 +345,30 @@ class Connection:
 
     # ------------------------------------------------------------------ derived connections
     def one_form(self) -> torch.Tensor:
-        """Discrete connection 1-form ``w_ij = R_ij - I`` per canonical edge (eq. 3.1.2) -> ``(E, n, n)``."""
+        """Discrete connection 1-form ``w_ij = R_ij - I`` per canonical edge (eq. 3.1.2) -> ``(*batch_shape, E, n, n)``."""
         return self.edge_rot - torch.eye(self.n, dtype=self.dtype, device=self.device)
 
     def gauge(self, G: torch.Tensor, *, validate: bool = False) -> "Connection":
         """Gauge transform ``R'_ij = G_i R_ij G_jᵀ`` (eq. 2.1.2; docs/conventions.md §1).
 
         Args:
-            G: ``(V, n, n)`` rotations, ``G_i`` the change of coordinates ``x' = G_i x`` at ``v_i``.
+            G: ``(V, n, n)`` rotations, ``G_i`` the change of coordinates ``x' = G_i x`` at ``v_i``;
+                or ``(*batch, V, n, n)``, one gauge per item, with ``batch`` broadcasting against
+                :attr:`batch_shape` (the result has the broadcast batch).
             validate: check that ``G`` holds rotations.
 
         ``c.gauge(G1).gauge(G2) == c.gauge(G2 @ G1)``; ``c.gauge(I) == c``. Differentiable in
         both ``edge_rot`` and ``G``.
         """
-        if G.shape != (self.n_vertices, self.n, self.n):
+        if G.dim() < 3 or tuple(G.shape[-3:]) != (self.n_vertices, self.n, self.n):
             raise ValueError(
-                f"gauge expects G of shape ({self.n_vertices}, {self.n}, {self.n}), got {tuple(G.shape)}"
+                f"gauge expects G of shape ({self.n_vertices}, {self.n}, {self.n}) or (..., {self.n_vertices}, "
+                f"{self.n}, {self.n}) (leading batch dims), got {tuple(G.shape)}"
             )
         if validate:
             son.check_rotation(G, name="gauge G")
         e = self.edges.to(G.device)
-        R = G[e[:, 0]] @ self.edge_rot.to(G.device) @ G[e[:, 1]].transpose(-1, -2)
+        R = G.index_select(-3, e[:, 0]) @ self.edge_rot.to(G.device) @ G.index_select(-3, e[:, 1]).transpose(-1, -2)
         return self._replace(R)
 
     def half(self) -> "Connection":
@@ -358,12 +391,14 @@ class Connection:
     # ------------------------------------------------------------------ constructors
     @classmethod
     def identity(
-        cls, edges: Any, n_vertices: int, n: int = 3, dtype: torch.dtype | None = None, device=None
+        cls, edges: Any, n_vertices: int, n: int = 3, dtype: torch.dtype | None = None, device=None,
+        batch_shape=(),
     ) -> "Connection":
-        """The trivial connection ``R_ij = I`` (flat, zero torsion of the identity frames)."""
+        """The trivial connection ``R_ij = I`` (flat, zero torsion of the identity frames);
+        ``edge_rot`` of shape ``(*batch_shape, E, n, n)``."""
         edges = _as_edges(edges, device=device)
         dtype = dtype or torch.get_default_dtype()
-        return cls(_identity(edges.shape[0], n, dtype, edges.device), edges, n_vertices)
+        return cls(_identity(edges.shape[0], n, dtype, edges.device, tuple(batch_shape)), edges, n_vertices)
 
     @classmethod
     def random(
@@ -375,8 +410,9 @@ class Connection:
         scale: float | None = None,
         dtype: torch.dtype | None = None,
         device=None,
+        batch_shape=(),
     ) -> "Connection":
-        """A random connection.
+        """A random connection, ``edge_rot`` of shape ``(*batch_shape, E, n, n)``.
 
         ``scale=None``: independent Haar-uniform rotations per edge. Otherwise
         ``R_ij = exp(hat(scale * ξ))`` with ``ξ`` standard Gaussian skew parameters
@@ -385,16 +421,19 @@ class Connection:
         """
         edges = _as_edges(edges, device=device)
         dtype = dtype or torch.get_default_dtype()
+        batch_shape = tuple(batch_shape)
         E = edges.shape[0]
+        N = E * int(np.prod(batch_shape, dtype=np.int64))
         dev = edges.device
         if scale is None:
             if n == 3:
-                R = so3.random_rotation(E, generator=generator, dtype=dtype, device=dev)
+                R = so3.random_rotation(N, generator=generator, dtype=dtype, device=dev)
             else:
-                R = son.random_rotation(E, n=n, generator=generator, dtype=dtype, device=dev)
+                R = son.random_rotation(N, n=n, generator=generator, dtype=dtype, device=dev)
         else:
-            xi = torch.randn(E, son.dim(n), generator=generator, dtype=dtype, device=dev)
+            xi = torch.randn(N, son.dim(n), generator=generator, dtype=dtype, device=dev)
             R = _exp_params(scale * xi, n)
+        R = R.reshape(*batch_shape, E, n, n)
         return cls(R, edges, n_vertices)
 
     @classmethod
@@ -434,13 +473,14 @@ class Connection:
         ``F_j X``; read in ``F_i`` it has coordinates ``F_iᵀ F_j X``, so ``R_ij`` maps the fiber
         at ``v_j`` to the fiber at ``v_i`` as required. Every closed path has trivial holonomy
         (``T(p0..p0) = I``); equivalently this is ``identity.gauge(G)`` with ``G_i = F_iᵀ``.
+        ``frames (*batch, V, n, n)`` with leading batch dims gives a batched connection.
         """
-        if frames.dim() != 3 or frames.shape[-1] != frames.shape[-2]:
-            raise ValueError(f"frames must have shape (V, n, n), got {tuple(frames.shape)}")
+        if frames.dim() < 3 or frames.shape[-1] != frames.shape[-2]:
+            raise ValueError(f"frames must have shape (V, n, n) or (..., V, n, n), got {tuple(frames.shape)}")
         edges = _as_edges(edges, device=frames.device)
-        V = frames.shape[0]
+        V = frames.shape[-3]
         lookup = _check_edges(edges, V)
-        R = frames[edges[:, 0]].transpose(-1, -2) @ frames[edges[:, 1]]
+        R = frames.index_select(-3, edges[:, 0]).transpose(-1, -2) @ frames.index_select(-3, edges[:, 1])
         return cls._trusted(R, edges, V, lookup)
 
     @classmethod
@@ -456,12 +496,14 @@ class Connection:
 
     @classmethod
     def random_on_mesh(
-        cls, mesh, n: int = 3, generator: torch.Generator | None = None, scale: float | None = None
+        cls, mesh, n: int = 3, generator: torch.Generator | None = None, scale: float | None = None,
+        batch_shape=(),
     ) -> "Connection":
         """:meth:`random` on ``mesh.edges`` with the dtype/device of ``mesh.vertices``."""
         v = mesh.vertices
         return cls.random(
-            mesh.edges, mesh.n_vertices, n=n, generator=generator, scale=scale, dtype=v.dtype, device=v.device
+            mesh.edges, mesh.n_vertices, n=n, generator=generator, scale=scale, dtype=v.dtype, device=v.device,
+            batch_shape=batch_shape,
         )
 
     @classmethod

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ..ops import curvature as _ops_curvature
+from ._batch import ask_op, edge_batch
 from .transport import orient, path_product
 
 __all__ = [
@@ -269,11 +270,12 @@ def merge(value_f: torch.Tensor, value_g: torch.Tensor) -> torch.Tensor:
 
 
 def _edge_rot_of(edge_rot: Any) -> torch.Tensor:
-    """Accept a tensor ``(E, n, n)`` or any object with an ``edge_rot`` attribute (``Connection``)."""
+    """Accept a tensor ``(..., E, n, n)`` or any object with an ``edge_rot`` attribute (``Connection``)."""
     R = getattr(edge_rot, "edge_rot", edge_rot)
-    if not isinstance(R, torch.Tensor) or R.ndim != 3 or R.shape[-1] != R.shape[-2]:
+    if not isinstance(R, torch.Tensor) or R.ndim < 3 or R.shape[-1] != R.shape[-2]:
         shape = tuple(R.shape) if isinstance(R, torch.Tensor) else type(R).__name__
-        raise ValueError(f"edge_rot must be an (E, n, n) tensor or a Connection, got {shape}")
+        raise ValueError(f"edge_rot must be an (..., E, n, n) tensor (optional leading batch dims) "
+                         f"or a Connection, got {shape}")
     return R
 
 
@@ -309,8 +311,9 @@ def face_curvature(edge_rot: Any, cells: Any, cut: int = -1, kind: str = "two_pr
     """Curvature of every face of a mesh, batched per face size (Sec. 3.2, (3.2.1)).
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations ``R_ij`` of the canonical edges ``(i<j)`` of ``cells``,
-            or a ``Connection`` (its ``edge_rot`` is used). Any ``SO(n)``.
+        edge_rot: ``(*batch, E, n, n)`` rotations ``R_ij`` of the canonical edges ``(i<j)`` of
+            ``cells`` (``batch`` may be empty: a batch of connections on one mesh), or a
+            ``Connection`` (its ``edge_rot`` is used). Any ``SO(n)``.
         cells: a ``CellComplex`` (faces of any size, evaluation vertex = first vertex of each
             loop) or a ``TetMesh`` (sorted faces ``[a<b<c]``, loop ``a -> b -> c``).
         cut: cut position in each loop, ``[-m, m-1]`` for every face size present (default
@@ -319,25 +322,31 @@ def face_curvature(edge_rot: Any, cells: Any, cut: int = -1, kind: str = "two_pr
         kind: ``"two_prong"`` or ``"holonomy"`` (``R_{x0x1} ... R_{x_{m-1}x0} - I``).
 
     Returns:
-        ``(F, n, n)`` in global face order; face ``f``'s value maps the fiber of its cut vertex
-        to the fiber of its evaluation vertex.
+        ``(*batch, F, n, n)`` in global face order; face ``f``'s value maps the fiber of its cut
+        vertex to the fiber of its evaluation vertex.
+
+    The op :func:`torchconn.ops.curvature.face_curvature` is asked first (sorted triangles;
+    with the batched tensor), else the loop formula below (:mod:`torchconn.dec._batch`). Works
+    under ``vmap`` and ``torch.func.jvp`` and on ``meta`` tensors.
     """
     if kind not in ("two_prong", "holonomy"):
         raise ValueError(f"face_curvature: kind must be 'two_prong' or 'holonomy', got {kind!r}")
     R = _edge_rot_of(edge_rot)
+    E = getattr(cells, "edges", None)
+    batch = edge_batch(R, int(E.shape[0]), "face_curvature") if E is not None else tuple(R.shape[:-3])
     # sorted triangles [a<b<c]: the written-out products of the op (same values), else None
-    fused = _ops_curvature.face_curvature(R, cells, cut=cut, kind=kind)
+    fused = ask_op(lambda: _ops_curvature.face_curvature(R, cells, cut=cut, kind=kind), R)
     if fused is not None:
         return fused
     F, groups = face_loops(cells)
     n = R.shape[-1]
-    out = R.new_zeros(F, n, n) if groups[0][0] is not None else None
+    out = R.new_zeros(*batch, F, n, n) if groups[0][0] is not None else None
     for face_ids, le, ls, _ in groups:
-        if le.numel() and int(le.max()) >= R.shape[0]:
-            raise ValueError(f"face_curvature: edge index {int(le.max())} out of range for {R.shape[0]} edge rotations")
-        L = orient(R, le, ls)
+        if le.device.type != "meta" and le.numel() and int(le.max()) >= R.shape[-3]:
+            raise ValueError(f"face_curvature: edge index {int(le.max())} out of range for {R.shape[-3]} edge rotations")
+        L = orient(R, le.to(R.device), ls.to(R.device))
         val = holonomy(L) if kind == "holonomy" else two_prong(L, cut)
         if face_ids is None:
             return val
-        out = out.index_copy(0, face_ids.to(out.device), val)
+        out = out.index_copy(-3, face_ids.to(out.device), val)
     return out

@@ -25,6 +25,7 @@ import torch
 from ..ops import torsion as _ops_torsion
 from ..lie import so3
 from .curvature import _check_loop_rot, _edge_rot_of, _normalize_cut, _prefix_products, _suffix_products, face_loops
+from ._batch import ask_op, check_frames, edge_batch, on_device
 from .transport import orient
 
 __all__ = ["two_prong", "naive", "sqrt", "barycentric", "solder_form", "face_torsion"]
@@ -187,13 +188,18 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
     form expressed per vertex, ``theta_ij = F_i^T (x_j - x_i)``.
 
     Args:
-        edge_rot: ``(E, n, n)`` or a ``Connection``; cells: ``CellComplex`` or ``TetMesh`` (its
-            ``vertices`` and ``edges`` are used); kind, cut as above (cut convention of
-            :func:`two_prong`); frames: ``(V, n, n)`` or ``None``.
+        edge_rot: ``(*batch, E, n, n)`` (``batch`` may be empty: a batch of connections on one
+            mesh) or a ``Connection``; cells: ``CellComplex`` or ``TetMesh`` (its ``vertices``
+            and ``edges`` are used, shared by the batch); kind, cut as above (cut convention of
+            :func:`two_prong`); frames: ``(V, n, n)`` (shared), ``(*batch, V, n, n)`` or ``None``.
 
     Returns:
-        ``(F, n)`` in global face order, each in the fiber of its evaluation vertex (first loop
-        vertex; ``a`` of a sorted tet-mesh face ``[a<b<c]``).
+        ``(*batch, F, n)`` in global face order, each in the fiber of its evaluation vertex
+        (first loop vertex; ``a`` of a sorted tet-mesh face ``[a<b<c]``).
+
+    The op :func:`torchconn.ops.torsion.face_torsion` is asked first (with the batched
+    tensors), else the loop formula (:mod:`torchconn.dec._batch`); works under ``vmap``,
+    ``torch.func.jvp`` and on ``meta`` tensors.
     """
     if kind not in ("sqrt", "naive"):
         raise ValueError(f"face_torsion: kind must be 'sqrt' or 'naive', got {kind!r}")
@@ -201,22 +207,26 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
     n = R.shape[-1]
     if kind == "sqrt" and n != 3:
         raise ValueError(f"face_torsion: kind='sqrt' uses so3.sqrt and needs n=3, got n={n}")
+    batch = edge_batch(R, int(cells.edges.shape[0]), "face_torsion")
     V = cells.vertices.to(dtype=R.dtype, device=R.device)
     if V.shape[-1] != n:
         raise ValueError(f"face_torsion: vertices of dimension {V.shape[-1]} do not match rotations of size {n}")
-    if frames is not None and frames.shape != (V.shape[0], n, n):
-        raise ValueError(f"face_torsion: frames must have shape {(V.shape[0], n, n)}, got {tuple(frames.shape)}")
+    check_frames(frames, V.shape[0], n, batch, "face_torsion")
     # sorted triangles [a<b<c], cut c: per-edge solder form + one product (the op), else None
-    fused = _ops_torsion.face_torsion(R, cells, kind, frames, cut=cut)
+    fused = ask_op(lambda: _ops_torsion.face_torsion(R, cells, kind, frames, cut=cut), R, frames)
     if fused is not None:
         return fused
     if frames is not None:
-        e = cells.edges.to(R.device)
-        R = frames[e[:, 0]] @ R @ frames[e[:, 1]].transpose(-1, -2)  # ambient connection
+        frames = frames.to(R)
+        e = on_device(cells, "edges", R.device)
+        fi = frames.index_select(-3, e[:, 0])
+        fj = frames.index_select(-3, e[:, 1])
+        R = fi @ R @ fj.transpose(-1, -2)  # ambient connection
     H = so3.sqrt(R) if kind == "sqrt" else None
     F, groups = face_loops(cells)
-    out = R.new_zeros(F, n)
+    out = R.new_zeros(*batch, F, n)
     for face_ids, le, ls, loops in groups:
+        le, ls, loops = le.to(R.device), ls.to(R.device), loops.to(R.device)
         L = orient(R, le, ls)
         pts = V[loops]
         d = torch.roll(pts, shifts=-1, dims=-2) - pts  # x_{k+1} - x_k
@@ -227,8 +237,9 @@ def face_torsion(edge_rot: Any, cells: Any, kind: str = "sqrt", cut: int = -1, f
             bwd = (Hf.transpose(-1, -2) @ bwd[..., None]).squeeze(-1)
         val = two_prong(L, fwd, bwd, cut)
         if frames is not None:  # express in the frame of the evaluation vertex x0
-            val = (frames[loops[:, 0]].transpose(-1, -2) @ val[..., None]).squeeze(-1)
+            f0 = frames.index_select(-3, loops[:, 0])
+            val = (f0.transpose(-1, -2) @ val[..., None]).squeeze(-1)
         if face_ids is None:
             return val
-        out = out.index_copy(0, face_ids.to(out.device), val)
+        out = out.index_copy(-2, face_ids.to(out.device), val)
     return out

@@ -29,15 +29,21 @@ def orient(edge_rot: torch.Tensor, edge_idx: torch.Tensor, edge_sign: torch.Tens
     """Oriented transports of a batch of edge references.
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations ``R_ij`` of the canonically oriented edges.
-        edge_idx: ``(...)`` integer edge indices.
-        edge_sign: ``(...)`` ``+1`` (traverse as stored) or ``-1`` (reverse), same shape.
+        edge_rot: ``(*batch, E, n, n)`` rotations ``R_ij`` of the canonically oriented edges
+            (``batch`` may be empty: leading batch dims of a batch of connections).
+        edge_idx: ``(S...)`` integer edge indices (no batch dims: the mesh is shared).
+        edge_sign: ``(S...)`` ``+1`` (traverse as stored) or ``-1`` (reverse), same shape.
 
     Returns:
-        ``(..., n, n)``: ``edge_rot[edge_idx]`` where the sign is ``+1``, its transpose where
-        ``-1``. Differentiable with respect to ``edge_rot``.
+        ``(*batch, S..., n, n)``: ``edge_rot[..., edge_idx, :, :]`` where the sign is ``+1``,
+        its transpose where ``-1``. Differentiable with respect to ``edge_rot``.
     """
-    R = edge_rot[edge_idx]
+    n = edge_rot.shape[-1]
+    batch = edge_rot.shape[:-3]
+    # index_select (backward: index_add) on the edge dim rather than advanced indexing
+    dev = edge_rot.device
+    edge_idx, edge_sign = torch.as_tensor(edge_idx, device=dev), torch.as_tensor(edge_sign, device=dev)
+    R = edge_rot.index_select(-3, edge_idx.reshape(-1)).reshape(*batch, *edge_idx.shape, n, n)
     return torch.where((edge_sign > 0)[..., None, None], R, R.transpose(-1, -2))
 
 

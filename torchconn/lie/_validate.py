@@ -67,10 +67,13 @@ def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) 
     ``atol`` defaults to ``get_eps("rotation", R.dtype)``. The message names ``name``, the
     number of bad matrices and, for each defect found, the first offending batch index tuple
     (``()`` for an unbatched matrix) with the defect value. Synchronizes with the device
-    (explicit validation, keep it out of hot paths). Returns ``None``.
+    (explicit validation, keep it out of hot paths). Returns ``None``. On the ``meta`` device
+    (no values) only the type and shape are checked.
     """
     check_float_tensor(R, "check_rotation", name)
     _check_square(R, "check_rotation")
+    if R.device.type == "meta":
+        return
     if atol is None:
         atol = get_eps("rotation", R.dtype)
     with torch.no_grad():

@@ -111,6 +111,17 @@ def _as_index_array(idx, what: str) -> np.ndarray:
     return a.astype(np.int64)
 
 
+def _meta_build(vertices, device) -> bool:
+    """Whether a mesh is asked for on the ``meta`` device: then the constructor builds and
+    validates it on CPU (topology and checks need values) and moves the result with
+    ``.to("meta")``. Vertices that are meta tensors themselves carry no values: ``MeshError``."""
+    if isinstance(vertices, torch.Tensor) and vertices.device.type == "meta":
+        raise MeshError("vertices on the meta device carry no values, and building a mesh needs them "
+                        "(topology, validation); build it on CPU and move it with mesh.to('meta'), or pass "
+                        "CPU vertices with device='meta'")
+    return device is not None and torch.device(device).type == "meta"
+
+
 def _check_finite(v: torch.Tensor, what: str = "vertices") -> None:
     bad = ~torch.isfinite(v).all(dim=1)
     if bool(bad.any()):

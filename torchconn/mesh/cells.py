@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..tolerances import get_eps
-from .base import DEGENERATE_FACTOR, FaceGroup, MeshBase, _as_float_tensor, _as_index_array, _check_finite, _long
+from .base import DEGENERATE_FACTOR, FaceGroup, MeshBase, _as_float_tensor, _as_index_array, _check_finite, _long, _meta_build
 from .errors import MeshError, _few, _few_rows
 
 __all__ = ["CellComplex", "tet_mesh_as_cell_complex", "face_groups_from_buffers"]
@@ -40,7 +40,8 @@ class CellComplex(MeshBase):
         cells: optional 3-cells, either a list of lists of ``(face_id, sign)`` or a pair
             ``(face_ids (C, k), signs (C, k))`` of integer arrays. Stored CSR-style as
             ``cell_faces (N,)``, ``cell_face_signs (N,)``, ``cell_offsets (C+1,)``.
-        dtype, device: of the geometry (default those of ``vertices``).
+        dtype, device: of the geometry (default those of ``vertices``). ``device="meta"``:
+            built and validated on CPU, then moved with ``.to("meta")`` (shapes only).
 
     Buffers: ``vertices (V,3)``, ``edges (E,2)`` canonical (``i<j``, rows sorted),
     ``face_groups`` (a dict of :class:`FaceGroup` keyed by face size ``m``),
@@ -59,6 +60,10 @@ class CellComplex(MeshBase):
     _FLOAT_BUFFERS = ("vertices",)
 
     def __init__(self, vertices, faces, cells=None, *, dtype: torch.dtype | None = None, device=None):
+        if _meta_build(vertices, device):  # build and validate on CPU, then shapes only
+            cpu = CellComplex(vertices, faces, cells, dtype=dtype, device="cpu")
+            self.__dict__.update(cpu.to("meta").__dict__)
+            return
         v = _as_float_tensor(vertices, dtype, device)
         device = v.device
         if v.ndim != 2 or v.shape[1] != 3:

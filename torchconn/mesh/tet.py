@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..tolerances import get_eps
-from .base import DEGENERATE_FACTOR, FaceGroup, MeshBase, _as_float_tensor, _as_index_array, _check_finite, _long
+from .base import DEGENERATE_FACTOR, FaceGroup, MeshBase, _as_float_tensor, _as_index_array, _check_finite, _long, _meta_build
 from .cells import CellComplex, tet_mesh_as_cell_complex
 from .errors import MeshError, _few, _few_rows
 from .simplex import TET_FACE_SIGNS, TET_FACES, pair_list
@@ -76,6 +76,9 @@ class TetMesh(MeshBase):
             ``kept_vertices`` maps new to old indices) or ``"error"``.
         dtype, device: of the geometry (default: those of ``vertices``; integer vertices take
             ``torch.get_default_dtype()``). Integer buffers live on ``device`` too.
+            ``device="meta"``: the mesh is built and validated on CPU (topology and checks need
+            values) and then moved with ``.to("meta")`` (shapes only); vertices that are meta
+            tensors raise ``MeshError``.
 
     Buffers (``torch.long`` unless said; see docs/architecture.md):
         - ``vertices (V,3)`` float, ``tets (T,4)`` positively oriented
@@ -125,6 +128,10 @@ class TetMesh(MeshBase):
                  dtype: torch.dtype | None = None, device=None):
         if unreferenced not in ("warn", "drop", "error"):
             raise ValueError(f"unreferenced must be 'warn', 'drop' or 'error', got {unreferenced!r}")
+        if _meta_build(vertices, device):  # build and validate on CPU, then shapes only
+            cpu = TetMesh(vertices, tets, reorient=reorient, unreferenced=unreferenced, dtype=dtype, device="cpu")
+            self.__dict__.update(cpu.to("meta").__dict__)
+            return
         v = _as_float_tensor(vertices, dtype, device)
         device = v.device
         t = _as_index_array(tets, "tets")

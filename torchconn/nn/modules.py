@@ -9,22 +9,32 @@ forward pass never recomputes topology. ``forward`` takes the connection as
   flow to its skew parameters), or
 * a plain ``(E, n, n)`` tensor of edge rotations ``R_ij`` of the canonical edges ``(i<j)``.
 
+Leading batch dims: every module accepts ``(*batch, E, n, n)`` rotations (a batched
+``Connection`` or ``ConnectionField(..., batch_shape=...)``, or a tensor), a batch of
+connections on the one mesh, and returns ``(*batch, F, n, n)``, ``(*batch, F, n)``,
+``(*batch, T, n)``; ``frames`` may be ``(V, n, n)`` (shared) or ``(*batch, V, n, n)``.
+:class:`BianchiCheck` checks every item.
+
+Meta device: the modules can be built from a mesh moved with ``mesh.to("meta")`` and called
+on ``meta`` tensors (shapes only, e.g. to size a pipeline); :class:`BianchiCheck` needs values
+and raises ``ValueError`` there.
+
 All modules compute exactly what the functional operators compute (they call them):
 
-* :class:`Curvature` -- ``(F, n, n)`` per face, two-prong or holonomy (Sec. 3.2, (3.2.1));
-* :class:`Torsion` -- ``(F, n)`` per face, √R or naive (Def. 3.2);
-* :class:`AveragedCovariantD` -- ``(T, n)``, ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2, end of Ch. 5);
-* :class:`CovariantD` -- ``(T, n)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
+* :class:`Curvature` -- ``(*batch, F, n, n)`` per face, two-prong or holonomy (Sec. 3.2, (3.2.1));
+* :class:`Torsion` -- ``(*batch, F, n)`` per face, √R or naive (Def. 3.2);
+* :class:`AveragedCovariantD` -- ``(*batch, T, n)``, ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2, end of Ch. 5);
+* :class:`CovariantD` -- ``(*batch, T, n)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
   Defs. 5.1-5.2);
 * :class:`BianchiCheck` -- dict of max residuals; raises ``BianchiError`` (Sec. 2.4, 3.6, Ch. 5).
 
 Inputs (checked at ``forward``, reading no data, so no device sync):
 
-* the connection must give a floating ``(E, n, n)`` tensor with ``E`` the mesh's edge count
-  (``TypeError`` for a NumPy array or an integer tensor, ``ValueError`` naming the expected and
-  given shapes); :class:`Torsion`, :class:`CovariantD` and :class:`BianchiCheck` need ``n = 3``
+* the connection must give a floating ``(*batch, E, n, n)`` tensor with ``E`` the mesh's edge
+  count (``TypeError`` for a NumPy array or an integer tensor, ``ValueError`` naming the expected
+  shape, with the batch dims of the input, and the given shape); :class:`Torsion`, :class:`CovariantD` and :class:`BianchiCheck` need ``n = 3``
   (the solder form lives in R^3), :class:`Curvature` takes any rank;
-* ``frames`` must be ``None`` or a floating ``(V, n, n)`` tensor;
+* ``frames`` must be ``None`` or a floating ``(V, n, n)`` or ``(*batch, V, n, n)`` tensor;
 * dtypes: the result has the dtype (and device) of the edge rotations. The mesh's vertex
   positions and ``frames`` are cast to it, so a float32 connection on a float64 mesh (or
   with float64 frames) computes in float32: the connection is the variable, the mesh is data.
@@ -59,24 +69,25 @@ __all__ = [
 ]
 
 def edge_rotations(connection: Any, who: str = "edge_rotations") -> torch.Tensor:
-    """``(E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor.
+    """``(*batch, E, n, n)`` edge rotations of a ``Connection``, ``ConnectionField`` or tensor.
 
     Raises ``TypeError`` (anything else, e.g. a NumPy array; a non-floating tensor) or
-    ``ValueError`` (not ``(E, n, n)``), each message starting with ``who``. Reads no data.
+    ``ValueError`` (not ``(..., E, n, n)``), each message starting with ``who``. Reads no data.
     """
     if isinstance(connection, nn.Module):
         connection = connection()
     R = connection if isinstance(connection, torch.Tensor) else getattr(connection, "edge_rot", None)
     if not isinstance(R, torch.Tensor):
         raise TypeError(
-            f"{who}: expected a Connection, a ConnectionField or an (E, n, n) tensor, got "
+            f"{who}: expected a Connection, a ConnectionField or an (..., E, n, n) tensor, got "
             f"{type(connection).__name__}; convert an array first, e.g. torch.as_tensor(R, dtype=torch.float64)"
         )
     if not R.is_floating_point():
         raise TypeError(f"{who}: edge rotations must be a floating-point tensor, got dtype {R.dtype}; "
                         f"pass e.g. R.to(torch.float64)")
-    if R.ndim != 3 or R.shape[-1] != R.shape[-2]:
-        raise ValueError(f"{who}: edge rotations must have shape (E, n, n), got {tuple(R.shape)}")
+    if R.ndim < 3 or R.shape[-1] != R.shape[-2]:
+        raise ValueError(f"{who}: edge rotations must have shape (..., E, n, n) (optional leading batch "
+                         f"dims), got {tuple(R.shape)}")
     return R
 
 
@@ -124,22 +135,25 @@ class MeshBuffers(nn.Module):
 def _rotations(connection: Any, mesh: MeshBuffers, who: str, n3: bool = False) -> torch.Tensor:
     """Edge rotations of ``connection`` checked against ``mesh`` (one per edge; ``n = 3`` if ``n3``)."""
     R = edge_rotations(connection, who)
-    if R.shape[0] != mesh.n_edges:
+    b = "".join(f"{x}, " for x in R.shape[:-3])
+    if R.shape[-3] != mesh.n_edges:
+        n = R.shape[-1]
         raise ValueError(
-            f"{who}: got {R.shape[0]} edge rotations (shape {tuple(R.shape)}) for a mesh with "
-            f"{mesh.n_edges} edges; pass one rotation R_ij per mesh edge, shape ({mesh.n_edges}, n, n), "
-            f"in mesh.edges order"
+            f"{who}: got {R.shape[-3]} edge rotations per connection (shape {tuple(R.shape)}) for a mesh "
+            f"with {mesh.n_edges} edges; pass one rotation R_ij per mesh edge, shape ({b}{mesh.n_edges}, "
+            f"{n}, {n}) (leading batch dims {tuple(R.shape[:-3])}), in mesh.edges order"
         )
     if n3 and R.shape[-1] != 3:
         raise ValueError(
             f"{who}: the solder form lives in R^3, so the connection must have rank n = 3, i.e. edge "
-            f"rotations of shape ({mesh.n_edges}, 3, 3); got {tuple(R.shape)}"
+            f"rotations of shape ({b}{mesh.n_edges}, 3, 3); got {tuple(R.shape)}"
         )
     return R
 
 
 def _frames(frames: Any, R: torch.Tensor, mesh: MeshBuffers, who: str) -> torch.Tensor | None:
-    """``frames (V, n, n)`` checked and cast to the dtype and device of the rotations ``R``."""
+    """``frames (V, n, n)`` or ``(*batch, V, n, n)`` checked and cast to the dtype and device of
+    the rotations ``R (*batch, E, n, n)``."""
     if frames is None:
         return None
     if not isinstance(frames, torch.Tensor) or not frames.is_floating_point():
@@ -147,9 +161,11 @@ def _frames(frames: Any, R: torch.Tensor, mesh: MeshBuffers, who: str) -> torch.
         raise TypeError(f"{who}: frames must be None or a floating-point tensor, got {got}; convert it "
                         f"first, e.g. torch.as_tensor(frames, dtype=torch.float64)")
     n, V = R.shape[-1], mesh.n_vertices
-    if tuple(frames.shape) != (V, n, n):
+    batch = tuple(R.shape[:-3])
+    if tuple(frames.shape) not in ((V, n, n), (*batch, V, n, n)):
+        alt = f" or {(*batch, V, n, n)} (one field per batch item)" if batch else ""
         raise ValueError(f"{who}: frames must have shape {(V, n, n)} (one frame per mesh vertex, rank of "
-                         f"the connection), got {tuple(frames.shape)}")
+                         f"the connection){alt}, got {tuple(frames.shape)}")
     return frames.to(dtype=R.dtype, device=R.device)
 
 
@@ -162,7 +178,7 @@ class Curvature(nn.Module):
         cut: cut position in each loop (default ``-1``: last vertex, so a tet-mesh face gives
             ``⟨Ω,[abc]⟩_a^c = R_ab R_bc − R_ac``).
 
-    Forward: connection → ``(F, n, n)`` in global face order, mapping the cut fiber to the
+    Forward: connection ``(*batch, E, n, n)`` → ``(*batch, F, n, n)`` in global face order, mapping the cut fiber to the
     evaluation fiber (first loop vertex).
     """
 
@@ -186,7 +202,7 @@ class Torsion(nn.Module):
         kind: ``"sqrt"`` (θ̃_ij = √R_ij θ_ij, convergent) or ``"naive"`` (plain θ, divergent).
         cut: cut position (default ``-1``: last loop vertex).
 
-    Forward: ``(connection, frames=None)`` → ``(F, n)`` in the fiber of each face's evaluation
+    Forward: ``(connection, frames=None)`` → ``(*batch, F, n)`` in the fiber of each face's evaluation
     vertex; ``frames (V, n, n)`` reads the rotations in a frame field (same convention as
     :func:`torchconn.torsion.face_torsion` and :func:`torchconn.dnabla.tet_solder_sqrt`:
     computed with ``F_i R_ij F_jᵀ`` in the ambient frame, returned in ``F_{x0}``, exactly gauge
@@ -215,7 +231,7 @@ class CovariantD(nn.Module):
             ``"behs21"`` — BEHS21 twice on the plain θ, ``(R_ab R_bc − R_ac) θ_cd`` (Ch. 4,
             divergent); ``"wedge"`` — the explicit end-of-Ch. 5 discrete ``Ω∧θ``.
 
-    Forward: ``(connection, frames=None)`` → ``(T, n)`` in the fiber of ``tets[t, 0]``; divide
+    Forward: ``(connection, frames=None)`` → ``(*batch, T, n)`` in the fiber of ``tets[t, 0]``; divide
     by the tet volume to compare with the smooth ``Ω∧θ``.
     """
 
@@ -255,7 +271,9 @@ class BianchiCheck(nn.Module):
     and the algebraic one ``𝔡∇Alt𝔡∇Alt θ̃ − Ω∧θ = 0`` (explicit Ch. 5 wedge). Raises
     :class:`torchconn.bianchi.BianchiError` naming the worst tets when a residual exceeds
     ``atol`` (default: the dtype's ``identity`` tolerance) or is not finite — a structural bug
-    or a NaN. The check runs on detached rotations (it is a diagnostic, not a loss term).
+    or a NaN. The check runs on detached rotations (it is a diagnostic, not a loss term). With
+    batch dims every item is checked and the maxima are over the whole batch. Needs values:
+    ``ValueError`` on ``meta`` tensors.
     """
 
     def __init__(self, mesh: Any, atol: float | None = None):

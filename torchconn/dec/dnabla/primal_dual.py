@@ -161,58 +161,76 @@ def primal_dual_wedge(tet_face_rot: torch.Tensor, face_edge_rot: torch.Tensor, e
 
 
 def _mesh_pd_gather(tet_face_rot, face_edge_rot, edge_values, mesh, fn):
-    """Per tet ``(T, 4, 3)`` slots: transports ``R_{c_t c_f} R_{c_f c_e}``, edge ids, coefficients."""
+    """Checks (leading batch dims allowed, broadcast together) and the per-tet ``(T, 4, 3)``
+    face ids, edge ids and incidence coefficients; returns ``(tf, fe, coef, batch)``."""
     Tn, F, E = mesh.tets.shape[0], mesh.faces.shape[0], mesh.edges.shape[0]
-    n = edge_values.shape[-1] if edge_values.ndim == 2 else -1
-    if tet_face_rot.shape != (Tn, 4, n, n):
-        raise ValueError(f"{fn}: tet_face_rot must have shape (T, 4, n, n) = ({Tn}, 4, {n}, {n}), got {tuple(tet_face_rot.shape)}")
-    if face_edge_rot.shape != (F, 3, n, n):
-        raise ValueError(f"{fn}: face_edge_rot must have shape (F, 3, n, n) = ({F}, 3, {n}, {n}), got {tuple(face_edge_rot.shape)}")
-    if edge_values.ndim != 2 or edge_values.shape[0] != E:
-        raise ValueError(f"{fn}: edge_values must have shape (E, n) with E={E}, got {tuple(edge_values.shape)}")
+    n = edge_values.shape[-1] if edge_values.ndim >= 2 else -1
+    if edge_values.ndim < 2 or edge_values.shape[-2] != E:
+        raise ValueError(f"{fn}: edge_values must have shape (..., E, n) with E={E}, got {tuple(edge_values.shape)}")
+    if tet_face_rot.ndim < 4 or tet_face_rot.shape[-4:] != (Tn, 4, n, n):
+        raise ValueError(f"{fn}: tet_face_rot must have shape (..., T, 4, n, n) = (..., {Tn}, 4, {n}, {n}), "
+                         f"got {tuple(tet_face_rot.shape)}")
+    if face_edge_rot.ndim < 4 or face_edge_rot.shape[-4:] != (F, 3, n, n):
+        raise ValueError(f"{fn}: face_edge_rot must have shape (..., F, 3, n, n) = (..., {F}, 3, {n}, {n}), "
+                         f"got {tuple(face_edge_rot.shape)}")
+    try:
+        batch = tuple(torch.broadcast_shapes(tet_face_rot.shape[:-4], face_edge_rot.shape[:-4], edge_values.shape[:-2]))
+    except RuntimeError:
+        raise ValueError(f"{fn}: the leading batch dims of tet_face_rot {tuple(tet_face_rot.shape)}, face_edge_rot "
+                         f"{tuple(face_edge_rot.shape)} and edge_values {tuple(edge_values.shape)} do not broadcast") from None
     dev = edge_values.device
     tf = mesh.tet_faces.to(dev)
     fe = mesh.face_edges.to(dev)[tf]  # (T, 4, 3) edge ids
     coef = mesh.tet_face_signs.to(dev)[..., None] * mesh.face_edge_signs.to(dev)[tf]  # (T, 4, 3)
-    return tf, fe, coef
+    return tf, fe, coef, batch
+
+
+def _take(x: torch.Tensor, idx: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x`` indexed by ``idx (S...)`` along ``dim`` (negative): ``(..., S..., trailing)``."""
+    out = x.index_select(dim, idx.reshape(-1))
+    return out.reshape(*x.shape[:dim], *idx.shape, *x.shape[dim + 1:] if dim != -1 else ())
 
 
 def primal_dual_dd_mesh(tet_face_rot: torch.Tensor, face_edge_rot: torch.Tensor, edge_values: torch.Tensor,
                         mesh) -> torch.Tensor:
-    """Primal-dual ``d∇d∇α`` on every tet of a mesh (Def. 4.2 twice): ``(T, n)`` at ``c_t``.
+    """Primal-dual ``d∇d∇α`` on every tet of a mesh (Def. 4.2 twice): ``(*batch, T, n)`` at ``c_t``.
 
     Args:
-        tet_face_rot: ``(T, 4, n, n)`` ``R_{c_t c_f}`` for ``f = mesh.tet_faces[t, k]``.
-        face_edge_rot: ``(F, 3, n, n)`` ``R_{c_f c_e}`` for ``e = mesh.face_edges[f, m]``.
-        edge_values: ``(E, n)`` at ``c_e``, canonical edge orientation ``mesh.edges``.
+        tet_face_rot: ``(*batch, T, 4, n, n)`` ``R_{c_t c_f}`` for ``f = mesh.tet_faces[t, k]``.
+        face_edge_rot: ``(*batch, F, 3, n, n)`` ``R_{c_f c_e}`` for ``e = mesh.face_edges[f, m]``.
+        edge_values: ``(*batch, E, n)`` at ``c_e``, canonical edge orientation ``mesh.edges``.
         mesh: :class:`torchconn.mesh.TetMesh` (incidence signs ``tet_face_signs``, ``face_edge_signs``).
+
+    The leading dims ``batch`` (may be empty) of the three inputs broadcast together.
     """
     fn = "primal_dual_dd_mesh"
-    tf, _, _ = _mesh_pd_gather(tet_face_rot, face_edge_rot, edge_values, mesh, fn)
+    tf, _, _, _ = _mesh_pd_gather(tet_face_rot, face_edge_rot, edge_values, mesh, fn)
     dev = edge_values.device
-    face_vals = primal_dual_face(face_edge_rot, edge_values[mesh.face_edges.to(dev)],
-                                 mesh.face_edge_signs.to(dev))  # (F, n)
-    return primal_dual_tet(tet_face_rot, face_vals[tf], mesh.tet_face_signs.to(dev))
+    face_vals = primal_dual_face(face_edge_rot, _take(edge_values, mesh.face_edges.to(dev), -2),
+                                 mesh.face_edge_signs.to(dev))  # (..., F, n)
+    return primal_dual_tet(tet_face_rot, _take(face_vals, tf, -2), mesh.tet_face_signs.to(dev))
 
 
 def primal_dual_wedge_mesh(tet_face_rot: torch.Tensor, face_edge_rot: torch.Tensor, edge_values: torch.Tensor,
                            mesh) -> torch.Tensor:
-    """Curvature-pair form ``Σ_(e,e') ⟨Ω,[c_fe, c_e, c_fe', c_t]⟩_{c_t}^{c_e} α_e`` on every tet: ``(T, n)``.
+    """Curvature-pair form ``Σ_(e,e') ⟨Ω,[c_fe, c_e, c_fe', c_t]⟩_{c_t}^{c_e} α_e`` on every tet: ``(*batch, T, n)``.
 
     Pairs the two slots (face, edge) of each tet edge by their combined incidence coefficient
     (``+1`` -> ``f_e``, ``-1`` -> ``f_e'``; ``α_e`` in canonical orientation carries the sign of
     the ``+1`` slot, which is ``+1`` by construction). Arguments as :func:`primal_dual_dd_mesh`.
     """
     fn = "primal_dual_wedge_mesh"
-    tf, fe, coef = _mesh_pd_gather(tet_face_rot, face_edge_rot, edge_values, mesh, fn)
+    tf, fe, coef, _ = _mesh_pd_gather(tet_face_rot, face_edge_rot, edge_values, mesh, fn)
     Tn = tf.shape[0]
-    path = (tet_face_rot.unsqueeze(-3) @ face_edge_rot[tf]).reshape(Tn, 12, *tet_face_rot.shape[-2:])
+    n = tet_face_rot.shape[-1]
+    path = tet_face_rot.unsqueeze(-3) @ _take(face_edge_rot, tf, -4)  # (..., T, 4, 3, n, n)
+    path = path.reshape(*path.shape[:-5], Tn, 12, n, n)
     fe, coef = fe.reshape(Tn, 12), coef.reshape(Tn, 12)
     # sort slots by (edge id, coefficient): each edge gives consecutive (-1, +1) slots
     key = fe * 2 + (coef > 0).long()
     order = torch.argsort(key, dim=1)
-    path = torch.gather(path, 1, order[..., None, None].expand_as(path))
+    path = _take(path.reshape(*path.shape[:-4], Tn * 12, n, n), (order + 12 * torch.arange(Tn, device=order.device)[:, None]), -3)
     fe_sorted = torch.gather(fe, 1, order)
-    omega = path[:, 1::2] - path[:, 0::2]  # (T, 6, n, n): plus-prong minus minus-prong
-    vals = edge_values[fe_sorted[:, 1::2]]  # (T, 6, n)
+    omega = path[..., 1::2, :, :] - path[..., 0::2, :, :]  # (..., T, 6, n, n): plus-prong minus minus-prong
+    vals = _take(edge_values, fe_sorted[:, 1::2], -2)  # (..., T, 6, n)
     return (omega @ vals.unsqueeze(-1)).squeeze(-1).sum(-2)

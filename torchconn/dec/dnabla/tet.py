@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 
 from ...ops import tet as _ops_tet
+from .._batch import ask_op, check_frames, edge_batch, expand_to, on_device
 from ..transport import dense_simplex_transports, orient
 from .simplex import (
     ListForm, _check_T, averaged, behs21, distinct_tuples, faces_of, solder_form, solder_form_sqrt,
@@ -107,72 +108,85 @@ def behs21_dd_tet(T: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
 
 # ----------------------------------------------------------------------------- mesh wrappers
 
-def _check_mesh_rot(edge_rot: torch.Tensor, mesh, fn: str) -> None:
-    if not torch.is_tensor(edge_rot) or edge_rot.ndim != 3 or edge_rot.shape[-1] != edge_rot.shape[-2]:
-        raise ValueError(f"{fn}: edge_rot must have shape (E, n, n), got "
-                         f"{tuple(edge_rot.shape) if torch.is_tensor(edge_rot) else type(edge_rot).__name__}")
-    E = mesh.edges.shape[0]
-    if edge_rot.shape[0] != E:
-        raise ValueError(f"{fn}: edge_rot has {edge_rot.shape[0]} rotations but the mesh has {E} edges")
+def _check_mesh_rot(edge_rot: torch.Tensor, mesh, fn: str) -> tuple[int, ...]:
+    """Check ``edge_rot (*batch, E, n, n)`` against the mesh; return ``batch``."""
+    if not torch.is_tensor(edge_rot):
+        raise ValueError(f"{fn}: edge_rot must be a tensor of shape (..., E, n, n), got {type(edge_rot).__name__}")
+    return edge_batch(edge_rot, int(mesh.edges.shape[0]), fn)
 
 
 def tet_transports(edge_rot: torch.Tensor, mesh) -> torch.Tensor:
-    """Dense per-tet transports ``(T, 4, 4, n, n)``, ``[t, i, j] = R_{tets[t,i] tets[t,j]}``.
+    """Dense per-tet transports ``(*batch, T, 4, 4, n, n)``, ``[..., t, i, j] = R_{tets[t,i] tets[t,j]}``.
 
     Args:
-        edge_rot: ``(E, n, n)`` rotations ``R_ij`` of the canonical edges ``mesh.edges``.
+        edge_rot: ``(*batch, E, n, n)`` rotations ``R_ij`` of the canonical edges ``mesh.edges``
+            (``batch`` may be empty).
         mesh: a :class:`torchconn.mesh.TetMesh` (uses ``tet_edges``, ``tet_edge_signs``).
     """
     _check_mesh_rot(edge_rot, mesh, "tet_transports")
-    pair = orient(edge_rot, mesh.tet_edges.to(edge_rot.device), mesh.tet_edge_signs.to(edge_rot.device))
+    dev = edge_rot.device
+    pair = orient(edge_rot, on_device(mesh, "tet_edges", dev), on_device(mesh, "tet_edge_signs", dev))
     return dense_simplex_transports(pair, 4)
 
 
 def _check_frames(frames, mesh, edge_rot, fn):
+    """``frames`` ``(V, 3, 3)`` or ``(*batch, V, 3, 3)`` in the dtype/device of ``edge_rot``."""
     V = mesh.vertices.shape[0]
     n = edge_rot.shape[-1]
-    if frames.shape != (V, 3, 3) or n != 3:
-        raise ValueError(f"{fn}: frames must be (V, 3, 3) = ({V}, 3, 3) rotations and n = 3, got frames "
-                         f"{tuple(frames.shape)}, n = {n}")
+    if n != 3:
+        raise ValueError(f"{fn}: frames need a rank n = 3 connection, got n = {n}")
+    check_frames(frames, V, 3, tuple(edge_rot.shape[:-3]), fn)
     return frames.to(device=edge_rot.device, dtype=edge_rot.dtype)
 
 
 def _tet_points(edge_rot, mesh):
-    return mesh.vertices.to(device=edge_rot.device, dtype=edge_rot.dtype)[mesh.tets.to(edge_rot.device)]
+    """``(T, 4, 3)`` vertex positions of every tet (no batch dims: the mesh is shared)."""
+    dev = edge_rot.device
+    return mesh.vertices.to(device=dev, dtype=edge_rot.dtype)[on_device(mesh, "tets", dev)]
+
+
+def _frames_of_tets(F: torch.Tensor, mesh, dev) -> torch.Tensor:
+    """``(..., T, 4, 3, 3)`` frames of every tet's vertices from ``F (..., V, 3, 3)``."""
+    tets = on_device(mesh, "tets", dev)
+    return F.index_select(-3, tets.reshape(-1)).reshape(*F.shape[:-3], *tets.shape, 3, 3)
 
 
 def _tet_theta(edge_rot: torch.Tensor, mesh, frames, fn: str) -> torch.Tensor:
-    """Plain per-tet ``θ[t, i, j] = F_i^T (v_j - v_i)`` ``(T, 4, 4, n)`` (fiber of ``tets[t,i]``)."""
+    """Plain per-tet ``θ[..., t, i, j] = F_i^T (v_j - v_i)`` ``(*batch, T, 4, 4, n)`` (fiber of ``tets[t,i]``)."""
+    batch = tuple(edge_rot.shape[:-3])
     pts = _tet_points(edge_rot, mesh)
     theta = solder_form(pts)
     if frames is None:
         if edge_rot.shape[-1] != pts.shape[-1]:
             raise ValueError(f"{fn}: rank n={edge_rot.shape[-1]} differs from the ambient dimension "
                              f"{pts.shape[-1]}; the solder form needs n = 3")
-        return theta
-    F = _check_frames(frames, mesh, edge_rot, fn)[mesh.tets.to(edge_rot.device)]  # (T, 4, 3, 3)
-    return (F.unsqueeze(-3).transpose(-1, -2) @ theta.unsqueeze(-1)).squeeze(-1)
+        return expand_to(theta, batch)
+    F = _frames_of_tets(_check_frames(frames, mesh, edge_rot, fn), mesh, edge_rot.device)  # (..., T, 4, 3, 3)
+    out = (F.unsqueeze(-3).transpose(-1, -2) @ theta.unsqueeze(-1)).squeeze(-1)
+    return out.expand(*batch, *out.shape[-4:]) if batch else out
 
 
 def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
-    """Per-tet dense ``θ̃[t, i, j] = √R_ij θ_ij`` ``(T, 4, 4, n)``, value in the fiber of ``tets[t,i]``.
+    """Per-tet dense ``θ̃[..., t, i, j] = √R_ij θ_ij`` ``(*batch, T, 4, 4, n)``, value in the fiber of ``tets[t,i]``.
 
     Without ``frames`` every fiber uses the global coordinate frame (report Sec. 3.3):
     ``θ_ij = v_j - v_i`` and ``√R_ij = half_rot`` (default ``so3.sqrt(edge_rot)``; pass
-    ``half_rot (E, n, n)`` for ``n != 3`` or for the experiments' ``exp(½ ω_m[v_j - v_i])``).
+    ``half_rot (*batch, E, n, n)`` for ``n != 3`` or for the experiments' ``exp(½ ω_m[v_j - v_i])``).
 
-    With ``frames (V, 3, 3)`` (column ``c`` of ``frames[v]`` = frame vector ``c`` of the fiber at
-    ``v`` in ambient coordinates) ``edge_rot`` is read in those frames, ``R'_ij = F_i^T R_ij F_j``
-    with ``R`` in ambient coordinates. The edge midpoint keeps the ambient frame as in the
-    report, so ``θ̃'_ij = F_i^T √R_ij (v_j - v_i)`` with ``√R_ij = sqrt(F_i R'_ij F_j^T)``, or
-    ``√R_ij = F_i half_rot_ij F_j^T`` when ``half_rot`` (in vertex frames) is given. This makes
-    the result exactly gauge covariant (``G_i = F_i^T``) and keeps ``θ̃_ji = -R'_ji θ̃_ij``.
+    With ``frames (V, 3, 3)`` or ``(*batch, V, 3, 3)`` (column ``c`` of ``frames[v]`` = frame
+    vector ``c`` of the fiber at ``v`` in ambient coordinates) ``edge_rot`` is read in those
+    frames, ``R'_ij = F_i^T R_ij F_j`` with ``R`` in ambient coordinates. The edge midpoint keeps
+    the ambient frame as in the report, so ``θ̃'_ij = F_i^T √R_ij (v_j - v_i)`` with
+    ``√R_ij = sqrt(F_i R'_ij F_j^T)``, or ``√R_ij = F_i half_rot_ij F_j^T`` when ``half_rot``
+    (in vertex frames) is given. This makes the result exactly gauge covariant (``G_i = F_i^T``)
+    and keeps ``θ̃_ji = -R'_ji θ̃_ij``. ``edge_rot`` may carry leading batch dims ``batch``;
+    the mesh is shared.
     """
     fn = "tet_solder_sqrt"
-    _check_mesh_rot(edge_rot, mesh, fn)
+    batch = _check_mesh_rot(edge_rot, mesh, fn)
     if half_rot is not None and half_rot.shape != edge_rot.shape:
         raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
-    pts = _tet_points(edge_rot, mesh)
+    pts = expand_to(_tet_points(edge_rot, mesh), batch)
     if frames is None:
         if half_rot is None:
             if edge_rot.shape[-1] != 3:
@@ -186,25 +200,26 @@ def tet_solder_sqrt(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) ->
         return solder_form_sqrt(tet_transports(half_rot, mesh), pts)
     from ...lie import so3
     Fv = _check_frames(frames, mesh, edge_rot, fn)
-    e = mesh.edges.to(edge_rot.device)
-    Fi, Fj = Fv[e[:, 0]], Fv[e[:, 1]]
+    e = on_device(mesh, "edges", edge_rot.device)
+    Fi, Fj = Fv.index_select(-3, e[:, 0]), Fv.index_select(-3, e[:, 1])
     if half_rot is None:
         half_amb = so3.sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2))
     else:
         half_amb = Fi @ half_rot @ Fj.transpose(-1, -2)
     th_amb = solder_form_sqrt(tet_transports(half_amb, mesh), pts)
-    F = Fv[mesh.tets.to(edge_rot.device)]  # (T, 4, 3, 3)
+    F = _frames_of_tets(Fv, mesh, edge_rot.device)  # (..., T, 4, 3, 3)
     return (F.unsqueeze(-3).transpose(-1, -2) @ th_amb.unsqueeze(-1)).squeeze(-1)
 
 
 def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
-    """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet: ``(T, n)`` in the fiber of ``tets[t,0]``.
+    """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet: ``(*batch, T, n)`` in the fiber of ``tets[t,0]``.
 
     Report Def. 5.2 twice (docs/conventions.md §1); arguments as in :func:`tet_solder_sqrt`. Divide by
     the tet volume to compare with the smooth ``Ω∧θ``. For ``n = 3`` this is evaluated by the
     fused closed form :func:`torchconn.ops.tet.tet_dd_solder` (the Ch. 5 tet formula, equal to
     the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
-    generic operators.
+    generic operators. ``edge_rot (*batch, E, n, n)`` may carry leading batch dims (the op is
+    asked with them; see :mod:`torchconn.dec._batch` for when the generic operators run instead).
     """
     return _dd_solder(edge_rot, mesh, frames, half_rot, "averaged_dd_solder", averaged_dd_tet)
 
@@ -218,20 +233,22 @@ def _dd_solder(edge_rot, mesh, frames, half_rot, fn, generic) -> torch.Tensor:
         raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
     if frames is not None:
         _check_frames(frames, mesh, edge_rot, fn)
-    fused = _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames)
+    fused = ask_op(lambda: _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames),
+                   edge_rot, half_rot, frames)
     if fused is not None:
         return fused
     return generic(tet_transports(edge_rot, mesh), tet_solder_sqrt(edge_rot, mesh, frames, half_rot))
 
 
 def behs21_dd_solder(edge_rot: torch.Tensor, mesh, frames=None) -> torch.Tensor:
-    """BEHS21 twice on the plain solder form on every tet: ``(T, n)``, ``(R_ab R_bc - R_ac) θ_cd`` (Ch. 4)."""
+    """BEHS21 twice on the plain solder form on every tet: ``(*batch, T, n)``, ``(R_ab R_bc - R_ac) θ_cd`` (Ch. 4)."""
+    _check_mesh_rot(edge_rot, mesh, "behs21_dd_solder")
     T = tet_transports(edge_rot, mesh)
     return behs21_dd_tet(T, _tet_theta(edge_rot, mesh, frames, "behs21_dd_solder"))
 
 
 def wedge_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> torch.Tensor:
-    """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(T, n)`` at ``tets[t,0]``.
+    """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(*batch, T, n)`` at ``tets[t,0]``.
 
     For ``n = 3`` evaluated by the fused regrouping of the same formula
     (:func:`torchconn.ops.tet.tet_dd_solder`); other ranks use the dense tables.

@@ -1,0 +1,130 @@
+"""Leading batch dimensions of a connection, shared by the operators of :mod:`torchconn.dec`.
+
+Every operator takes the connection as ``(*batch, E, n, n)`` rotations of the canonical edges
+of one mesh (``batch`` may be empty) and returns its values with the same leading dims,
+``(*batch, F, n, n)``, ``(*batch, T, n)``, ... . Mesh data (vertex positions, index tables)
+carries no batch dims and is shared by every item.
+
+The kernels of :mod:`torchconn.ops` are asked first, with the batched tensor (the issue-11
+custom ops take leading batch dims themselves and have a vmap rule). :func:`ask_op` falls back to the
+generic torch formula of the caller, which broadcasts over the leading dims, when the op
+
+* returns ``None`` (it does not apply: rank, cut, mesh kind);
+* raises ``ValueError``, ``RuntimeError`` or ``IndexError`` for an input with leading dims:
+  the caller has already checked the shape ``(*batch, E, n, n)`` against the mesh, so this can
+  only be an op that refuses (or, with an unchecked reshape, fails on) batch dims — the
+  pre-issue-11 kernels take ``(E, 3, 3)`` only (``ops.curvature``/``ops.torsion`` raise
+  ``ValueError``, ``ops.tet`` fails in a reshape or an index with ``RuntimeError`` /
+  ``IndexError``). Once every op takes leading batch dims itself this case never triggers and the
+  batched tensor goes straight to the op;
+* raises ``RuntimeError`` while a functorch transform (``vmap``, ``grad``) wraps the input:
+  an op without a rule for that transform (an ``autograd.Function`` without
+  ``setup_context``/``vmap``, e.g. ``aten::nonzero`` under ``vmap``).
+
+Forward-mode AD (``torch.func.jvp``, ``torch.autograd.forward_ad``) never reaches the ops:
+neither the pre-issue-11 ``autograd.Function`` kernels nor a ``torch.library`` custom op with
+``register_autograd`` has a forward-mode formula, and both silently drop the tangent (a custom
+op returns a zero tangent under ``torch.func.jvp`` in torch 2.13 — measured; the tet kernel a
+wrong one), so :func:`ask_op` returns ``None`` without calling the op whenever a tangent is
+being propagated (:func:`forward_mode`), and the generic formula — torch operations, exact
+forward-mode derivatives — runs instead. The ``so3`` maps it calls are the ``lie.so3`` ones.
+
+Any other exception propagates.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+__all__ = ["edge_batch", "check_frames", "batch_text", "forward_mode", "transformed", "ask_op", "expand_to", "on_device"]
+
+
+def batch_text(batch: tuple[int, ...]) -> str:
+    """``"2, 3, "`` for ``(2, 3)``, ``""`` for ``()``: the batch prefix of a shape in messages."""
+    return "".join(f"{b}, " for b in batch)
+
+
+def edge_batch(R, E: int, fn: str, *, n: int | None = None, what: str = "edge_rot") -> tuple[int, ...]:
+    """Check ``R`` is a floating ``(*batch, E, n, n)`` tensor; return ``batch``.
+
+    Raises ``ValueError`` whose message names the expected shape with the batch dims of the
+    input (``(2, 604, 3, 3)``) and the given shape. Reads no data (no device sync).
+    """
+    if not isinstance(R, torch.Tensor):
+        raise TypeError(f"{fn}: {what} must be a tensor of shape (..., E, n, n), got {type(R).__name__}")
+    nn_ = "n, n" if n is None else f"{n}, {n}"
+    if R.ndim < 3 or R.shape[-1] != R.shape[-2] or (n is not None and R.shape[-1] != n):
+        raise ValueError(f"{fn}: {what} must have shape (..., {E}, {nn_}) (optional leading batch dims, "
+                         f"one rotation per mesh edge), got {tuple(R.shape)}")
+    batch = tuple(R.shape[:-3])
+    if R.shape[-3] != E:
+        short = f" (mesh edge index {E - 1} out of range)" if R.shape[-3] < E else ""
+        lead = f"leading batch dims {batch}, " if batch else ""
+        raise ValueError(f"{fn}: {what} must have shape ({batch_text(batch)}{E}, {R.shape[-1]}, {R.shape[-1]}) "
+                         f"({lead}one rotation per mesh edge in mesh.edges order), got "
+                         f"{tuple(R.shape)}: {R.shape[-3]} rotations for {E} edges{short}")
+    return batch
+
+
+def check_frames(frames, V: int, n: int, batch: tuple[int, ...], fn: str):
+    """Check ``frames`` is ``None``, ``(V, n, n)`` (shared by every item of the batch) or
+    ``(*batch, V, n, n)`` (one frame field per item); raise ``ValueError`` naming both shapes."""
+    if frames is None:
+        return None
+    shape = tuple(frames.shape)
+    if shape[-3:] != (V, n, n) or shape[:-3] not in ((), tuple(batch)):
+        alt = f" or ({batch_text(batch)}{V}, {n}, {n})" if batch else ""
+        raise ValueError(f"{fn}: frames must have shape ({V}, {n}, {n}){alt} (one frame per mesh vertex"
+                         f"{', optionally one field per batch item' if batch else ''}), got {shape}")
+    return frames
+
+
+def forward_mode(*tensors) -> bool:
+    """Whether a forward-mode tangent is being propagated: a ``torch.func.jvp`` level on the
+    functorch interpreter stack, or a ``forward_ad`` dual tensor among ``tensors``."""
+    stack = torch._C._functorch.get_interpreter_stack()
+    if stack and any(i.key() == torch._C._functorch.TransformType.Jvp for i in stack):
+        return True
+    return any(isinstance(t, torch.Tensor) and torch.autograd.forward_ad.unpack_dual(t).tangent is not None
+               for t in tensors)
+
+
+def transformed(*tensors) -> bool:
+    """Whether a functorch transform (vmap, grad, jvp) or a forward-mode AD level wraps a tensor."""
+    for t in tensors:
+        if not isinstance(t, torch.Tensor):
+            continue
+        if torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return True
+    return forward_mode(*tensors)
+
+
+def ask_op(call: Callable, R: torch.Tensor, *others):
+    """``call()`` (an op of :mod:`torchconn.ops`), or ``None`` where the caller must use its
+    generic formula (see the module docstring for the three cases; under forward-mode AD the
+    op is not called)."""
+    if forward_mode(R, *others):
+        return None
+    try:
+        return call()
+    except (ValueError, RuntimeError, IndexError) as err:
+        if R.ndim > 3 or (isinstance(err, RuntimeError) and transformed(R, *others)):
+            return None
+        raise
+
+
+def expand_to(x: torch.Tensor, batch: tuple[int, ...]) -> torch.Tensor:
+    """``x`` with the leading dims ``batch`` added (a view; no copy)."""
+    return x.expand(*batch, *x.shape) if batch else x
+
+
+def on_device(mesh, name: str, device: torch.device) -> torch.Tensor:
+    """``getattr(mesh, name)`` on ``device``: no copy when it is there already, else moved once
+    and cached per mesh and device (``ops._cache.require``) so a CPU mesh used with CUDA
+    connections is not copied at every call."""
+    t = getattr(mesh, name)
+    if t.device == device:
+        return t
+    from ..ops._cache import require
+    return require(mesh, f"dec.{name}.{device}", lambda m: getattr(m, name).to(device))
