@@ -159,18 +159,24 @@ def targets(rows: list[dict], figs: dict, method: str) -> list[tuple[str, bool |
     """``[(target, held, measured)]`` of the issue for ``method`` against the SH baseline."""
     models, _, t = by_model(rows)
     out = []
-    failed = [x for x in models if not ok(t.get((x, method)))]
-    out.append(("every model finishes (no crash, no NaN)", not failed and bool(models),
-                f"{len(models) - len(failed)}/{len(models)}" + (f"; failed: {', '.join(failed[:6])}" if failed else "")))
+    failed = [x for x in models if (x, method) in t and not ok(t[(x, method)])]
+    missing = [x for x in models if (x, method) not in t]
+    gaps = (f"; failed: {', '.join(failed[:6])}" if failed else "") + (f"; not run: {len(missing)}" if missing else "")
+    out.append(("every model finishes (no crash, no NaN)", not failed and not missing and bool(models),
+                f"{len(models) - len(failed) - len(missing)}/{len(models)}" + gaps))
     pairs = {x: (t[(x, method)], t[(x, BASELINE)]) for x in models
              if ok(t.get((x, method))) and ok(t.get((x, BASELINE)))}
     if pairs:
         checks = {x: _model_checks(r, b) for x, (r, b) in pairs.items()}
+        incomplete = len(models) - len(pairs)
         for name in next(iter(checks.values())):
             bad = [x for x, c in checks.items() if not c[name]]
-            out.append((f"every model: {name}", not bad and not failed,
-                        f"{len(pairs) - len(bad)}/{len(pairs)} models" + (f"; not: {', '.join(bad[:5])}"
-                                                                           + (" …" if len(bad) > 5 else "") if bad else "")))
+            text = f"{len(pairs) - len(bad)}/{len(pairs)} compared"
+            if bad:
+                text += f"; not: {', '.join(bad[:5])}" + (" …" if len(bad) > 5 else "")
+            if incomplete:
+                text += f"; {incomplete} without a comparison"
+            out.append((f"every model: {name}", not bad and not incomplete, text))
     f = figs.get(method, {})
     g1, g2 = f.get("gmean_ratio_smoothness_mean_deg", float("nan")), f.get("gmean_ratio_dirichlet_energy_mean", float("nan"))
     out.append(("set: geometric mean of the mean-angle ratio ≤ 0.90", g1 <= 0.90, _fmt(g1, 4)))
