@@ -147,6 +147,10 @@ def test_set_figures_and_targets_on_known_numbers(tmp_path):
              wall_s=70.0),
         _rec("s03c_c", "connection", error="RuntimeError: boom"),
     ]
+    # round-off floors: two fields exact to round-off compare as equal, counts as (n + 1) / (n_sh + 1)
+    assert rep.ratio("smoothness_mean_deg", {"smoothness_mean_deg": 1e-8}, {"smoothness_mean_deg": 1e-10}) == 1.0
+    assert rep.ratio("dirichlet_energy_mean", {"dirichlet_energy_mean": 0.2}, {"dirichlet_energy_mean": 0.1}) == 2.0
+    assert rep.ratio("n_singular_faces", {"n_singular_faces": 3}, {"n_singular_faces": 0}) == 4.0
     figs = rep.set_figures(rows)["connection"]
     assert figs["gmean_ratio_smoothness_mean_deg"] == pytest.approx(math.sqrt(0.8 * 0.9))
     assert figs["gmean_ratio_dirichlet_energy_mean"] == pytest.approx(0.9)
