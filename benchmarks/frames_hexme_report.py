@@ -278,6 +278,7 @@ def plot(rows: list[dict], path: Path) -> Path | None:
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
     except ImportError:
         return None
     models, methods, t = by_model(rows)
@@ -294,6 +295,9 @@ def plot(rows: list[dict], path: Path) -> Path | None:
             ax.plot([i + 0.15 * (k - (len(others) - 1) / 2) for i in xs], ys, "o", ms=4, label=m)
         ax.axhline(1.0, color="k", lw=0.8)
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+        ax.tick_params(axis="y", which="minor", labelsize=6)
         ax.set_ylabel(label + (" (n+1)" if key in _COUNTS else "") + "\n/ SH")
         ax.grid(True, which="both", axis="y", alpha=0.3)
     axes[0].legend(loc="upper left", ncol=len(others), fontsize=8)
