@@ -1,0 +1,409 @@
+"""Frame-field benchmark on HexMe (and the shared meshes): every model x every method, one row each.
+
+    python -m benchmarks.frames_hexme [--set hexme|shared] [--kinds c,u] [--models s,n,i|s02c,...]
+        [--methods sh,mbo,connection,mouette] [--out DIR] [--jobs 1] [--threads 2]
+        [--launcher joblib|hexme_slurm|none] [--timeout 1800] [--max-tets 200000]
+        [--opt METHOD.KEY=VALUE ...] [--force] [--aggregate-only]
+
+Methods (``--methods``; default ``sh,mbo,connection`` plus ``mouette`` when it imports):
+
+* ``sh``: the SH baseline of Ray, Sokolov & Lévy 2016 (``design(mesh, "sh")``, its defaults);
+* ``mbo``: :func:`torchconn.frames.mbo.mbo_frames` (Palmer, Bommes & Solomon 2020), its defaults;
+* ``connection``: ``design(mesh)``, the default configuration;
+* ``mouette``: mouette's ``VolumeFrameField(mesh, "vertices")`` on the same tet mesh (optional;
+  an error row when the package is missing). mouette indexes its boundary-normal attribute with
+  volume-vertex ids, so the mesh is renumbered boundary-first for it and the frames mapped back
+  (the workaround of ``benchmarks.compare_frames``).
+
+``--opt mbo.n_taus=4`` (repeatable) passes an option to one method (``design()`` options for
+``sh``/``connection``, ``mbo_frames`` keywords for ``mbo``; values are parsed as YAML).
+
+Sets (``--set``): ``hexme``: the parameter files ``../shared/data/hexme/meta/XNN{k}_name.yaml``
+for the kinds ``--kinds`` (``c``, ``u``), meshed by gmsh with the dataset's parameters and one
+thread (:func:`torchconn.mesh.cad.load_hexme`; deterministic, so every method sees the same
+mesh); ``--models`` keeps the names that start with one of the given prefixes (``s,n,i``: all;
+``s02c,n05``: those). A mesh over ``--max-tets`` tets is an error row ("over max-tets").
+``shared``: ``sphere_r0.17``, ``78322_gear.2``, ``dinosaur``, ``bunny`` (tetrahedralized with
+edge length 0.08) and ``fandisk`` (0.2).
+
+Jobs: one per (model, method). Each runs in a child process (``--threads`` torch threads), which
+writes ``DIR/jobs/<set>__<model>__<method>.json``: every metric of
+:func:`torchconn.frames.metrics.frame_metrics`, the mesh size, the times (``mesh_s`` meshing,
+``method_s`` the method, ``metrics_s`` the metrics, ``wall_s`` their sum: end to end) and the
+child's peak resident memory (``peak_rss_mb``, ``getrusage`` max RSS). A job that raises, dies or
+runs past ``--timeout`` is a row with its ``error``, never a stop. A job whose result file exists
+is skipped (resumption; ``--force`` reruns). The options of the run are in ``DIR/options.json``.
+
+Launchers: ``--launcher joblib`` (default when ``hydra-joblib-launcher`` is installed) runs the jobs
+as a Hydra multirun, ``hydra/launcher=joblib`` with ``hydra.launcher.n_jobs=--jobs``; the Hydra app
+is ``python -m benchmarks.frames_hexme hydra-job`` with ``benchmarks/conf/frames_hexme.yaml``.
+``--launcher hexme_slurm`` submits the same sweep to SLURM with ``hydra-submitit-launcher``
+(``benchmarks/conf/hydra/launcher/hexme_slurm.yaml``: edit partition, time and memory there or
+override them, e.g. ``--hydra-arg hydra.launcher.partition=cpu``); run ``--aggregate-only`` on the
+same ``--out`` once the array has finished. ``--launcher none`` (``--no-hydra``) runs the jobs one
+after the other in this process's loop (each still in its child process; ``--in-process`` runs
+them in this process itself, without the memory column). The plugins are the ``bench`` extra.
+
+Aggregation (:mod:`benchmarks.frames_hexme_report`, also ``--aggregate-only``) reads the job files
+and writes ``DIR/results.csv``, ``DIR/results.md`` (per-model rows, set-level figures against
+the SH baseline, the issue's targets held / not held) and ``DIR/ratios.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+METHODS = ("sh", "mbo", "connection", "mouette")
+SETS = ("hexme", "shared")
+#: The shared meshes: name -> (file, edge length of the tetrahedralization or None for tet files).
+SHARED = {
+    "sphere_r0.17": ("sphere_r0.17.mesh", None),
+    "78322_gear.2": ("78322_gear.2.mesh", None),
+    "dinosaur": ("dinosaur.msh", None),
+    "bunny": ("bunny.obj", 0.08),
+    "fandisk": ("fandisk.ply", 0.2),
+}
+FEATURE_ANGLE = 30.0
+
+
+# ----------------------------------------------------------------------------- cases
+def list_cases(set_name: str = "hexme", kinds=("c",), models=None, data_dir: Path | None = None) -> list[str]:
+    """Model names of a set: HexMe parameter-file stems (``s02c_prism``) or :data:`SHARED` keys.
+
+    ``models``: prefixes (``["s", "n02"]``); ``None`` keeps all. ``kinds``: HexMe mesh kinds.
+    """
+    data = Path(data_dir) if data_dir else DATA
+    if set_name == "shared":
+        names = list(SHARED)
+    elif set_name == "hexme":
+        meta = data / "hexme" / "meta"
+        if not meta.is_dir():
+            raise FileNotFoundError(f"{meta}: no HexMe parameter files (the shared data is missing)")
+        kinds = tuple(kinds)
+        bad = [k for k in kinds if k not in ("c", "u", "b")]
+        if bad:
+            raise ValueError(f"unknown HexMe kinds {bad}; known: c, u (b: embedded in a box)")
+        names = sorted(p.stem for p in meta.glob("*.yaml") if p.stem[3:4] in kinds and len(p.stem) > 4)
+    else:
+        raise ValueError(f"unknown set {set_name!r}; known: {list(SETS)}")
+    if models:
+        names = [n for n in names if any(n.startswith(m) for m in models)]
+    return names
+
+
+def load_case(set_name: str, name: str, data_dir: Path | None = None):
+    """The float64 ``TetMesh`` of one model."""
+    import torch
+
+    from torchconn.mesh import load_mesh
+
+    data = Path(data_dir) if data_dir else DATA
+    if set_name == "hexme":
+        from torchconn.mesh.cad import load_hexme
+
+        path = data / "hexme" / "meta" / f"{name}.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such HexMe parameter file")
+        return load_hexme(path, dtype=torch.float64)
+    if name not in SHARED:
+        raise ValueError(f"unknown shared mesh {name!r}; known: {list(SHARED)}")
+    file, el = SHARED[name]
+    kw = {} if el is None else {"edge_length": el}
+    return load_mesh(data / file, **kw).to(dtype=torch.float64)
+
+
+# ----------------------------------------------------------------------------- methods
+def _mouette_frames(mesh):
+    import tempfile
+
+    import meshio
+    import mouette
+    import numpy as np
+    import torch
+
+    P, T = mesh.vertices.cpu().numpy(), mesh.tets.cpu().numpy()
+    on_b = np.zeros(P.shape[0], bool)
+    on_b[mesh.boundary_vertices.cpu().numpy()] = True
+    new_to_old = np.concatenate([np.flatnonzero(on_b), np.flatnonzero(~on_b)])
+    old_to_new = np.empty_like(new_to_old)
+    old_to_new[new_to_old] = np.arange(new_to_old.size)
+    with tempfile.TemporaryDirectory(prefix="hexme_mouette_") as td:
+        path = str(Path(td) / "in.mesh")
+        meshio.write(path, meshio.Mesh(P[new_to_old], [("tetra", old_to_new[T])]))
+        m = mouette.mesh.load(path)
+    ff = mouette.framefield.VolumeFrameField(m, "vertices")
+    ff.run()
+    b2m = ff.mesh.boundary_connectivity.b2m_vertex
+    if not all(b2m[k] == k for k in range(int(on_b.sum()))):
+        raise RuntimeError("mouette's boundary vertex numbering is not the identity after the renumbering")
+    R = np.stack([f.as_matrix() for f in ff.frames])[old_to_new]
+    return torch.as_tensor(R, dtype=mesh.vertices.dtype)
+
+
+def run_method(method: str, mesh, options: dict | None = None):
+    """Frames ``(V, 3, 3)`` of ``method`` on ``mesh`` with the method's ``options``."""
+    options = dict(options or {})
+    if method in ("sh", "connection"):
+        from torchconn.frames.design import design
+
+        return design(mesh, method, **options).vertex_frames
+    if method == "mbo":
+        from torchconn.frames.mbo import mbo_frames
+
+        return mbo_frames(mesh, **options)
+    if method == "mouette":
+        if options:
+            raise TypeError(f"method mouette takes no options, got {sorted(options)}")
+        return _mouette_frames(mesh)
+    raise ValueError(f"unknown method {method!r}; known: {list(METHODS)}")
+
+
+def job_name(set_name: str, case: str, method: str) -> str:
+    return f"{set_name}__{case}__{method}"
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
+
+
+def evaluate(set_name: str, case: str, method: str, opts: dict) -> dict:
+    """One job in this process: mesh, method, metrics -> the result record (errors caught)."""
+    rec = {"set": set_name, "model": case, "method": method,
+           "kind": case[3] if set_name == "hexme" and len(case) > 3 else "", "error": ""}
+    try:
+        import torch
+
+        from torchconn.frames.metrics import frame_metrics
+
+        torch.set_num_threads(int(opts.get("threads", 1)))
+        t0 = time.perf_counter()
+        mesh = load_case(set_name, case, opts.get("data_dir"))
+        rec["mesh_s"] = time.perf_counter() - t0
+        rec.update(n_vertices=mesh.n_vertices, n_tets=mesh.n_tets)
+        max_tets = opts.get("max_tets")
+        if max_tets and mesh.n_tets > int(max_tets):
+            raise RuntimeError(f"over max-tets: {mesh.n_tets} tets > {int(max_tets)}")
+        t0 = time.perf_counter()
+        F = run_method(method, mesh, (opts.get("method_options") or {}).get(method))
+        rec["method_s"] = time.perf_counter() - t0
+        if not bool(torch.isfinite(F).all()):
+            raise FloatingPointError(f"{method} returned non-finite frames")
+        t0 = time.perf_counter()
+        rec.update(frame_metrics(F, mesh, FEATURE_ANGLE))
+        rec["metrics_s"] = time.perf_counter() - t0
+        rec["wall_s"] = rec["mesh_s"] + rec["method_s"] + rec["metrics_s"]
+    except Exception as exc:  # noqa: BLE001 - a failing run is a row with its error
+        rec["error"] = f"{type(exc).__name__}: {exc}".replace("\n", " ")[:500]
+        rec["traceback"] = traceback.format_exc()[-4000:]
+    return rec
+
+
+def _write(path: Path, rec: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rec, indent=1, default=float))
+    os.replace(tmp, path)  # atomic: a result file is complete or absent
+
+
+def run_job(set_name: str, case: str, method: str, out: Path, opts: dict | None = None, *, force: bool = False,
+            in_process: bool = False) -> Path:
+    """Run one job unless its result file exists; returns the file. Never raises for a failed run."""
+    out = Path(out)
+    if opts is None:
+        opts = read_options(out)
+    jobs = out / "jobs"
+    jobs.mkdir(parents=True, exist_ok=True)
+    path = jobs / f"{job_name(set_name, case, method)}.json"
+    if path.exists() and not force:
+        return path
+    if in_process:
+        rec = evaluate(set_name, case, method, opts)
+        rec["peak_rss_mb"] = float("nan")  # not per run in a shared process
+        _write(path, rec)
+        return path
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    threads = str(int(opts.get("threads", 1)))
+    env.update(OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads)
+    cmd = [sys.executable, "-m", "benchmarks.frames_hexme", "child", set_name, case, method, str(out)]
+    timeout = float(opts.get("timeout_s", 1800))
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+        err = None if path.exists() else (
+            f"child exited {r.returncode} without a result: "
+            + ((r.stderr or r.stdout).strip().splitlines() or ["no output"])[-1][:300])
+    except subprocess.TimeoutExpired:
+        err = f"timeout: no result within {timeout:.0f} s"
+        path.unlink(missing_ok=True)
+    if err is not None:
+        _write(path, {"set": set_name, "model": case, "method": method, "error": err,
+                      "wall_s": time.perf_counter() - t0})
+    return path
+
+
+def _child(argv: list[str]) -> None:
+    set_name, case, method, out = argv
+    out = Path(out)
+    rec = evaluate(set_name, case, method, read_options(out))
+    rec["peak_rss_mb"] = _peak_rss_mb()
+    _write(out / "jobs" / f"{job_name(set_name, case, method)}.json", rec)
+
+
+# ----------------------------------------------------------------------------- options and sweep
+def read_options(out: Path) -> dict:
+    p = Path(out) / "options.json"
+    return json.loads(p.read_text()) if p.is_file() else {}
+
+
+def parse_opts(items: list[str]) -> dict:
+    """``["mbo.n_taus=4", "connection.steps=50"]`` -> ``{"mbo": {"n_taus": 4}, ...}`` (YAML values)."""
+    import yaml
+
+    res: dict = {}
+    for it in items or []:
+        key, sep, val = it.partition("=")
+        method, dot, name = key.partition(".")
+        if not sep or not dot or not name:
+            raise ValueError(f"--opt {it!r}: expected METHOD.KEY=VALUE")
+        if method not in METHODS:
+            raise ValueError(f"--opt {it!r}: unknown method {method!r}; known: {list(METHODS)}")
+        d = res.setdefault(method, {})
+        *groups, last = name.split(".")
+        for g in groups:  # design(weights={"tie": 5}) from connection.weights.tie=5
+            d = d.setdefault(g, {})
+        d[last] = yaml.safe_load(val)
+    return res
+
+
+def plugins_available() -> dict:
+    found = {}
+    for name, mod in (("joblib", "hydra_plugins.hydra_joblib_launcher"),
+                      ("submitit", "hydra_plugins.hydra_submitit_launcher")):
+        try:
+            __import__(mod)
+            found[name] = True
+        except ImportError:
+            found[name] = False
+    return found
+
+
+def mouette_available() -> bool:
+    try:
+        import mouette  # noqa: F401
+    except Exception:  # noqa: BLE001 - any import failure means "not available"
+        return False
+    return True
+
+
+def _hydra_sweep(cases, methods, out: Path, launcher: str, jobs: int, extra: list[str]) -> int:
+    launch = {"joblib": ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"],
+              "hexme_slurm": ["hydra/launcher=hexme_slurm"]}[launcher]
+    cmd = [sys.executable, "-m", "benchmarks.frames_hexme", "hydra-job", "--multirun",
+           f"case={','.join(cases)}", f"method={','.join(methods)}", f"out_dir={out}", *launch, *extra]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    return subprocess.run(cmd, cwd=ROOT, env=env).returncode
+
+
+def _hydra_entry() -> None:
+    import hydra
+
+    @hydra.main(config_path="conf", config_name="frames_hexme", version_base=None)
+    def job(cfg) -> None:
+        out = Path(cfg.out_dir)
+        opts = read_options(out)
+        run_job(opts.get("set", "hexme"), str(cfg.case), str(cfg.method), out, opts)
+
+    job()
+
+
+def main(argv: list[str] | None = None) -> Path:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--set", default="hexme", choices=SETS)
+    ap.add_argument("--kinds", default="c", help="HexMe mesh kinds, comma-separated (c, u)")
+    ap.add_argument("--models", default=None, help="name prefixes, comma-separated (default: all)")
+    ap.add_argument("--methods", default=None, help=f"comma-separated of {METHODS} (default: sh,mbo,connection"
+                                                    f" and mouette when it imports)")
+    ap.add_argument("--out", default=None, help="output directory (default: benchmarks/out/frames_hexme_<set>)")
+    ap.add_argument("--data-dir", default=None, help="the shared data folder (default ../shared/data)")
+    ap.add_argument("--jobs", type=int, default=1, help="parallel jobs (joblib launcher)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads per job (1: on a shared machine more threads than free cores is far slower)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per job")
+    ap.add_argument("--max-tets", type=int, default=200_000)
+    ap.add_argument("--launcher", default=None, choices=("joblib", "hexme_slurm", "none"))
+    ap.add_argument("--no-hydra", action="store_true", help="same as --launcher none")
+    ap.add_argument("--in-process", action="store_true", help="with --launcher none: no child process per job")
+    ap.add_argument("--hydra-arg", action="append", default=[], help="extra Hydra override (repeatable)")
+    ap.add_argument("--opt", action="append", default=[], help="METHOD.KEY=VALUE method option (repeatable)")
+    ap.add_argument("--force", action="store_true", help="rerun jobs whose result file exists")
+    ap.add_argument("--aggregate-only", action="store_true", help="only read the job files and write the report")
+    args = ap.parse_args(argv)
+
+    out = Path(args.out or ROOT / "benchmarks" / "out" / f"frames_hexme_{args.set}").resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    from . import frames_hexme_report as report
+
+    if not args.aggregate_only:
+        kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+        models = [m.strip() for m in args.models.split(",") if m.strip()] if args.models else None
+        cases = list_cases(args.set, kinds, models, args.data_dir)
+        if not cases:
+            ap.error(f"no model of set {args.set!r} matches kinds={kinds} models={models}")
+        if args.methods:
+            methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+            bad = [m for m in methods if m not in METHODS]
+            if bad:
+                ap.error(f"unknown methods {bad}; known: {list(METHODS)}")
+        else:
+            methods = ["sh", "mbo", "connection"] + (["mouette"] if mouette_available() else [])
+        opts = {"set": args.set, "cases": cases, "methods": methods, "threads": args.threads,
+                "timeout_s": args.timeout, "max_tets": args.max_tets, "method_options": parse_opts(args.opt),
+                "data_dir": str(Path(args.data_dir).resolve()) if args.data_dir else None,
+                "command": "python -m benchmarks.frames_hexme " + " ".join(argv if argv is not None else sys.argv[1:]),
+                "started": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+        (out / "options.json").write_text(json.dumps(opts, indent=1))
+        if args.force:
+            for c in cases:
+                for m in methods:
+                    (out / "jobs" / f"{job_name(args.set, c, m)}.json").unlink(missing_ok=True)
+        launcher = "none" if args.no_hydra else args.launcher
+        if launcher is None:
+            launcher = "joblib" if plugins_available()["joblib"] else "none"
+            if launcher == "none":
+                print("hydra-joblib-launcher is not installed (pip install 'torchconn[bench]'): running the jobs "
+                      "in a plain loop", file=sys.stderr)
+        t0 = time.perf_counter()
+        if launcher == "none":
+            for c in cases:
+                for m in methods:
+                    run_job(args.set, c, m, out, opts, in_process=args.in_process)
+        else:
+            rc = _hydra_sweep(cases, methods, out, launcher, args.jobs, args.hydra_arg)
+            if rc != 0:
+                print(f"the Hydra sweep exited with {rc}; aggregating what is there", file=sys.stderr)
+        print(f"sweep: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    paths = report.aggregate(out)
+    print(paths["md"].read_text())
+    return out
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "hydra-job":
+        del sys.argv[1]
+        _hydra_entry()
+    elif len(sys.argv) > 1 and sys.argv[1] == "child":
+        _child(sys.argv[2:])
+    else:
+        main()
