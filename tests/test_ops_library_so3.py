@@ -69,6 +69,7 @@ def _on(compiled, fn):
 FAST_UTILS = ("test_schema", "test_autograd_registration", "test_faketensor")
 OPCHECK_CASES = [pytest.param(dt, on, marks=() if (dt == torch.float64 and on) else pytest.mark.slow)
                  for dt in DTYPES for on in SWITCH]
+FULL_KINDS = ["exp", "log", pytest.param("sqrt", marks=pytest.mark.slow)]  # sqrt: ~20 s
 
 
 def _opcheck_so3(kind, dtype, compiled, utils):
@@ -88,7 +89,7 @@ def test_opcheck_schema_autograd_fake(kind, dtype, compiled):
 
 
 @pytest.mark.parametrize("dtype,compiled", OPCHECK_CASES)
-@pytest.mark.parametrize("kind", ["exp", "log", "sqrt"])
+@pytest.mark.parametrize("kind", FULL_KINDS)
 def test_opcheck_full(kind, dtype, compiled):
     _opcheck_so3(kind, dtype, compiled, None)
 

@@ -113,7 +113,7 @@ def _curvature_bwd_generic(edge_rot: torch.Tensor, grad: torch.Tensor, face_inde
     vals = torch.stack([torch.stack((gab[q], gbc[q], gac[q]), 1) for q in range(9)], 0)  # (9, N, 3, F)
     N = vals.shape[1]
     out = vals.new_zeros(9, N, E).index_add(2, face_index.reshape(-1), vals.reshape(9, N, 3 * F))
-    return out.permute(1, 2, 0).reshape(edge_rot.shape)
+    return out.permute(1, 2, 0).contiguous().reshape(edge_rot.shape)  # the fake's (contiguous) layout
 
 
 # ----------------------------------------------------------------------------- compiled

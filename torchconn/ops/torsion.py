@@ -66,7 +66,7 @@ def _torsion_bwd_generic(R, vec, face_index, grad, root=_f.sqrt, root_bwd=_f.sqr
     zeros3 = grad.new_zeros((*R.shape[:-3], E, 3))
     g_theta = zeros3.index_add(-2, fi.reshape(-1), g_th)
     g_rab = grad.unsqueeze(-1) * t_bc.unsqueeze(-2)  # G θ̃_bcᵀ (*B, F, 3, 3)
-    g_R = torch.zeros_like(R).index_add(-3, fi[0], g_rab)
+    g_R = R.new_zeros(R.shape).index_add(-3, fi[0], g_rab)
     g_S = g_theta.unsqueeze(-1) * vec.unsqueeze(-2)
     return g_R + root_bwd(R, g_S), _matTvec(S, g_theta)
 
@@ -95,7 +95,7 @@ def _(edge_rot, edge_vec, face_index, grad):
 @_face_torsion_sqrt_backward.register_fake
 def _(edge_rot, edge_vec, face_index, grad):
     return (torch.empty_like(edge_rot, memory_format=torch.contiguous_format),
-            torch.empty_like(edge_vec, memory_format=torch.contiguous_format))
+            edge_rot.new_empty((*edge_rot.shape[:-2], 3)))  # per batch element
 
 
 def _tbwd_setup(ctx, inputs, output):
