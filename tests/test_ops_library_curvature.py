@@ -277,3 +277,27 @@ def test_torsion_meta(mesh):
     out = ops_torsion._face_torsion_sqrt(R, torch.empty(mesh.edges.shape[0], 3, device="meta"),
                                          ops_curvature._face_index(mesh, "cpu").to("meta"))
     assert out.shape == (2, mesh.face_edges.shape[0], 3) and out.device.type == "meta"
+
+
+# ------------------------------------------------------------------------- devices
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                reason="no CUDA device: the generic kernels on CUDA are not tested"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_generic_kernels_on_every_device(mesh, device):
+    R = _rot(mesh, (2,), seed=20)
+    outs = []
+    for dev in ("cpu", device):
+        x = R.to(dev).requires_grad_()
+        with torchconn.ops.compiled(dev != "cpu"):
+            H = ops_curvature.face_curvature(x, mesh, 0, "holonomy")
+            T = ops_torsion.face_torsion(x, mesh)
+            (g,) = torch.autograd.grad(H.square().sum() + T.square().sum(), x)
+        assert H.device.type == dev and T.device.type == dev
+        outs.append((H.detach().cpu(), T.detach().cpu(), g.cpu()))
+    for a, b in zip(*outs):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    x = R[0].to(device).requires_grad_()
+    assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh).square(), (x,), fast_mode=True)

@@ -282,3 +282,27 @@ def test_near_pi_and_zero_gradients_finite_on_both_paths():
             R = ops_so3.exp(w).requires_grad_()
             (g,) = torch.autograd.grad((ops_so3.log(R).sum() + ops_so3.sqrt(R).sum()), R)
             assert torch.isfinite(g).all()
+
+
+# ------------------------------------------------------------------------- devices
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                reason="no CUDA device: the generic kernels on CUDA are not tested"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("kind", ["exp", "log", "sqrt"])
+def test_generic_kernels_on_every_device(kind, device):
+    x = _input(kind, 64, torch.float64, seed=18)
+    G = torch.randn(OPS[kind](x).shape, generator=_gen(19), dtype=torch.float64)
+    xd = x.to(device).requires_grad_()
+    y = PUBLIC[kind](xd)
+    (g,) = torch.autograd.grad((y * G.to(device)).sum(), xd)
+    assert y.device.type == device
+    with torchconn.ops.compiled(False):
+        xr = x.clone().requires_grad_()
+        yr = PUBLIC[kind](xr)
+        (gr,) = torch.autograd.grad((yr * G).sum(), xr)
+    torch.testing.assert_close(y.cpu(), yr.detach(), atol=1e-12, rtol=0)
+    torch.testing.assert_close(g.cpu(), gr, atol=1e-11, rtol=0)
+    assert gradgradcheck(PUBLIC[kind], (xd[:3].detach().requires_grad_(),))
