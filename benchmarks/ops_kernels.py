@@ -15,14 +15,17 @@ Prints a markdown table. Rows (forward + backward of ``Σ out²``, float32 by de
   ``so3.exp(ω)``, ``io.box(n // 3)``).
 
 The mesh is built once (it takes ~25 s at ``n = 55``) and its tables saved to a temporary file.
-Every row runs in its **own subprocess** (``--row``), which loads the tables, builds its
-inputs, reads its resident set size (``/proc/self/statm``), runs one warm-up and ``--repeats``
-timed runs (median reported), and reads ``resource.getrusage(RUSAGE_SELF).ru_maxrss``: the
-``peak MB`` column is that high-water mark minus the RSS before the first run, i.e. the extra
-memory of the op (autograd graph, outputs, gradients, temporaries), inputs and tables
-excluded. ``ru_maxrss`` is a process-lifetime mark, hence one process per row; it cannot be
-lower than the high-water mark of the setup, so a figure is an upper bound when the setup's
-own transient exceeded the op's (the setup here only loads tables and makes one tensor).
+Every cell runs in its **own subprocesses** (``--row``), which load the tables and build the
+inputs. Time: one warm-up, then ``--repeats`` timed runs, median. Peak memory: another
+subprocess with ``MALLOC_MMAP_THRESHOLD_=65536`` (glibc returns every freed block of 64 KB or
+more to the OS, so the RSS follows the live tensors) runs the case once: its peak RSS is reset
+just before (``/proc/self/clear_refs`` ← ``5``, Linux ≥ 4.0: ``VmHWM`` := ``VmRSS``) and read
+after (``VmHWM`` in ``/proc/self/status``); ``peak MB`` is that peak minus the RSS before the
+run, i.e. the extra memory of the op (autograd graph, outputs, gradients, temporaries), inputs
+and tables excluded. ``resource.getrusage(...).ru_maxrss`` cannot be used for this: it is a
+process-lifetime mark and, measured here, a child started by ``subprocess`` reported the
+parent's high-water mark (the parent holds the 1M-tet mesh: 1464 MB in every row); it is
+only the fallback where ``clear_refs`` cannot be written.
 """
 from __future__ import annotations
 
@@ -59,15 +62,30 @@ def _save_mesh(n: int, path: str) -> dict:
     return {"tets": int(m.tets.shape[0]), "faces": int(m.face_edges.shape[0]), "edges": int(m.edges.shape[0])}
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+def _status_mb(key: str) -> float:
+    """``VmRSS`` / ``VmHWM`` of this process from ``/proc/self/status``, in MB."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"{key} not in /proc/self/status")
 
 
-def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torch.dtype, repeats: int) -> dict:
+def _reset_peak() -> bool:
+    """Reset this process's peak RSS (``VmHWM``) to its current RSS (Linux >= 4.0: ``clear_refs`` 5)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torch.dtype, repeats: int,
+         memory: bool) -> dict:
     import torchconn.ops
     from torchconn import so3
-    from torchconn.ops import curvature, torsion
+    from torchconn.ops import curvature, native, torsion
 
     g = torch.Generator().manual_seed(0)
     if name.startswith("so3_") or name == "matrix_exp":
@@ -120,25 +138,38 @@ def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torc
                 def run():
                     torch.autograd.functional.hvp(f, w1, v)
     with torchconn.ops.compiled(compiled):
-        rss0 = _rss_mb()
+        if memory:  # one run, peak RSS around it (every block >= 64 KB mmapped: see _run_row)
+            if compiled:
+                native.library("curvature"), native.library("so3")  # built/loaded outside the run
+            rss0 = _status_mb("VmRSS")
+            reset = _reset_peak()
+            run()
+            peak = _status_mb("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            return {"peak_mb": max(0.0, peak - rss0), "peak_reset": reset}
         run()  # warm-up (builds the C library on a cold cache)
         times = []
         for _ in range(repeats):
             t = time.perf_counter()
             run()
             times.append(time.perf_counter() - t)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KB on Linux
-    return {"seconds": statistics.median(times), "peak_mb": max(0.0, peak - rss0)}
+    return {"seconds": statistics.median(times)}
 
 
 def _run_row(name, compiled, args, mesh_path, small_path) -> dict:
-    cmd = [sys.executable, "-m", "benchmarks.ops_kernels", "--row", name, "--mesh-path", mesh_path,
-           "--small-path", small_path, "--threads", str(args.threads), "--repeats", str(args.repeats),
-           "--dtype", args.dtype] + (["--compiled"] if compiled else [])
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    """Time (one subprocess) and peak memory (another, with ``MALLOC_MMAP_THRESHOLD_=65536`` so
+    that glibc returns every freed block of 64 KB or more to the OS and the RSS follows the live
+    tensors; it slows allocation, hence not in the timed process)."""
+    out = {}
+    for memory in (False, True):
+        cmd = [sys.executable, "-m", "benchmarks.ops_kernels", "--row", name, "--mesh-path", mesh_path,
+               "--small-path", small_path, "--threads", str(args.threads), "--repeats", str(args.repeats),
+               "--dtype", args.dtype] + (["--compiled"] if compiled else []) + (["--memory"] if memory else [])
+        env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536") if memory else None
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if proc.returncode != 0:
+            return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+        out.update(json.loads(proc.stdout.strip().splitlines()[-1]))
+    return out
 
 
 def main(argv=None) -> None:
@@ -150,13 +181,15 @@ def main(argv=None) -> None:
     ap.add_argument("--rows", default=",".join(ROWS), help="comma-separated subset of " + ",".join(ROWS))
     ap.add_argument("--row", help=argparse.SUPPRESS)
     ap.add_argument("--compiled", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--memory", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--mesh-path", help=argparse.SUPPRESS)
     ap.add_argument("--small-path", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
     if args.row:
-        print(json.dumps(_row(args.row, args.mesh_path, args.small_path, args.compiled, dtype, args.repeats)))
+        print(json.dumps(_row(args.row, args.mesh_path, args.small_path, args.compiled, dtype, args.repeats,
+                              args.memory)))
         return
     rows = [r for r in args.rows.split(",") if r]
     with tempfile.TemporaryDirectory() as tmp:
@@ -171,13 +204,14 @@ def main(argv=None) -> None:
             small = _save_mesh(max(2, args.n // 3), small_path)
             print(f"io.box({max(2, args.n // 3)}): {small['tets']} tets (batched / HVP rows)", flush=True)
         print(f"\n{args.dtype}, torch.set_num_threads({args.threads}), median of {args.repeats} after 1 warm-up; "
-              f"peak MB = ru_maxrss - RSS before the runs, one subprocess per cell\n")
+              f"peak MB = VmHWM (reset) - VmRSS around one run; subprocesses per cell\n")
         print("| row | compiled s | generic s | generic / compiled | compiled peak MB | generic peak MB |")
         print("|---|---|---|---|---|---|")
         results = {}
         for r in rows:
             on = _run_row(r, True, args, mesh_path, small_path)
-            off = _run_row(r, False, args, mesh_path, small_path)
+            # matrix_exp has no compiled kernel of ours: one measurement, both columns
+            off = on if r == "matrix_exp" else _run_row(r, False, args, mesh_path, small_path)
             results[r] = (on, off)
             if "error" in on or "error" in off:
                 print(f"| {r} | {on.get('error', '')} | {off.get('error', '')} | | | |", flush=True)
