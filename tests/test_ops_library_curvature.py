@@ -163,7 +163,7 @@ def test_curvature_other_rank_batched(mesh):
 
 
 def test_curvature_backward_thread_independent():
-    m = io.box(6)  # above the C code's parallel threshold
+    m = io.box(20)  # 48k tets, 101k faces, 59k edges: above the C code's parallel threshold (32768)
     R = _rot(m, (), torch.float32, seed=11)
     fi, ptr, inc = ops_curvature._tables(m, "cpu")
     G = torch.randn(fi.shape[1], 3, 3, generator=torch.Generator().manual_seed(12))

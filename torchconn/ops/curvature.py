@@ -321,8 +321,8 @@ def face_curvature(edge_rot: torch.Tensor, mesh, cut=-1, kind: str = "two_prong"
     E = int(mesh.edges.shape[0])
     if edge_rot.dim() < 3 or edge_rot.shape[-3] != E or edge_rot.shape[-1] != edge_rot.shape[-2]:
         short = f" (mesh edge index {E - 1} out of range)" if edge_rot.dim() >= 3 and edge_rot.shape[-3] < E else ""
-        raise ValueError(f"face_curvature: edge_rot must have shape (*batch, {E}, n, n), one rotation per mesh "
-                         f"edge in mesh.edges order, got {tuple(edge_rot.shape)}{short}")
+        raise ValueError(f"face_curvature: edge_rot must have shape ({E}, n, n) (after optional leading batch "
+                         f"dims), one rotation per mesh edge in mesh.edges order, got {tuple(edge_rot.shape)}{short}")
     c = cut % 3 if kind == "two_prong" else 0
     if edge_rot.shape[-1] == 3:
         fi, ptr, inc = _tables(mesh, edge_rot.device)

@@ -291,8 +291,8 @@ def face_torsion(edge_rot: torch.Tensor, mesh, kind: str = "sqrt", frames: torch
         return None
     E = int(mesh.edges.shape[0])
     if edge_rot.dim() < 3 or edge_rot.shape[-3:] != (E, 3, 3):
-        raise ValueError(f"face_torsion: edge_rot must have shape (*batch, {E}, 3, 3), one rotation per mesh "
-                         f"edge in mesh.edges order, got {tuple(edge_rot.shape)}")
+        raise ValueError(f"face_torsion: edge_rot must have shape ({E}, 3, 3) (after optional leading batch dims), "
+                         f"one rotation per mesh edge in mesh.edges order, got {tuple(edge_rot.shape)}")
     fi = _face_index(mesh, edge_rot.device)
     if kind == "sqrt" and frames is None and edge_frame_rot is None:
         return face_torsion_sqrt(edge_rot, _edge_vectors(mesh, edge_rot.device, edge_rot.dtype), fi)
