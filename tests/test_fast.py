@@ -270,19 +270,17 @@ def test_face_curvature_matches_generic_values_and_gradients(dtype, cut, kind):
 @pytest.mark.parametrize("kind", [0, 1, 2])
 def test_face_curvature_fused_gradcheck(kind):
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=6)
-    idx = ops_curvature._face_index(mesh, R.device)
-    assert gradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, kind), (R.clone().requires_grad_(),))
+    assert gradcheck(lambda A: ops_curvature.face_curvature(A, mesh, kind), (R.clone().requires_grad_(),))
 
 
 @pytest.mark.parametrize("kind", [0, 1, 2])
 def test_face_curvature_fused_gradgradcheck(kind):
     """The hand-written backward is itself differentiable (create_graph, double backward)."""
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=6)
-    idx = ops_curvature._face_index(mesh, R.device)
     A = R.clone().requires_grad_()
-    assert gradgradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, kind), (A,))
+    assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh, kind), (A,))
     # an incoming gradient in the output's component-major layout
-    assert gradgradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, kind).square(), (A,), fast_mode=True)
+    assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh, kind).square(), (A,), fast_mode=True)
 
 
 def test_face_curvature_general_rank_uses_matmul_path():
@@ -318,10 +316,9 @@ def test_face_curvature_grad_in_output_layout_gradcheck():
     """The output is a (F, 3, 3) view of a component-major (9, F) array; elementwise consumers
     keep that layout in the incoming gradient (no transposed copy in backward): same gradient."""
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=8)
-    idx = ops_curvature._face_index(mesh, R.device)
-    assert gradcheck(lambda A: ops_curvature._FaceCurvatureFn.apply(A, idx, 0).square(), (R.clone().requires_grad_(),))
+    assert gradcheck(lambda A: ops_curvature.face_curvature(A, mesh, 0).square(), (R.clone().requires_grad_(),))
     A = R.clone().requires_grad_()
-    out = ops_curvature._FaceCurvatureFn.apply(A, idx, 0)
+    out = ops_curvature.face_curvature(A, mesh, 0)
     (g_fast,) = torch.autograd.grad(out.square().sum(), A)
     (g_ref,) = torch.autograd.grad(_generic_face_curvature(A, mesh, 0, "holonomy").square().sum(), A)
     torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)

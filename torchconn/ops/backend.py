@@ -64,10 +64,13 @@ def _plain(t: torch.Tensor) -> bool:
 def can_use_compiled(lib_name: str, *tensors: torch.Tensor) -> bool:
     """Whether the compiled ``csrc/<lib_name>.c`` may run on ``tensors``.
 
-    True when the switch is on, no ``torch.compile`` trace is running (traced tensors have no
-    data for C), all tensors are plain (no vmap / torch.func wrapper), on the CPU, float32 or
-    float64 of one dtype, and the library is built (:func:`torchconn.ops.native.library`).
-    Grad-mode conditions (first-order C backward) are the op's own: see its autograd Function.
+    Asked only inside the CPU kernels of the ``torchconn::`` custom ops (below autograd and
+    below vmap: their tensors are plain; under ``torch.compile`` the ops are opaque and their
+    CPU kernels run with real tensors at run time, the fake kernels at trace time). True when
+    the switch is on, no ``torch.compile`` trace is running, all tensors are plain (no vmap /
+    torch.func wrapper), on the CPU, float32 or float64 of one dtype, and the library is built
+    (:func:`torchconn.ops.native.library`). Higher derivatives never need a C kernel: the
+    backward ops differentiate their torch formulas.
     """
     if not _ENABLED or not tensors or torch.compiler.is_compiling():
         return False

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["library", "function", "declare", "CFunction", "ptr", "CSRC"]
+__all__ = ["library", "declare", "CFunction", "ptr", "CSRC"]
 
 #: Folder of the C sources.
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -44,8 +44,13 @@ _WARNED: set[str] = set()
 
 
 def _compiler() -> str | None:
-    for cand in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if cand and shutil.which(cand):
+    """``$CC`` when it is set (and only it: a named compiler that is missing is not replaced by
+    another one), else the first of ``cc``, ``gcc``, ``clang`` on the ``PATH``."""
+    cc = os.environ.get("CC", "").strip()
+    if cc:
+        return shutil.which(cc)
+    for cand in ("cc", "gcc", "clang"):
+        if shutil.which(cand):
             return shutil.which(cand)
     return None
 
@@ -70,14 +75,17 @@ def _cache_dir() -> Path:
 def _warn_once(name: str, msg: str) -> None:
     if name not in _WARNED:
         _WARNED.add(name)
-        warnings.warn(f"torchconn.ops.native: {msg}; using the torch kernels", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"torchconn.ops.native: csrc/{name}.c: {msg}; using the torch kernels", RuntimeWarning,
+                      stacklevel=3)
 
 
 def _build(name: str) -> ctypes.CDLL | None:
     src = CSRC / f"{name}.c"
     cc = _compiler()
     if cc is None:
-        _warn_once(name, "no C compiler found ($CC, cc, gcc, clang)")
+        cc_env = os.environ.get("CC", "").strip()
+        _warn_once(name, f"no C compiler found ($CC={cc_env!r} not found)" if cc_env
+                   else "no C compiler found ($CC, cc, gcc, clang)")
         return None
     code = src.read_bytes()
     key = hashlib.sha256(code + cc.encode() + " ".join(_FLAGS).encode() + _cpu_key().encode()).hexdigest()[:16]
@@ -114,11 +122,13 @@ def library(name: str) -> ctypes.CDLL | None:
 
 
 def function(name: str, symbol: str, argtypes: list, restype=None):
-    """The C function ``symbol`` of ``csrc/<name>.c`` with its signature declared.
+    """The C function ``symbol`` of ``csrc/<name>.c`` with its signature set (what
+    :class:`CFunction` resolves on its first call).
 
-    With ``argtypes`` set, ctypes checks the number and kinds of the arguments of every call, so
-    a caller that disagrees with the C signature raises ``ctypes.ArgumentError`` instead of
-    passing garbage (or crashing). The library must be available (see :func:`library`).
+    Not public API (not in ``__all__``): op modules declare their symbols once with
+    :func:`declare`; this stays only for callers not migrated yet (``ops/frame_loss.py``).
+    With ``argtypes`` set, ctypes checks the number and kinds of the arguments of every call.
+    The library must be available (see :func:`library`).
     """
     lib = library(name)
     if lib is None:

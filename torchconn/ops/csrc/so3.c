@@ -1,16 +1,18 @@
-/* SO(3) maps exp / log / sqrt and their backward passes (issue 6; loaded by
- * torchconn/ops/native.py, dispatched by torchconn/ops/so3.py).
+/* SO(3) maps exp / log / sqrt and their backward passes (issues 6, 11; loaded by
+ * torchconn/ops/native.py, the CPU kernels of the torchconn::so3_* custom ops of
+ * torchconn/ops/so3.py).
  *
- * Every element kernel mirrors a torch reference of torchconn/ops/so3.py operation by operation,
+ * Every element kernel mirrors a torch formula of torchconn/ops/_so3_formulas.py operation by operation,
  * in the same dtype and the same order of operations, so that the two paths agree to round-off
  * and take the same branch decisions (compiled with -std=c99, hence -ffp-contract=off: no FMA
  * contraction that the torch kernels would not do either):
  *
- *   exp  : fast._exp_coeffs + fast._rodrigues        backward: fast._ExpFn.backward
- *   log  : fast._log_parts                            backward: the chain rule of the same
+ *   exp  : exp_coeffs + rodrigues                     backward: exp_bwd
+ *   log  : log_parts                                  backward: log_bwd, the chain rule of the same
  *          expressions (what torch autograd computes on them, including at exactly pi,
  *          where the derivative of atan2 at (0, c = -1) is finite)
- *   sqrt : fast.sqrt_rotmat (half-angle identity for tr R > 0, exp(log(R)/2) otherwise)
+ *   sqrt : sqrt (half-angle identity for tr R > 0, exp(log(R)/2) otherwise); backward: sqrt_bwd,
+ *          the exact derivative of the same expressions for every 3x3 input (not only rotations)
  *
  * Layout: contiguous row-major, omega (n, 3), matrices (n, 3, 3) = (n, 9).
  * Exported symbols: so3_{exp,log,sqrt}_{fwd,bwd}_{f32,f64}, so3_log_fwd_checked_{f32,f64}
@@ -178,7 +180,7 @@ typedef T FN(blk_t)[SO3_B];
 
 /* ---------------------------------------------------------------- exp */
 
-/* A = sin t / t, B = (1 - cos t) / t^2 and, if der, dA/d(t^2), dB/d(t^2) (fast._exp_coeffs,
+/* A = sin t / t, B = (1 - cos t) / t^2 and, if der, dA/d(t^2), dB/d(t^2) (_so3_formulas.exp_coeffs,
  * whose trigonometric branch gets t^2 = 1 where the Taylor one is used; here t^2 = eps^2) */
 static inline void FN(exp_coeffs)(T t2, T eps2, int der, T *A, T *B, T *dA, T *dB)
 {
@@ -203,7 +205,7 @@ static inline void FN(exp_coeffs)(T t2, T eps2, int der, T *A, T *B, T *dA, T *d
     }
 }
 
-/* R = I + A K + B K^2, K = hat(x, y, z), entries written out (fast._rodrigues) */
+/* R = I + A K + B K^2, K = hat(x, y, z), entries written out (_so3_formulas.rodrigues) */
 static inline void FN(exp1)(T x, T y, T z, T eps2, T *r)
 {
     T A, B;
@@ -217,7 +219,7 @@ static inline void FN(exp1)(T x, T y, T z, T eps2, T *r)
     r[6] = bxz - Ay;                r[7] = byz + Ax;                r[8] = K(1.0) - B * (xx + yy);
 }
 
-/* dL/dw from G = dL/dR (fast._ExpFn.backward) */
+/* dL/dw from G = dL/dR (_so3_formulas.exp_bwd) */
 static inline void FN(exp_bwd1)(T x, T y, T z, const T *G, T eps2, T *gw)
 {
     T t2 = x * x + y * y + z * z, A, B, dA, dB;
@@ -270,7 +272,7 @@ void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
 
 /* ---------------------------------------------------------------- log */
 
-/* The branches of fast._log_parts, all evaluated, one selected. v = vee(R) = sin(t) n,
+/* The branches of _so3_formulas.log_parts, all evaluated, one selected. v = vee(R) = sin(t) n,
  * c = (tr R - 1)/2:
  *   small   (|v|^2 < eps^2 and c > 0): w = (1 + s2 (1/6 + s2 (3/40 + s2 5/112))) v
  *   obtuse  (c < 0): u = column of sym(R) - c I with the largest diagonal entry (the first
@@ -330,7 +332,7 @@ static inline void FN(log1)(const T *r, T eps2, T *w)
 }
 
 /* dL/dR from gw = dL/dw: reverse mode through the expressions of log1, the gradient of each
- * intermediate as torch autograd forms it on fast._log_parts (sgn and the picks are
+ * intermediate as torch autograd forms it on _so3_formulas.log_parts (= log_bwd) (sgn and the picks are
  * constants; the gradient of atan2(y, x) is (x, -y) / (x^2 + y^2), finite at (0, -1), i.e. at
  * angle exactly pi). */
 static inline void FN(log_bwd1)(const T *r, const T *gw, T eps2, T *gr)
@@ -467,7 +469,7 @@ void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps)
 
 /* ---------------------------------------------------------------- sqrt */
 
-/* fast.sqrt_rotmat: for tr R > 0 (angle below 120 degrees), with s = sqrt(1 + tr R),
+/* _so3_formulas.sqrt: for tr R > 0 (angle below 120 degrees), with s = sqrt(1 + tr R),
  * sqrt(R) = ((1 + s) I + R + (R - R^T)/s) / (2 + s); otherwise exp(h), h = log(R)/2. */
 static inline void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
 {

@@ -1,0 +1,153 @@
+/* Face curvature of sorted-triangle meshes, forward and backward (issue 11; loaded by
+ * torchconn/ops/native.py, dispatched by torchconn/ops/curvature.py).
+ *
+ * For every sorted face [a<b<c] with the canonical edge rotations R_ab, R_bc, R_ac (row-major
+ * 3x3, gathered from edge_rot by the index table face_index (3, F): rows ab, bc, ac), kind:
+ *   2 (cut c)    H = R_ab R_bc - R_ac
+ *   1 (cut b)    H = R_ab - R_ac R_bc^T
+ *   0 (holonomy) H = R_ab R_bc R_ac^T - I
+ * the same products, in the same order of operations, as the generic torch kernel
+ * (ops/curvature.py, _face_formula: each entry a0*b0 + a1*b1 + a2*b2 left to right; compiled with
+ * -std=c99, i.e. no FMA contraction), so both agree to round-off.
+ *
+ * Backward, with G = dL/dH of the face:
+ *   kind 2: g_ab = G R_bc^T, g_bc = R_ab^T G, g_ac = -G
+ *   kind 1: g_ab = G, g_bc = -G^T R_ac, g_ac = -G R_bc
+ *   kind 0: g_ab = (G R_ac) R_bc^T, g_bc = R_ab^T (G R_ac), g_ac = G^T (R_ab R_bc)
+ * summed over the faces incident to each edge. The sum is race-free without atomics: the loop
+ * runs over *edges* (OpenMP), each reading its incident (face, slot) pairs from a CSR table
+ * built once per mesh (inc_ptr (E + 1), inc (3F) = 3 f + slot, slot 0 = ab, 1 = bc, 2 = ac, in
+ * increasing order), and computes only the slot's term. Every face term is thus computed once
+ * (3F slot terms in all, as a face loop would), each edge is written once, and the sum over a
+ * given edge is in a fixed order: results do not depend on the number of threads.
+ *
+ * Leading batch dims: edge_rot (B, E, 9), grad/out (B, F, 9); the batch is looped inside.
+ * Exported: curv_fwd_{f32,f64}(const T* edge_rot, const long* face_index, T* out, long B,
+ *                              long E, long F, int kind, int nthreads)
+ *           curv_bwd_{f32,f64}(const T* edge_rot, const T* grad, const long* face_index,
+ *                              const int* inc_ptr, const int* inc, T* grad_edge, long B,
+ *                              long E, long F, int kind, int nthreads)
+ */
+#ifndef CURV_T
+
+#define CURV_CAT_(a, b) a##b
+#define CURV_CAT(a, b) CURV_CAT_(a, b)
+/* loops smaller than this run on the calling thread (no OpenMP team start-up): torch's own
+ * grain size (at::internal::GRAIN_SIZE), so that small meshes are not slower than the generic
+ * kernel, whose loops run single-threaded below it (measured on a loaded 2-core machine:
+ * 2048 made box(8) ~4x slower than the torch kernel there) */
+#define CURV_PAR_MIN 32768L
+
+#define CURV_T float
+#define CURV_SUF _f32
+#include "curvature.c" /* this file, again (quoted includes resolve next to it) */
+#undef CURV_T
+#undef CURV_SUF
+
+#define CURV_T double
+#define CURV_SUF _f64
+#include "curvature.c"
+
+#else /* ------------------------------------------------------------- one dtype */
+
+#define T CURV_T
+#define FN(name) CURV_CAT(name, CURV_SUF)
+
+/* C = A B (row-major 3x3) */
+static inline void FN(mm)(const T *A, const T *B, T *C)
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+}
+
+/* C = A B^T */
+static inline void FN(mmt)(const T *A, const T *B, T *C)
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2];
+}
+
+/* C = A^T B */
+static inline void FN(mtm)(const T *A, const T *B, T *C)
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
+}
+
+void FN(curv_fwd)(const T *edge_rot, const long *face_index, T *out, long B, long E, long F, int kind,
+                  int nt)
+{
+    const long *iab = face_index, *ibc = face_index + F, *iac = face_index + 2 * F;
+    for (long b = 0; b < B; ++b) {
+        const T *R = edge_rot + b * E * 9;
+        T *H = out + b * F * 9;
+#pragma omp parallel for num_threads(nt) schedule(static) if (F >= CURV_PAR_MIN)
+        for (long f = 0; f < F; ++f) {
+            const T *ab = R + iab[f] * 9, *bc = R + ibc[f] * 9, *ac = R + iac[f] * 9;
+            T *h = H + f * 9, P[9];
+            if (kind == 2) {
+                FN(mm)(ab, bc, P);
+                for (int q = 0; q < 9; ++q)
+                    h[q] = P[q] - ac[q];
+            } else if (kind == 1) {
+                FN(mmt)(ac, bc, P);
+                for (int q = 0; q < 9; ++q)
+                    h[q] = ab[q] - P[q];
+            } else {
+                FN(mm)(ab, bc, P);
+                FN(mmt)(P, ac, h);
+                h[0] -= (T)1; h[4] -= (T)1; h[8] -= (T)1;
+            }
+        }
+    }
+}
+
+/* the term of slot s (0 ab, 1 bc, 2 ac) of one face: g += dH/dR_slot^T G */
+static inline void FN(slot_term)(int kind, int s, const T *ab, const T *bc, const T *ac, const T *G, T *g)
+{
+    T t[9], u[9];
+    if (kind == 2) {
+        if (s == 0) FN(mmt)(G, bc, t);
+        else if (s == 1) FN(mtm)(ab, G, t);
+        else for (int q = 0; q < 9; ++q) t[q] = -G[q];
+    } else if (kind == 1) {
+        if (s == 0) for (int q = 0; q < 9; ++q) t[q] = G[q];
+        else if (s == 1) { FN(mtm)(G, ac, u); for (int q = 0; q < 9; ++q) t[q] = -u[q]; }
+        else { FN(mm)(G, bc, u); for (int q = 0; q < 9; ++q) t[q] = -u[q]; }
+    } else {
+        if (s == 0) { FN(mm)(G, ac, u); FN(mmt)(u, bc, t); }
+        else if (s == 1) { FN(mm)(G, ac, u); FN(mtm)(ab, u, t); }
+        else { FN(mm)(ab, bc, u); FN(mtm)(G, u, t); }
+    }
+    for (int q = 0; q < 9; ++q)
+        g[q] += t[q];
+}
+
+void FN(curv_bwd)(const T *edge_rot, const T *grad, const long *face_index, const int *inc_ptr,
+                  const int *inc, T *grad_edge, long B, long E, long F, int kind, int nt)
+{
+    const long *iab = face_index, *ibc = face_index + F, *iac = face_index + 2 * F;
+    for (long b = 0; b < B; ++b) {
+        const T *R = edge_rot + b * E * 9, *Gb = grad + b * F * 9;
+        T *gE = grad_edge + b * E * 9;
+#pragma omp parallel for num_threads(nt) schedule(static) if (E >= CURV_PAR_MIN)
+        for (long e = 0; e < E; ++e) {
+            T g[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+            for (int k = inc_ptr[e]; k < inc_ptr[e + 1]; ++k) {
+                const long f = inc[k] / 3;
+                const int s = inc[k] - 3 * (int)f;
+                FN(slot_term)(kind, s, R + iab[f] * 9, R + ibc[f] * 9, R + iac[f] * 9, Gb + f * 9, g);
+            }
+            for (int q = 0; q < 9; ++q)
+                gE[e * 9 + q] = g[q];
+        }
+    }
+}
+
+#undef T
+#undef FN
+
+#endif /* CURV_T */
