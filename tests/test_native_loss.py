@@ -1,4 +1,6 @@
-"""The compiled frame-field loss kernel (csrc/frame_loss.c, torchconn.ops.frame_loss) against the torch path of FrameFieldLoss.
+"""The compiled frame-field loss kernel (csrc/frame_loss.c, torchconn.ops.frame_loss) against the torch path of FrameFieldLoss
+(switch off: the generic torch kernel of the op, itself checked against the loss's term functions in
+tests/test_ops_library_frame_loss.py).
 
 Layers: values and gradients (through so3.exp parameters) equal the torch path to round-off on
 a small box and on a shared mesh, float32 and float64, every term alone and together, both
@@ -163,19 +165,20 @@ def test_fallback_and_errors():
     mesh = io.box(1)
     w, phi = _params(mesh, torch.float64)
     R, Fr = so3.exp(w), so3.exp(phi)
-    # float16 / wrong shapes / no compiled term: the kernel does not apply (the torch terms run)
+    # wrong shapes / no term of the op: the op does not apply (the caller's torch terms run); float16
+    # runs the op's generic torch kernel (no C kernel for it)
     assert _applies(mesh, R, Fr)
     assert not _applies(mesh, R[:-1], Fr)
-    assert not _applies(mesh, R.half(), Fr.half())
+    assert not torchconn.ops.can_use_compiled("frame_loss", R.half(), Fr.half())
     assert not _applies(mesh, R, Fr, {"align": 1.0})
     with pytest.raises(TypeError):
         FrameFieldLoss(mesh, ALL, native=True)  # the kernel is chosen by the switch, not by a flag
-    # switched off: the loss falls back to the torch path, same values
+    # switched off: the op runs its generic torch kernel, same values
     auto = FrameFieldLoss(mesh, ALL)
     v_native = float(auto(R, Fr)["total"])
     with torchconn.ops.compiled(False):
         assert not torchconn.ops.can_use_compiled("frame_loss", R, Fr)
-        assert not _applies(mesh, R, Fr)
+        assert _applies(mesh, R, Fr)
         assert abs(float(auto(R, Fr)["total"]) - v_native) <= 1e-12
 
 

@@ -196,22 +196,19 @@ def _loss_setup():
 
 
 @_needs_kernel
-def test_compiled_frame_loss_refuses_a_recorded_backward():
+def test_compiled_frame_loss_hvp_equals_the_torch_terms_hvp():
+    """A recorded backward through the compiled kernel (C first order) is exact: same HVP as the torch terms."""
     loss, w, phi = _loss_setup()
-    with torchconn.ops.compiled(True):
-        w = w.clone().requires_grad_()
-        total = loss(so3.exp(w), so3.exp(phi))["total"]
-        (g,) = torch.autograd.grad(total, w, retain_graph=True)  # first order: fine
-        assert torch.isfinite(g).all()
-        with pytest.raises(RuntimeError, match=r"frame_loss.*create_graph.*torchconn\.ops\.compiled\(False\)"):
-            torch.autograd.grad(total, w, create_graph=True)
-        with pytest.raises(RuntimeError, match=r"frame_loss"):
-            torch.autograd.functional.hvp(lambda p: loss(so3.exp(p), so3.exp(phi))["total"], w.detach(),
-                                          torch.ones_like(w))
+    v = torch.randn(w.shape, generator=torch.Generator().manual_seed(17), dtype=DT)
+    hv = {}
+    for on in (True, False):
+        with torchconn.ops.compiled(on):
+            hv[on] = torch.autograd.functional.hvp(lambda p: loss(so3.exp(p), so3.exp(phi))["total"], w, v)[1]
+    torch.testing.assert_close(hv[True], hv[False], atol=1e-12, rtol=1e-10)
 
 
 def test_frame_loss_torch_terms_hvp_matches_central_differences():
-    """With the compiled kernels off (what the error says to do) the Hessian-vector product is exact."""
+    """With the compiled kernels off the Hessian-vector product is exact."""
     loss, w, phi = _loss_setup()
     v = torch.randn(w.shape, generator=torch.Generator().manual_seed(17), dtype=DT)
     with torchconn.ops.compiled(False):

@@ -185,11 +185,10 @@ class FrameFieldLoss:
     Call with ``(edge_rot (E,3,3), frames (V,3,3))``; returns a dict of the unweighted terms
     (0-dim tensors) plus ``"total" = sum_k w_k term_k``. Terms with zero weight are skipped
     (not computed) except that ``tie`` always runs when ``torsion`` is on (it supplies the mask).
-    The ``smooth``, ``tie``, ``flat`` and ``torsion`` terms run in the compiled kernel
-    :func:`torchconn.ops.frame_loss.frame_loss_terms` where it applies (a ``TetMesh``, CPU
-    float32/float64 inputs, the switch :func:`torchconn.ops.compiled` on); it is first order,
-    so higher-order gradients need the switch off. Both paths give the same values and, along
-    rotations, the same gradients.
+    The ``smooth``, ``tie``, ``flat`` and ``torsion`` terms run in the op
+    :func:`torchconn.ops.frame_loss.frame_loss_terms` on a ``TetMesh`` (``torchconn::frame_loss``:
+    the compiled kernel for CPU float32/float64 with the switch :func:`torchconn.ops.compiled`
+    on, its torch kernel otherwise); gradients of every order are exact on both paths.
 
     Input checks (every call, no data read, no device sync): ``edge_rot`` (``None`` is allowed
     when only ``align``/``feature`` are weighted) and ``frames`` must be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges

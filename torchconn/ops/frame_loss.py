@@ -1,184 +1,515 @@
-"""The compiled frame-field loss terms ``smooth``, ``tie``, ``flat``, ``torsion`` as one op.
+"""The frame-field loss terms ``smooth``, ``tie``, ``flat``, ``torsion`` as one custom op.
 
-``csrc/frame_loss.c`` computes the four means (definitions: :mod:`torchconn.frames.loss`) *and*
-the gradient of their weighted sum in one sweep over the edges and faces.
-:func:`frame_loss_terms` is the op :class:`torchconn.frames.loss.FrameFieldLoss` calls; it
-returns ``None`` where the compiled kernel cannot run (see :func:`frame_loss_terms`), and the
-caller then evaluates its torch terms. The index and geometry tables and the scratch buffers
-of the kernel are built once per mesh (``mesh.require``).
+Definitions (:mod:`torchconn.frames.loss`, whose :class:`~torchconn.frames.loss.FrameFieldLoss`
+calls :func:`frame_loss_terms`), with ``rho(d2) = d2`` for ``power = 2``, else
+``(d2 + eps²)^(power/2) - eps^power``:
+
+* ``smooth  = mean_e rho(|R_e - I|²)``;
+* ``tie     = mean_e rho(|F_i R_e - F_j h_e|²)``, ``h_e = argmax_{h in O} tr(hᵀ F_jᵀ F_i R_e)``;
+* ``flat    = mean_f |H_f - g_f|²``, ``H_f = R_ab R_bc R_acᵀ`` (report eq. 3.2.1 plus ``I``),
+  ``g_f = argmax_{g in O} tr(gᵀ H_f)``;
+* ``torsion = Σ_{ok f} |Θ_f|² / area_f / n_ok``, ``Θ_f = θ_ab + R_ab θ_bc - θ_ac`` (Def. 3.2),
+  ``θ_ij = F_iᵀ √(F_i R_ij F_jᵀ) (v_j - v_i)``, ``ok`` = ``h = I`` on the three edges; 0 when no
+  face is ok.
+
+The matchings ``h``, ``g`` are piecewise-constant choices (first maximal score, the order of
+the group table), not differentiated. ``√A = ((1 + s) I + A + (A - Aᵀ)/s) / (2 + s)``,
+``s = sqrt(1 + tr A)`` (:func:`torchconn.ops.so3.sqrt` on rotations of angle < 120°; unrelabeled
+edges have angles below ~63°), as a formula in the entries of ``A``, so C and torch agree for any
+matrices, not only along rotations.
+
+Ops (``torch.ops.torchconn.*``; inputs ``edge_rot (*B, E, 3, 3)``, ``frames (*B, V, 3, 3)`` with
+one batch shape, the tables of :func:`mesh_tables`, the group ``(24, 3, 3)``, explicit options):
+
+* ``frame_loss`` -> ``(values (*B, 4), grad_rot, grad_frames)``: the values of the four terms
+  (0 for a term that is off) and, with ``with_grad``, the gradient of ``Σ_k w_k term_k``
+  (``(*B, E, 3, 3)``, ``(*B, V, 3, 3)``, non-differentiable outputs; ``(*B, 0)`` without).
+  CPU kernel: ``csrc/frame_loss.c`` when :func:`~torchconn.ops.backend.can_use_compiled` allows
+  (values and gradient in one sweep, batch items looped in C), else the generic kernel
+  (``ops/_frame_loss_torch.py``: :func:`terms_generic` with its gradient written out in torch,
+  no autograd inside the kernel), which is also the kernel of every other device.
+* ``frame_loss_backward`` -> ``(d edge_rot, d frames)``, the gradient of ``Σ_k g_k term_k``
+  for incoming weights ``g (*B, 4)``: when the forward's gradient is passed in and ``g`` is
+  proportional to ``w`` item by item (the usual ``out["total"].backward()``) it is scaled
+  (no second sweep); otherwise one more C sweep (CPU) or the generic gradient. Its own
+  autograd differentiates :func:`terms_generic` (``torch.func``: a Hessian-vector product in
+  ``R, F``, a JVP in ``g``), so double backward, ``create_graph`` and Hessian-vector products
+  are exact on every path, with C for the first order.
+
+Both ops have fake implementations (meta tensors, ``torch.compile``, ``export``) and vmap
+rules (native leading batch dims). :func:`frame_loss_terms` calls the op directly while
+``torch.compile`` traces (one op in the graph, the C kernel at runtime) and through an
+``autograd.Function`` with ``setup_context`` and ``jvp`` in eager mode, so ``torch.func.grad``,
+``vmap`` and ``jvp`` work (the ``register_autograd`` Function has no ``setup_context`` and no
+forward mode). First-order eager ``total.backward()`` returns the forward's gradient itself
+(no copy, no second sweep).
+
+Scratch memory of the C sweep (per-thread scatter buffers, solder forms, the torsion mask;
+``(nt - 1)(12E + 9V) + 6E`` values + ``E`` bytes, ~94 MB at 1M tets, float32, 2 threads) is not
+state of the loss or the mesh: it lives in a per-thread cache (``threading.local``) keyed by
+dtype, grown to the largest size needed (:func:`release_scratch` frees the calling thread's),
+so two threads never share it. Allocated per call instead, it is mmapped and page-faulted
+again at every step under glibc's default allocator (blocks over 32 MB); measured at 1M tets,
+float32, 2 threads, forward+backward of the whole loss: 0.82 s per call vs 0.56 s cached
+(default malloc), 0.48 vs 0.475 s with memory kept resident (``benchmarks.run --malloc resident``).
+Index and geometry tables are immutable, built once per mesh, dtype and device (``mesh.require``).
 """
 from __future__ import annotations
 
 import ctypes
-from typing import Mapping
+import threading
+from typing import Mapping, Optional
 
 import torch
 
+from . import _frame_loss_torch as _T
 from . import native as _native
 from ._cache import require as _require
+from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
 from .curvature import _sorted_triangles
 
-__all__ = ["COMPILED_TERMS", "frame_loss_terms"]
+__all__ = ["COMPILED_TERMS", "frame_loss_terms", "mesh_tables", "terms_generic", "release_scratch"]
 
-#: Terms computed by ``csrc/frame_loss.c``, in the order of its flag bits (bit 4: gradient).
+#: The terms of the op, in the order of its ``values`` output.
 COMPILED_TERMS = ("smooth", "tie", "flat", "torsion")
-_GRAD = 16
+
+_vp, _long, _int, _dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_double
+# frame_loss_<T>(B, E, V, F, nt, R, Fr, edges, fidx, vec, area, group, do_smooth, do_tie, do_flat,
+#                do_torsion, grad, power, eps, wts, sums, gR, gF, work, theta, gtheta, unrel)
+_ARGTYPES = [_long] * 4 + [_int] + [_vp] * 7 + [_int] * 5 + [_dbl] * 2 + [_vp] * 8
+_C_SWEEP = {torch.float32: _native.declare("frame_loss", "frame_loss_f32", _ARGTYPES, _int),
+            torch.float64: _native.declare("frame_loss", "frame_loss_f64", _ARGTYPES, _int)}
 
 
-_CREATE_GRAPH_ERROR = (
-    "torchconn.ops.frame_loss: the compiled frame-field loss kernel (csrc/frame_loss.c, terms "
-    f"{', '.join(COMPILED_TERMS)}) computes a first-order gradient only and cannot be differentiated "
-    "again (create_graph=True, double backward, a Hessian-vector product); evaluate the loss with the "
-    "compiled kernels off, `with torchconn.ops.compiled(False): out = loss(edge_rot, frames)`, whose torch "
-    "terms give exact higher-order gradients")
+def terms_generic(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor, face_edges: torch.Tensor,
+                  edge_vec: torch.Tensor, face_area: torch.Tensor, group: torch.Tensor, smooth: bool, tie: bool,
+                  flat: bool, torsion: bool, power: float, eps: float) -> torch.Tensor:
+    """The four terms (module doc) in torch operations: ``(*B, 4)``, 0 for a term that is off.
+
+    Any device and floating dtype, differentiable to any order (the matchings are index choices).
+    ``edge_rot (*B, E, 3, 3)``, ``frames (*B, V, 3, 3)``; tables as :func:`mesh_tables`,
+    ``group (24, 3, 3)``. The same composition as the torch path of
+    :class:`torchconn.frames.loss.FrameFieldLoss`; the generic kernel of the ops
+    (``ops/_frame_loss_torch.py``) evaluates it with a hand-written gradient.
+    """
+    return _T.terms(edge_rot, frames, edges, face_edges, edge_vec, face_area, group,
+                    (smooth, tie, flat, torsion), power, eps)
 
 
-class _CompiledFrameLossFn(torch.autograd.Function):
-    """``(edge_rot (E,3,3), frames (V,3,3)) -> (4,)`` values of smooth, tie, flat, torsion.
+# ----------------------------------------------------------------------------- scratch memory
 
-    The terms are scalar means, so the gradient of ``sum_k w_k term_k`` (``w`` = the loss
-    weights) is known in the forward pass. The backward scales that saved gradient when the
-    incoming weights are proportional to ``w`` (the usual ``out["total"].backward()``) and
-    otherwise re-runs the kernel with the incoming weights, so any combination of the returned
-    terms differentiates exactly. Same values as the torch terms to round-off (a term that is
-    off returns 0). The √R of the torsion term is the closed form
-    ``I + (A - Aᵀ)/(4c) + (A + Aᵀ - 2I)/(4(1+c))``, ``c = cos(angle/2)``, equal to
-    :func:`torchconn.ops.so3.sqrt` on rotations; its gradient agrees with the torch path along
-    rotations (the tangent directions a parametrization through ``so3.exp`` sees), not for
-    arbitrary off-manifold perturbations of the matrices.
+_TLS = threading.local()
 
-    First order only: the gradient comes out of the C sweep as numbers, so a recorded backward
-    (``create_graph=True``: double backward, ``autograd.grad(..., create_graph=True)``,
-    Hessian-vector products; detected as grad mode on inside the backward) raises
-    ``RuntimeError`` rather than return a gradient without its own derivative. Whether the
-    graph will be recorded is only known at backward time, and the torch terms live above
-    this layer (:mod:`torchconn.frames.loss`), so the caller switches the kernel off for
-    higher-order gradients (:func:`torchconn.ops.compiled`).
+
+def _scratch(dtype: torch.dtype, n: int, n_bytes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(n,)`` of ``dtype`` and ``(n_bytes,)`` uint8 from the calling thread's cache (see module doc)."""
+    bufs = _TLS.__dict__.setdefault("bufs", {})
+    size = torch.empty((), dtype=dtype).element_size()
+    need = max(1, n + (n_bytes + size - 1) // size)
+    buf = bufs.get(dtype)
+    if buf is None or buf.numel() < need:
+        bufs[dtype] = None  # free the old one first
+        buf = bufs[dtype] = torch.empty(need, dtype=dtype)
+    return buf[:n], buf[n:need].view(torch.uint8)[:n_bytes]
+
+
+def release_scratch() -> None:
+    """Free the calling thread's scratch buffers of the compiled kernel (they are rebuilt on use)."""
+    _TLS.__dict__.pop("bufs", None)
+
+
+# ----------------------------------------------------------------------------- C sweep
+
+def _sweep_c(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, wts, power, eps, grad):
+    """Run ``csrc/frame_loss.c``: ``(sums (B, 5) float64, gR (B, E, 3, 3) | None, gF | None)``.
+
+    ``wts (B, 4)`` float64: the gradient weights of each item (with ``grad``)."""
+    dt = edge_rot.dtype
+    E, V, F = edge_rot.shape[-3], frames.shape[-3], face_edges.shape[0]
+    R = edge_rot.reshape(-1, E, 3, 3).contiguous()
+    Fr = frames.reshape(-1, V, 3, 3).contiguous()
+    B = R.shape[0]
+    nt = max(1, min(64, torch.get_num_threads()))
+    smooth, tie, flat, torsion = on  # the kernel runs the tie matching for torsion too (its mask)
+    n_work = (nt - 1) * (12 * E + 9 * V) if grad else 0
+    n_theta = 3 * E if torsion else 0
+    work, unrel = _scratch(dt, n_work + 2 * n_theta, E if (tie or torsion) else 0)
+    sums = torch.empty(B, 5, dtype=torch.float64)
+    gR = torch.empty(B, E, 3, 3, dtype=dt) if grad else None
+    gF = torch.empty(B, V, 3, 3, dtype=dt) if grad else None
+    w64 = wts.to(torch.float64).reshape(B, 4).contiguous() if grad else torch.zeros(B, 4, dtype=torch.float64)
+    g64 = group.to(torch.float64).reshape(24, 9).contiguous()
+    base = work.data_ptr()
+    isz = work.element_size()
+    status = _C_SWEEP[dt](
+        B, E, V, F, nt, R.data_ptr(), Fr.data_ptr(), edges.data_ptr(), face_edges.data_ptr(),
+        edge_vec.data_ptr(), face_area.data_ptr(), g64.data_ptr(), int(smooth), int(tie), int(flat),
+        int(torsion), int(grad), float(power), float(eps), w64.data_ptr(), sums.data_ptr(),
+        gR.data_ptr() if grad else None, gF.data_ptr() if grad else None, base,
+        base + isz * n_work, base + isz * (n_work + n_theta), unrel.data_ptr())
+    if status != 0:
+        raise RuntimeError(f"torchconn::frame_loss: csrc/frame_loss.c returned {status}: its octahedral score "
+                           "table does not match the group table passed in (torchconn.frames.octahedral.group())")
+    return sums, gR, gF
+
+
+def _c_applies(edge_rot, frames, edges, face_edges, edge_vec, face_area) -> bool:
+    return (can_use_compiled("frame_loss", edge_rot, frames, edge_vec, face_area)
+            and edges.dtype == face_edges.dtype == torch.int64
+            and edges.is_contiguous() and face_edges.is_contiguous()
+            and edge_vec.is_contiguous() and face_area.is_contiguous())
+
+
+# ----------------------------------------------------------------------------- forward op
+
+def _empty_grads(edge_rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    b = edge_rot.shape[:-3]
+    return edge_rot.new_empty(*b, 0), edge_rot.new_empty(*b, 0)
+
+
+def _forward_generic(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, w, power, eps,
+                     with_grad):
+    wts = torch.tensor(w, dtype=edge_rot.dtype, device=edge_rot.device) if with_grad else None
+    vals, gR, gF = _T.sweep(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, power, eps, wts)
+    if not with_grad:
+        return (vals, *_empty_grads(edge_rot))
+    return vals, gR, gF
+
+
+@torch.library.custom_op(qualname("frame_loss"), mutates_args=())
+def _frame_loss(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor, face_edges: torch.Tensor,
+                edge_vec: torch.Tensor, face_area: torch.Tensor, group: torch.Tensor, smooth: bool, tie: bool,
+                flat: bool, torsion: bool, w_smooth: float, w_tie: float, w_flat: float, w_torsion: float,
+                power: float, eps: float, with_grad: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return _forward_generic(edge_rot, frames, edges, face_edges, edge_vec, face_area, group,
+                            (smooth, tie, flat, torsion), [w_smooth, w_tie, w_flat, w_torsion], power, eps, with_grad)
+
+
+@_frame_loss.register_kernel("cpu")
+def _(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, smooth, tie, flat, torsion,
+      w_smooth, w_tie, w_flat, w_torsion, power, eps, with_grad):
+    on, w = (smooth, tie, flat, torsion), [w_smooth, w_tie, w_flat, w_torsion]
+    if not _c_applies(edge_rot, frames, edges, face_edges, edge_vec, face_area):
+        return _forward_generic(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, w, power,
+                                eps, with_grad)
+    batch = edge_rot.shape[:-3]
+    wts = torch.tensor(w, dtype=torch.float64).expand(max(1, batch.numel()), 4)
+    sums, gR, gF = _sweep_c(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, wts, power, eps,
+                            with_grad)
+    vals = sums[:, :4].to(edge_rot.dtype).contiguous().reshape(*batch, 4)
+    if not with_grad:
+        return (vals, *_empty_grads(edge_rot))
+    return vals, gR.reshape(edge_rot.shape), gF.reshape(frames.shape)
+
+
+@_frame_loss.register_fake
+def _(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, smooth, tie, flat, torsion,
+      w_smooth, w_tie, w_flat, w_torsion, power, eps, with_grad):
+    vals = edge_rot.new_empty(*edge_rot.shape[:-3], 4)
+    if not with_grad:
+        return (vals, *_empty_grads(edge_rot))
+    return vals, torch.empty_like(edge_rot, memory_format=torch.contiguous_format), \
+        torch.empty_like(frames, memory_format=torch.contiguous_format)
+
+
+# ----------------------------------------------------------------------------- backward op
+
+def _reuse_scale(grad_values, options, saved_rot) -> torch.Tensor | None:
+    """Per item ``s`` with ``grad_values = s w`` on the terms that are on (then the forward's
+    gradient scaled by ``s`` is the answer), or ``None``. Reads the ``(*B, 4)`` weights (a device
+    sync off the CPU)."""
+    if saved_rot is None or saved_rot.numel() == 0:
+        return None
+    on, w = options[:4], options[4:8]
+    idx = [k for k in range(4) if on[k]]
+    ref = next((k for k in idx if w[k] != 0.0), None)
+    if ref is None:
+        return None
+    g = grad_values.detach().to("cpu", torch.float64).reshape(-1, 4)[:, idx]
+    wt = torch.tensor([w[k] for k in idx], dtype=torch.float64)
+    s = g[:, idx.index(ref)] / w[ref]
+    sw = s[:, None] * wt
+    tol = 1e-12 if saved_rot.dtype == torch.float64 else 1e-6
+    if bool(((g - sw).abs() <= tol * torch.maximum(g.abs(), sw.abs())).all()):
+        return s
+    return None
+
+
+def _grad_generic(R, Fr, gv, tables, options):
+    """``∇_{R, F} Σ_k g_k term_k`` by ``torch.func.vjp`` of :func:`terms_generic` (autograd level only:
+    composable with autograd and the transforms, not for use inside an op kernel)."""
+    smooth, tie, flat, torsion, _, _, _, _, power, eps = options
+
+    def f(a, b):
+        return terms_generic(a, b, *tables, smooth, tie, flat, torsion, power, eps)
+
+    vals, vjp = torch.func.vjp(f, R, Fr)
+    return vjp(gv.to(vals.dtype).expand(vals.shape))
+
+
+def _hvp_generic(R, Fr, gv, v_rot, v_frames, tables, options):
+    """Derivative of ``(R, F, g) -> ∇_{R,F} Σ_k g_k term_k`` along ``(v_rot, v_frames)`` (a
+    Hessian-vector product in ``R, F``, a JVP of the terms in ``g``), by ``torch.func`` of
+    :func:`terms_generic`; recorded by autograd when the caller's backward is (``create_graph``),
+    so every order is exact."""
+    _, vjp = torch.func.vjp(lambda a, b, g: _grad_generic(a, b, g, tables, options), R, Fr, gv)
+    return vjp((torch.zeros_like(R) if v_rot is None else v_rot, torch.zeros_like(Fr) if v_frames is None else v_frames))
+
+
+def _scaled(saved_rot, saved_frames, s, edge_rot, frames):
+    s = s.to(device=saved_rot.device, dtype=saved_rot.dtype)
+    return (saved_rot.reshape(-1, *edge_rot.shape[-3:]) * s[:, None, None, None]).reshape(edge_rot.shape), \
+        (saved_frames.reshape(-1, *frames.shape[-3:]) * s[:, None, None, None]).reshape(frames.shape)
+
+
+@torch.library.custom_op(qualname("frame_loss_backward"), mutates_args=())
+def _frame_loss_backward(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor,
+                         face_edges: torch.Tensor, edge_vec: torch.Tensor, face_area: torch.Tensor,
+                         group: torch.Tensor, grad_values: torch.Tensor, saved_grad_rot: Optional[torch.Tensor],
+                         saved_grad_frames: Optional[torch.Tensor], smooth: bool, tie: bool, flat: bool,
+                         torsion: bool, w_smooth: float, w_tie: float, w_flat: float, w_torsion: float,
+                         power: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    options = (smooth, tie, flat, torsion, w_smooth, w_tie, w_flat, w_torsion, power, eps)
+    s = _reuse_scale(grad_values, options, saved_grad_rot)
+    if s is not None:
+        return _scaled(saved_grad_rot, saved_grad_frames, s, edge_rot, frames)
+    return _T.sweep(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, options[:4], power, eps,
+                    grad_values)[1:]
+
+
+@_frame_loss_backward.register_kernel("cpu")
+def _(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, grad_values, saved_grad_rot,
+      saved_grad_frames, smooth, tie, flat, torsion, w_smooth, w_tie, w_flat, w_torsion, power, eps):
+    options = (smooth, tie, flat, torsion, w_smooth, w_tie, w_flat, w_torsion, power, eps)
+    s = _reuse_scale(grad_values, options, saved_grad_rot)
+    if s is not None:
+        return _scaled(saved_grad_rot, saved_grad_frames, s, edge_rot, frames)
+    if not _c_applies(edge_rot, frames, edges, face_edges, edge_vec, face_area):
+        return _T.sweep(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, options[:4], power, eps,
+                        grad_values)[1:]
+    on = (smooth, tie, flat, torsion)
+    B = max(1, edge_rot.shape[:-3].numel())
+    gv = grad_values.to(torch.float64).expand(*edge_rot.shape[:-3], 4).reshape(B, 4)
+    _, gR, gF = _sweep_c(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, on, gv, power, eps, True)
+    return gR.reshape(edge_rot.shape), gF.reshape(frames.shape)
+
+
+@_frame_loss_backward.register_fake
+def _(edge_rot, frames, edges, face_edges, edge_vec, face_area, group, grad_values, saved_grad_rot,
+      saved_grad_frames, smooth, tie, flat, torsion, w_smooth, w_tie, w_flat, w_torsion, power, eps):
+    return (torch.empty_like(edge_rot, memory_format=torch.contiguous_format),
+            torch.empty_like(frames, memory_format=torch.contiguous_format))
+
+
+# ----------------------------------------------------------------------------- autograd
+
+_N_TABLES = 7  # edge_rot, frames, edges, face_edges, edge_vec, face_area, group
+
+
+def _fwd_setup(ctx, inputs, output):
+    _, gR, gF = output
+    ctx.mark_non_differentiable(gR, gF)
+    with_grad = inputs[-1]
+    ctx.save_for_backward(*inputs[:_N_TABLES], gR if with_grad else None, gF if with_grad else None)
+    ctx.options = inputs[_N_TABLES:-1]  # smooth, tie, flat, torsion, 4 weights, power, eps
+
+
+def _fwd_backward(ctx, grad_values, _grad_rot, _grad_frames):
+    *tables, saved_rot, saved_frames = ctx.saved_tensors
+    dR, dF = _frame_loss_backward(*tables, grad_values, saved_rot, saved_frames, *ctx.options)
+    return (dR if ctx.needs_input_grad[0] else None, dF if ctx.needs_input_grad[1] else None,
+            *([None] * (len(ctx.needs_input_grad) - 2)))
+
+
+def _bwd_setup(ctx, inputs, output):
+    ctx.save_for_backward(*inputs[:_N_TABLES], inputs[_N_TABLES])  # + grad_values
+    ctx.options = inputs[_N_TABLES + 3:]
+
+
+def _bwd_backward(ctx, v_rot, v_frames):
+    R, Fr, *tables, gv = ctx.saved_tensors
+    gR, gF, gg = _hvp_generic(R, Fr, gv, v_rot, v_frames, tables, ctx.options)
+    need = ctx.needs_input_grad
+    out = [gR if need[0] else None, gF if need[1] else None] + [None] * (_N_TABLES - 2)
+    out.append(gg if need[_N_TABLES] else None)
+    return (*out, *([None] * (len(need) - _N_TABLES - 1)))
+
+
+_frame_loss.register_autograd(_fwd_backward, setup_context=_fwd_setup)
+_frame_loss_backward.register_autograd(_bwd_backward, setup_context=_bwd_setup)
+
+
+# ----------------------------------------------------------------------------- vmap
+
+_frame_loss.register_vmap(leading_vmap(_frame_loss, "frame_loss", batched=(0, 1), n_out=3))
+
+
+def _bwd_vmap(info, in_dims, *args):
+    """Leading batch dims on ``edge_rot, frames, grad_values`` and the saved gradients (possibly None)."""
+    batched = (0, 1, _N_TABLES, _N_TABLES + 1, _N_TABLES + 2)
+    args = list(args)
+    for i, d in enumerate(in_dims):
+        if i in batched:
+            if args[i] is None:
+                continue
+            if d is None:
+                args[i] = args[i].unsqueeze(0).expand(info.batch_size, *args[i].shape)
+            elif d != 0:
+                args[i] = args[i].movedim(d, 0)
+        elif d is not None:
+            raise NotImplementedError(f"torchconn::frame_loss_backward: vmap over argument {i} is not supported "
+                                      f"(only arguments {list(batched)} take leading batch dimensions)")
+    return _frame_loss_backward(*args), (0, 0)
+
+
+_frame_loss_backward.register_vmap(_bwd_vmap)
+
+
+# ----------------------------------------------------------------------------- torch.func
+
+class _BackwardFn(torch.autograd.Function):
+    """``torchconn::frame_loss_backward`` for eager calls (see :class:`_LossFn`)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(*args):
+        return _frame_loss_backward(*args)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(*inputs[:_N_TABLES + 1])
+        ctx.save_for_forward(*inputs[:_N_TABLES + 1])
+        ctx.options = inputs[_N_TABLES + 3:]
+
+    @staticmethod
+    def backward(ctx, v_rot, v_frames):
+        R, Fr, *tables, gv = ctx.saved_tensors
+        gR, gF, gg = _hvp_generic(R, Fr, gv, v_rot, v_frames, tables, ctx.options)
+        return gR, gF, *([None] * (_N_TABLES - 2)), gg, *([None] * 12)
+
+    @staticmethod
+    def jvp(ctx, t_rot, t_frames, *tangents):
+        R, Fr, *tables, gv = ctx.saved_tensors
+        t_gv = tangents[_N_TABLES - 2]
+        return torch.func.jvp(lambda a, b, g: _grad_generic(a, b, g, tables, ctx.options), (R, Fr, gv),
+                              tuple(torch.zeros_like(x) if t is None else t
+                                    for x, t in ((R, t_rot), (Fr, t_frames), (gv, t_gv))))[1]
+
+
+class _LossFn(torch.autograd.Function):
+    """``torchconn::frame_loss`` for eager calls, for the ``torch.func`` transforms.
+
+    The autograd that ``register_autograd`` generates has no ``setup_context``, which
+    ``torch.func.grad`` / ``jacrev`` / ``hessian`` refuse, and no forward mode (``jvp`` would
+    silently see a constant). This Function calls the same ops (forward: the op, C on the CPU;
+    backward: the backward op, reusing the forward's gradient; its backward and both ``jvp`` =
+    ``torch.func`` of :func:`terms_generic`; vmap generated, reaching the ops' vmap rules).
+    Under ``torch.compile`` the op is called directly (its registered autograd applies).
     """
 
-    @staticmethod
-    def forward(ctx, edge_rot, frames, group, mesh, flags, wts, power, eps):
-        sums, gR, gF = _run(mesh, edge_rot, frames, group, flags, wts, power, eps)
-        if flags & _GRAD:
-            ctx.save_for_backward(edge_rot, frames, group, gR, gF)
-            ctx.mesh, ctx.flags, ctx.wts, ctx.power, ctx.eps = mesh, flags, wts, power, eps
-        return sums[:4].to(edge_rot.dtype)
+    generate_vmap_rule = True
 
     @staticmethod
-    def backward(ctx, g):
-        if torch.is_grad_enabled():
-            raise RuntimeError(_CREATE_GRAPH_ERROR)
-        edge_rot, frames, group, gR, gF = ctx.saved_tensors
-        gv = [float(x) for x in g.to(torch.float64)]
-        on = [b for b in range(4) if ctx.flags & (1 << b)]
-        ref = next((b for b in on if ctx.wts[b] != 0.0), None)
-        scale = gv[ref] / ctx.wts[ref] if ref is not None else 0.0
-        tol = 1e-12 if edge_rot.dtype == torch.float64 else 1e-6
-        if all(abs(gv[b] - scale * ctx.wts[b]) <= tol * max(abs(gv[b]), abs(scale * ctx.wts[b])) for b in on):
-            dR, dF = (gR, gF) if scale == 1.0 else (gR * scale, gF * scale)
-        else:  # another combination of the terms: one more sweep with the incoming weights
-            _, dR, dF = _run(ctx.mesh, edge_rot, frames, group, ctx.flags, gv, ctx.power, ctx.eps)
-        return (dR if ctx.needs_input_grad[0] else None, dF if ctx.needs_input_grad[1] else None,
-                None, None, None, None, None, None)
+    def forward(*args):
+        return _frame_loss(*args)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        _, gR, gF = output
+        ctx.mark_non_differentiable(gR, gF)
+        with_grad = inputs[-1]
+        ctx.save_for_backward(*inputs[:_N_TABLES], gR if with_grad else None, gF if with_grad else None)
+        ctx.save_for_forward(*inputs[:_N_TABLES])
+        ctx.options = inputs[_N_TABLES:-1]
+
+    @staticmethod
+    def backward(ctx, grad_values, _grad_rot, _grad_frames):
+        *tables, saved_rot, saved_frames = ctx.saved_tensors
+        if not torch.is_grad_enabled():
+            # first order and the incoming weights are the loss weights (out["total"].backward()):
+            # the forward's gradient itself, without the copy an op output would need
+            s = _reuse_scale(grad_values, ctx.options, saved_rot)
+            if s is not None and bool((s == 1.0).all()):
+                return saved_rot, saved_frames, *([None] * (_N_TABLES - 2 + 11))
+        dR, dF = _BackwardFn.apply(*tables, grad_values, saved_rot, saved_frames, *ctx.options)
+        return dR, dF, *([None] * (_N_TABLES - 2 + 11))
+
+    @staticmethod
+    def jvp(ctx, t_rot, t_frames, *_):
+        R, Fr, *tables = ctx.saved_tensors
+        smooth, tie, flat, torsion, _, _, _, _, power, eps = ctx.options
+        t = torch.func.jvp(lambda a, b: terms_generic(a, b, *tables, smooth, tie, flat, torsion, power, eps),
+                           (R, Fr), (torch.zeros_like(R) if t_rot is None else t_rot,
+                                     torch.zeros_like(Fr) if t_frames is None else t_frames))[1]
+        return t, None, None
 
 
-def _buffers(mesh, dtype: torch.dtype) -> dict[str, torch.Tensor]:
-    """Index and geometry tables of ``csrc/frame_loss.c`` for ``dtype`` (CPU, built once per mesh)."""
+# ----------------------------------------------------------------------------- public function
+
+def mesh_tables(mesh, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(edges (E, 2) int64, face_edges (F, 3) int64, edge_vec (E, 3), face_area (F,))`` of ``mesh``.
+
+    ``face_edges`` = canonical edges ``ab, bc, ac`` of each sorted face ``[a<b<c]``,
+    ``edge_vec = v_j - v_i`` and the face areas in ``dtype`` (formed in float64), on ``device``.
+    Built once per mesh, dtype and device (``mesh.require``); immutable.
+    """
+    dev = torch.device(device)
 
     def build(m):
-        e = m.edges.to("cpu", torch.int64).contiguous()
-        verts = m.vertices.to("cpu", torch.float64)
-        p = m.vertices[m.faces]
+        e = m.edges.to(torch.int64)
+        verts = m.vertices.to(torch.float64)
+        p = verts[m.faces]
         area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-        return {
-            "edges": e,
-            "fidx": m.face_edges.to("cpu", torch.int64)[:, [2, 0, 1]].contiguous(),  # ab, bc, ac
-            "vec": (verts[e[:, 1]] - verts[e[:, 0]]).to(dtype).contiguous(),
-            "area": area.to("cpu", dtype).contiguous(),
-        }
+        vec = verts.index_select(0, e[:, 1]) - verts.index_select(0, e[:, 0])
+        fidx = m.face_edges.to(torch.int64)[:, [2, 0, 1]]
+        return (e.to(dev).contiguous(), fidx.to(dev).contiguous(), vec.to(dev, dtype).contiguous(),
+                area.to(dev, dtype).contiguous())
 
-    return _require(mesh, f"ops.frame_loss.buffers.{dtype}", build)
-
-
-def _workspace(mesh, dtype: torch.dtype, nt: int) -> dict[str, torch.Tensor]:
-    """Scratch buffers of ``csrc/frame_loss.c`` for ``nt`` threads (kept: no page faults per step)."""
-
-    def build(m):
-        E, V = int(m.edges.shape[0]), int(m.vertices.shape[0])
-        need = max(1, (nt - 1) * (12 * E + 9 * V))
-        return {"work": torch.empty(need, dtype=dtype), "theta": torch.empty(E, 3, dtype=dtype),
-                "gtheta": torch.empty(E, 3, dtype=dtype), "unrel": torch.empty(E, dtype=torch.uint8)}
-
-    return _require(mesh, f"ops.frame_loss.workspace.{dtype}.{nt}", build)
-
-
-def _run(mesh, edge_rot: torch.Tensor, frames: torch.Tensor, group: torch.Tensor, flags: int, wts,
-         power: float, eps: float):
-    """Run ``csrc/frame_loss.c``: ``(sums (5,) float64, gR (E,3,3) | None, gF (V,3,3) | None)``."""
-    dt = edge_rot.dtype
-    E, V, F = edge_rot.shape[0], frames.shape[0], mesh.faces.shape[0]
-    grad = bool(flags & _GRAD)
-    nt = max(1, torch.get_num_threads())
-    buf = _buffers(mesh, dt)
-    ws = _workspace(mesh, dt, nt if grad else 1)
-    sums = torch.zeros(5, dtype=torch.float64)
-    w64 = torch.tensor([float(x) for x in wts] + [0.0] * (4 - len(wts)), dtype=torch.float64)
-    gR = edge_rot.new_empty(E, 3, 3) if grad else None
-    gF = frames.new_empty(V, 3, 3) if grad else None
-    vp, long_, int_, dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_double
-    fn = _native.function("frame_loss", "frame_loss_f64" if dt == torch.float64 else "frame_loss_f32",
-                          [long_, long_, long_, int_] + [vp] * 7 + [int_, dbl, dbl] + [vp] * 8, ctypes.c_int)
-    P, nul = _native.ptr, ctypes.c_void_p(None)
-    status = fn(ctypes.c_long(E), ctypes.c_long(V), ctypes.c_long(F), ctypes.c_int(nt),
-                P(edge_rot), P(frames), P(buf["edges"]), P(buf["fidx"]), P(buf["vec"]), P(buf["area"]),
-                P(group), ctypes.c_int(flags), ctypes.c_double(power), ctypes.c_double(eps),
-                P(w64), P(sums), P(gR) if grad else nul, P(gF) if grad else nul, P(ws["work"]),
-                P(ws["theta"]), P(ws["gtheta"]), P(ws["unrel"]))
-    if status != 0:
-        raise RuntimeError(f"csrc/frame_loss.c returned {status}: its octahedral score table does not match "
-                           "the group table passed in (torchconn.frames.octahedral.group())")
-    return sums, gR, gF
+    return _require(mesh, f"ops.frame_loss.tables.{dtype}.{dev}", build)
 
 
 def frame_loss_terms(edge_rot: torch.Tensor, frames: torch.Tensor, mesh, group: torch.Tensor,
                      weights: Mapping[str, float], smooth_power: float, smooth_eps: float
                      ) -> dict[str, torch.Tensor] | None:
-    """The weighted-on terms of :data:`COMPILED_TERMS` by the compiled kernel, or ``None``.
+    """The terms of :data:`COMPILED_TERMS` with non-zero weight, by the op ``torchconn::frame_loss``.
 
     Args:
-        edge_rot: ``(E, 3, 3)`` ``R_ij`` of the canonical edges of ``mesh``.
-        frames: ``(V, 3, 3)``.
-        mesh: a mesh with sorted triangles (``TetMesh``).
+        edge_rot: ``(*B, E, 3, 3)`` ``R_ij`` of the canonical edges of ``mesh``.
+        frames: ``(*B, V, 3, 3)`` (columns = axes); batch shapes broadcast.
+        mesh: a mesh with sorted triangles (``TetMesh`` or its ``nn.MeshBuffers``).
         group: ``(24, 3, 3)`` the octahedral group in the order of
-            :func:`torchconn.frames.octahedral.group` (the kernel checks its written-out scores
+            :func:`torchconn.frames.octahedral.group` (the C kernel checks its written-out scores
             against it and raises ``RuntimeError`` on a mismatch).
         weights: term name -> weight; terms of weight 0 are not computed (``tie`` runs with
-            ``torsion``: it supplies the mask).
+            ``torsion``, whose mask it supplies, and is then returned too).
         smooth_power, smooth_eps: ``rho`` of the ``smooth`` and ``tie`` terms.
 
     Returns:
-        ``{term: 0-dim tensor}`` for the terms with non-zero weight (differentiable, first
-        order), or ``None`` when the kernel cannot run: no such term, a mesh without sorted
-        triangles, shapes other than ``(E, 3, 3)`` / ``(V, 3, 3)``, or
-        :func:`torchconn.ops.backend.can_use_compiled` false. A recorded backward
-        (``create_graph``) through these terms raises ``RuntimeError``: switch the kernel off
-        (``with torchconn.ops.compiled(False):``) for higher-order gradients.
+        ``{term: (*B) tensor}``, differentiable to any order (first order by the C sweep on the
+        CPU when the switch allows it), or ``None`` when the op does not apply: no such term,
+        a mesh without sorted triangles, or shapes other than the above (the caller then
+        evaluates its own terms). Any device and floating dtype; no data-dependent Python
+        control flow (``torch.compile(fullgraph=True)`` traces it into one op call).
     """
     if not any(weights.get(k, 0.0) for k in COMPILED_TERMS):
         return None
-    if not (_sorted_triangles(mesh) and edge_rot.dim() == 3 and tuple(edge_rot.shape[1:]) == (3, 3)
-            and frames.dim() == 3 and tuple(frames.shape[1:]) == (3, 3)
-            and edge_rot.shape[0] == mesh.edges.shape[0] and frames.shape[0] == mesh.vertices.shape[0]
-            and can_use_compiled("frame_loss", edge_rot, frames)):
+    if not (_sorted_triangles(mesh) and edge_rot.dim() >= 3 and frames.dim() >= 3
+            and tuple(edge_rot.shape[-2:]) == (3, 3) and tuple(frames.shape[-2:]) == (3, 3)
+            and edge_rot.shape[-3] == mesh.edges.shape[0] and frames.shape[-3] == mesh.vertices.shape[0]
+            and edge_rot.is_floating_point() and frames.dtype == edge_rot.dtype
+            and frames.device == edge_rot.device):
         return None
-    flags = sum(1 << b for b, k in enumerate(COMPILED_TERMS) if weights.get(k, 0.0))
-    if weights.get("torsion", 0.0):
-        flags |= 2  # the torsion mask comes from the tie matching (as in the torch path)
-    if torch.is_grad_enabled() and (edge_rot.requires_grad or frames.requires_grad):
-        flags |= _GRAD
-    wts = [float(weights.get(k, 0.0)) if flags & (1 << b) else 0.0 for b, k in enumerate(COMPILED_TERMS)]
-    table = group.to("cpu", torch.float64).reshape(24, 9).contiguous()
-    vals = _CompiledFrameLossFn.apply(edge_rot.contiguous(), frames.contiguous(), table, mesh, flags, wts,
-                                      float(smooth_power), float(smooth_eps))
-    return {k: vals[b] for b, k in enumerate(COMPILED_TERMS) if flags & (1 << b)}
+    batch = torch.broadcast_shapes(edge_rot.shape[:-3], frames.shape[:-3])
+    edge_rot = edge_rot.expand(*batch, *edge_rot.shape[-3:])
+    frames = frames.expand(*batch, *frames.shape[-3:])
+    on = [bool(weights.get(k, 0.0)) for k in COMPILED_TERMS]
+    on[1] = on[1] or on[3]  # the torsion mask comes from the tie matching
+    w = [float(weights.get(k, 0.0)) if on[b] else 0.0 for b, k in enumerate(COMPILED_TERMS)]
+    with_grad = torch.is_grad_enabled() and (edge_rot.requires_grad or frames.requires_grad)
+    tables = mesh_tables(mesh, edge_rot.dtype, edge_rot.device)
+    args = (edge_rot, frames, *tables, group.to(edge_rot.dtype).to(edge_rot.device), *on, *w,
+            float(smooth_power), float(smooth_eps), with_grad)
+    vals = (_frame_loss(*args) if torch.compiler.is_compiling() else _LossFn.apply(*args))[0]
+    return {k: vals[..., b] for b, k in enumerate(COMPILED_TERMS) if on[b]}

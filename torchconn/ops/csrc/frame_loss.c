@@ -1,5 +1,6 @@
 /* Fused value-and-gradient kernel of the frame-field loss terms smooth, tie, flat, torsion
- * (torchconn/frames/loss.py FrameFieldLoss, dispatched by torchconn/ops/frame_loss.py; issue 6).
+ * (torchconn/frames/loss.py FrameFieldLoss; the CPU kernel of the custom ops torchconn::frame_loss and
+ * torchconn::frame_loss_backward declared in torchconn/ops/frame_loss.py; issues 6 and 11).
  *
  * One sweep over the edges, one over the faces, one more over the edges: every per-element
  * 3x3 product is formed in registers, gradients are computed in the same sweep as the values
@@ -136,31 +137,21 @@ static void SFX(reduce_into)(T* out, T* const* priv, int nt, long n) {
     }
 }
 
-/* flags: 1 smooth, 2 tie, 4 flat, 8 torsion, 16 gradients.
- * sums (out, 5): smooth, tie, flat, torsion values; n_ok (faces in the torsion mean).
- * With flag 16: gR (E,9) = sum_k wts[k] dterm_k/dR and gF (V,9) = sum_k wts[k] dterm_k/dframes
- * (overwritten). work: (nt - 1) * (9E + 3E + 9V) per-thread scatter buffers (zeroed here);
- * theta, gtheta (E,3) and unrel (E) are workspaces. Returns 0, or -2 when the group table is
- * not torchconn.octahedral.group() (the written-out scores of best() assume its order). */
-int SFX(frame_loss)(long E, long V, long F, int nt,
+/* One item (no batch): the terms that are on (do_s smooth, do_t tie, do_f flat, do_q torsion;
+ * the tie matching also runs for do_q, which takes its mask from it) and, with grad, the gradient
+ * of sum_k wts[k] term_k. sums (out, 5): smooth, tie, flat, torsion values (0 for a term that is
+ * off); n_ok (faces in the torsion mean). With grad: gR (E,9) = sum_k wts[k] dterm_k/dR and
+ * gF (V,9) = sum_k wts[k] dterm_k/dframes (overwritten). work: (nt - 1) * (9E + 3E + 9V)
+ * per-thread scatter buffers (zeroed here); theta, gtheta (E,3) and unrel (E) are workspaces.
+ * perm/sign: the group table as signed permutations (group_perm). */
+static void SFX(frame_loss_one)(long E, long V, long F, int nt,
                      const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
-                     const T* vec, const T* area, const double* group, int flags, double power, double eps,
+                     const T* vec, const T* area, const int perm[24][3], const T sign[24][3],
+                     int do_s, int do_t, int do_f, int do_q, int grad, double power, double eps,
                      const double* wts, double* sums, T* gR, T* gF, T* work,
                      T* theta, T* gtheta, unsigned char* unrel) {
-    int perm[24][3];
-    double sign_d[24][3];
-    T sign[24][3];
-    group_perm(group, perm, sign_d);
-    for (int k = 0; k < 24; ++k) {
-        T gk[9];
-        for (int c = 0; c < 3; ++c) sign[k][c] = (T)sign_d[k][c];
-        for (int q = 0; q < 9; ++q) gk[q] = (T)group[9 * k + q];
-        if (SFX(best)(gk) != k) return -2;  /* the written-out scores do not match the group table */
-    }
-    const int do_s = flags & 1, do_t = flags & 2, do_f = flags & 4, do_q = flags & 8, grad = flags & 16;
+    grad = grad != 0;
     const int match = do_t || do_q;
-    if (nt < 1) nt = 1;
-    if (nt > 64) nt = 64;
     /* per-thread partial sums, added in thread order afterwards (deterministic for a given nt,
      * unlike an OpenMP reduction clause) */
     double part[64][4];
@@ -368,6 +359,36 @@ int SFX(frame_loss)(long E, long V, long F, int nt,
     sums[1] = s_tie / (double)(E > 0 ? E : 1);
     sums[2] = s_flat / (double)(F > 0 ? F : 1);
     sums[3] = n_ok ? s_tor / (double)n_ok : 0.0;
+}
+
+/* The op torchconn::frame_loss (and its backward, torchconn::frame_loss_backward) on B items that
+ * share one mesh: R (B,E,9), Fr (B,V,9), wts (B,4) (the gradient weights of each item), sums
+ * (B,5), gR (B,E,9), gF (B,V,9) (with grad); the workspaces are reused item after item.
+ * Options are explicit arguments (no bit flags). Returns 0, or -2 when the group table is not
+ * torchconn.octahedral.group() (the written-out scores of best() assume its order). */
+int SFX(frame_loss)(long B, long E, long V, long F, int nt,
+                     const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
+                     const T* vec, const T* area, const double* group,
+                     int do_s, int do_t, int do_f, int do_q, int grad, double power, double eps,
+                     const double* wts, double* sums, T* gR, T* gF, T* work,
+                     T* theta, T* gtheta, unsigned char* unrel) {
+    int perm[24][3];
+    double sign_d[24][3];
+    T sign[24][3];
+    group_perm(group, perm, sign_d);
+    for (int k = 0; k < 24; ++k) {
+        T gk[9];
+        for (int c = 0; c < 3; ++c) sign[k][c] = (T)sign_d[k][c];
+        for (int q = 0; q < 9; ++q) gk[q] = (T)group[9 * k + q];
+        if (SFX(best)(gk) != k) return -2;  /* the written-out scores do not match the group table */
+    }
+    if (nt < 1) nt = 1;
+    if (nt > 64) nt = 64;
+    for (long b = 0; b < B; ++b)
+        SFX(frame_loss_one)(E, V, F, nt, R + 9 * E * b, Fr + 9 * V * b, edges, fidx, vec, area,
+                            (const int (*)[3])perm, (const T (*)[3])sign, do_s, do_t, do_f, do_q, grad,
+                            power, eps, wts + 4 * b, sums + 5 * b, grad ? gR + 9 * E * b : gR,
+                            grad ? gF + 9 * V * b : gF, work, theta, gtheta, unrel);
     return 0;
 }
 
