@@ -172,7 +172,11 @@ def _tables(edge_rot, edge_theta, rot_index, theta_index):
 
 def _unbind(rot, th):
     """``R`` 6 x 9 and ``t`` 7 x 3 component tensors ``(N, T)`` (views)."""
-    return [[rot[q, :, p] for q in range(9)] for p in range(6)], [[th[c, :, k] for c in range(3)] for k in range(7)]
+    # unbind (backward: one stack) rather than 54 + 21 selects (backward: a zero-filled full-size
+    # tensor each), which matters when the forward is differentiated (double backward)
+    rq = [r.unbind(1) for r in rot.unbind(0)]  # rq[q][p]: (N, T)
+    tc = [t.unbind(1) for t in th.unbind(0)]
+    return [[rq[q][p] for q in range(9)] for p in range(6)], [[tc[c][k] for c in range(3)] for k in range(7)]
 
 
 def forward(edge_rot: torch.Tensor, edge_theta: torch.Tensor, rot_index: torch.Tensor,
