@@ -1,7 +1,7 @@
 """Second-order derivatives through the fused kernels: exact, or a clear error, never silently wrong.
 
 The face-curvature kernel (``ops.curvature._FaceCurvatureFn``) and the averaged d∇d∇θ tet
-kernel (``ops.tet._TetDDSoAFn``) have hand-written backward passes that are themselves
+op (``torchconn::tet_dd``, ``ops.tet.tet_dd``) have backward passes that are themselves
 differentiable, so ``create_graph=True``, double backward and Hessian-vector products are
 exact: float64 ``gradgradcheck`` of the modules and of the functional entry points through
 ``so3.exp`` of skew parameters, Hessian-vector products against central differences of the
@@ -166,7 +166,7 @@ def test_recorded_backward_equals_first_order_backward():
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(14), dtype=DT)
     k = ops_tet.tet_kernel(mesh)
     idx = ops_curvature._face_index(mesh, R.device)
-    ops = [lambda A, t: ops_tet._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)]
+    ops = [lambda A, t: ops_tet.tet_dd(A, t, k)]
     ops += [lambda A, t, c=c: ops_curvature._FaceCurvatureFn.apply(A, idx, c) * t.sum() for c in (0, 1, 2)]
     for op in ops:
         grads = []

@@ -280,18 +280,22 @@ def _setup_bwd(ctx, inputs, output):
 
 
 def _backward_bwd(ctx, gg_rot, gg_th):
-    """Differentiates the generic torch formula (exact second and higher derivatives)."""
+    """Differentiates the generic torch formula (exact second and higher derivatives).
+
+    ``torch.func.vjp`` of the map ``(R, θ̃, g) -> vjp of the generic forward``: a function
+    transform, so its derivatives do not leak into the outer graph (``g`` usually depends on
+    ``R`` there: differentiating with ``autograd.grad`` on the saved tensors would count that
+    path twice), while the result stays differentiable for the outer autograd (third order)."""
     edge_rot, edge_theta, grad, rot_index, theta_index = ctx.saved_tensors[:5]
-    need = ctx.needs_input_grad[:3]
-    with torch.enable_grad():
-        xs = [t if t.requires_grad else t.detach().requires_grad_() for t in (edge_rot, edge_theta, grad)]
-        out = _generic_fwd(xs[0], xs[1], rot_index, theta_index)
-        g_rot, g_th = torch.autograd.grad(out, xs[:2], xs[2], create_graph=True)
-        pairs = [(o, go) for o, go in ((g_rot, gg_rot), (g_th, gg_th)) if go is not None]
-        wrt = [x for x, n in zip(xs, need) if n]
-        res = iter(torch.autograd.grad([o for o, _ in pairs], wrt, [go for _, go in pairs],
-                                       allow_unused=True, create_graph=True) if pairs and wrt else ())
-    return tuple(next(res) if n else None for n in need) + (None,) * 5
+
+    def vjp_generic(R, th, g):
+        return torch.func.vjp(lambda a, b: _generic_fwd(a, b, rot_index, theta_index), R, th)[1](g)
+
+    _, pullback = torch.func.vjp(vjp_generic, edge_rot, edge_theta, grad)
+    gg = (torch.zeros_like(edge_rot) if gg_rot is None else gg_rot,
+          torch.zeros_like(edge_theta) if gg_th is None else gg_th)
+    res = pullback(gg)
+    return tuple(r if n else None for r, n in zip(res, ctx.needs_input_grad[:3])) + (None,) * 5
 
 
 _tet_dd_op.register_autograd(_backward_fwd, setup_context=_setup_fwd)
