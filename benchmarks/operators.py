@@ -11,7 +11,8 @@ resident size is taken as the baseline, the peak counter is reset (``/proc/self/
 and the timed calls run; "peak +GB" is the peak resident size during the timed calls minus the
 baseline (mesh, tables and parameters excluded), "RSS GB" the absolute peak. Each time is the
 median (and the best) over ``--repeats`` calls (on a shared machine the best is
-the steadier figure). ``on`` = compiled C kernels where an op has one, ``off`` = the
+the steadier figure; "CPU (s)" is the least process CPU time of a call, all threads
+together, which a loaded machine inflates less than wall time). ``on`` = compiled C kernels where an op has one, ``off`` = the
 generic torch kernels (``torchconn.ops.compiled(False)``), side by side.
 
 Rows (loss = sum of squares, backward to the skew parameters of a ``ConnectionField``):
@@ -143,13 +144,14 @@ def _child(args) -> None:
         _trim()
         base = _status("VmRSS")
         _reset_peak()
-        ts = []
+        ts, cpu = [], []
         for _ in range(args.repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
             ts.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         peak = _status("VmHWM")
-    print(json.dumps({"time": statistics.median(ts), "best": min(ts), "peak_extra": peak - base, "rss": peak}))
+    print(json.dumps({"time": statistics.median(ts), "best": min(ts), "cpu": min(cpu), "peak_extra": peak - base, "rss": peak}))
 
 
 def main(argv=None) -> None:
@@ -168,8 +170,8 @@ def main(argv=None) -> None:
     mesh, name = _load(args)
     print(f"mesh: {name}: {mesh.tets.shape[0]} tets, {mesh.edges.shape[0]} edges; torch {torch.__version__}, "
           f"{args.threads} threads; median of {args.repeats}")
-    print("| row | dtype | kernels | median (s) | best (s) | peak +GB | RSS GB |")
-    print("|---|---|---|---|---|---|---|")
+    print("| row | dtype | kernels | median (s) | best (s) | CPU (s) | peak +GB | RSS GB |")
+    print("|---|---|---|---|---|---|---|---|")
     base = [sys.executable, "-m", "benchmarks.operators", "--child", "--repeats", str(args.repeats),
             "--threads", str(args.threads)]
     base += ["--mesh", str(args.mesh)] if args.mesh else (["--box", str(args.box)] if args.box else [])
@@ -179,11 +181,11 @@ def main(argv=None) -> None:
                 proc = subprocess.run(base + ["--dtype", dt, "--rows", row, "--switch", sw],
                                       capture_output=True, text=True)
                 if proc.returncode != 0:
-                    print(f"| {row} | {dt} | {sw} | failed: {proc.stderr.strip().splitlines()[-1:]} | | | |")
+                    print(f"| {row} | {dt} | {sw} | failed: {proc.stderr.strip().splitlines()[-1:]} | | | | |")
                     continue
                 r = json.loads(proc.stdout.strip().splitlines()[-1])
                 kern = "C" if sw == "on" else "generic"
-                print(f"| {row} | {dt} | {kern} | {r['time']:.3f} | {r['best']:.3f} | {r['peak_extra']:.3f} | "
+                print(f"| {row} | {dt} | {kern} | {r['time']:.3f} | {r['best']:.3f} | {r['cpu']:.3f} | {r['peak_extra']:.3f} | "
                       f"{r['rss']:.3f} |",
                       flush=True)
 

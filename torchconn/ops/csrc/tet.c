@@ -28,14 +28,18 @@
     (y)[_i] = (M)[_i] * (x)[0] + (M)[3+_i] * (x)[1] + (M)[6+_i] * (x)[2]; } while (0)
 
 #define DEFINE_TET(T_, SUF)                                                                        \
-/* gather the 6 oriented rotations (R or R^T) and the 7 θ̃ of tet t */                            \
-static inline void gather_##SUF(const T_ *rot, const T_ *th, const int64_t *ri, const int64_t *ti, \
-                                T_ R[6][9], T_ t[7][3]) {                                          \
+/* gather the 6 oriented rotations (R or R^T) of a tet */                                         \
+static inline void gather_rot_##SUF(const T_ *rot, const int64_t *ri, T_ R[6][9]) {                \
     for (int p = 0; p < 6; p++) {                                                                  \
         const T_ *src = rot + 9 * (ri[p] >> 1);                                                    \
         if (ri[p] & 1) { for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) R[p][3*i+j] = src[3*j+i]; } \
         else { for (int q = 0; q < 9; q++) R[p][q] = src[q]; }                                     \
     }                                                                                              \
+}                                                                                                  \
+/* ... and its 7 θ̃ */                                                                            \
+static inline void gather_##SUF(const T_ *rot, const T_ *th, const int64_t *ri, const int64_t *ti, \
+                                T_ R[6][9], T_ t[7][3]) {                                          \
+    gather_rot_##SUF(rot, ri, R);                                                                  \
     for (int k = 0; k < 7; k++) { const T_ *src = th + 3 * ti[k]; t[k][0] = src[0]; t[k][1] = src[1]; t[k][2] = src[2]; } \
 }                                                                                                  \
                                                                                                    \
@@ -79,14 +83,11 @@ static inline void outer_##SUF(T_ G[9], const T_ a[3], const T_ b[3]) {         
     for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) G[3*i+j] += a[i] * b[j];               \
 }                                                                                                  \
                                                                                                    \
-/* one tet: recompute the forward, reverse it, add into grot / gth */                              \
-static inline void bwd_tet_##SUF(const T_ *rot, const T_ *th, const int64_t *ri, const int64_t *ti, \
-                                 const T_ *g, T_ *grot, T_ *gth) {                                 \
-    T_ R[6][9], t[7][3], out[3], yc[3], yd[3], xb[3], xc[3], xd[3];                                \
-    gather_##SUF(rot, th, ri, ti, R, t);                                                           \
+/* one tet: recompute the forward and reverse it: gR (oriented R_p), gt (the 7 θ̃) */             \
+static inline void bwd_core_##SUF(T_ R[6][9], T_ t[7][3], const T_ *g, T_ gR[6][9], T_ gt[7][3]) {  \
+    T_ out[3], yc[3], yd[3], xb[3], xc[3], xd[3];                                                  \
     fwd_##SUF(R, t, out, yc, yd, xb, xc, xd);                                                      \
-    T_ gR[6][9];                                                                                   \
-    memset(gR, 0, sizeof(gR));                                                                     \
+    memset(gR, 0, sizeof(T_) * 54);                                                                \
     outer_##SUF(gR[0], g, xb); outer_##SUF(gR[1], g, xc); outer_##SUF(gR[2], g, xd);               \
     T_ gxb[3], gxc[3], gxd[3], gyc[3], gyd[3];                                                     \
     MTV(gxb, R[0], g); MTV(gxc, R[1], g); MTV(gxd, R[2], g);                                       \
@@ -101,7 +102,7 @@ static inline void bwd_tet_##SUF(const T_ *rot, const T_ *th, const int64_t *ri,
     outer_##SUF(gR[5], gpcd0, t[4]); outer_##SUF(gR[5], gpcd1, t[2]);                              \
     outer_##SUF(gR[5], t[3], gpdc0); outer_##SUF(gR[5], t[1], gpdc1);                              \
     outer_##SUF(gR[3], t[0], gpcb); outer_##SUF(gR[4], t[0], gpdb);                                \
-    T_ gt[7][3], u[3], v[3];                                                                       \
+    T_ u[3], v[3];                                                                                 \
     MV(u, R[3], gpcb); MV(v, R[4], gpdb);                                                          \
     for (int i = 0; i < 3; i++) gt[0][i] = u[i] + v[i];                                            \
     MV(u, R[5], gpdc1);                                                                            \
@@ -116,11 +117,23 @@ static inline void bwd_tet_##SUF(const T_ *rot, const T_ *th, const int64_t *ri,
         gt[5][i] = (T_)0.5 * (gxd[i] - gyd[i]);                                                    \
         gt[6][i] = (T_)0.5 * (gyc[i] - gxc[i]);                                                    \
     }                                                                                              \
+}                                                                                                  \
+                                                                                                   \
+static inline void scatter_rot_##SUF(const int64_t *ri, T_ gR[6][9], T_ *grot) {                   \
     for (int p = 0; p < 6; p++) {                                                                  \
         T_ *dst = grot + 9 * (ri[p] >> 1);                                                         \
         if (ri[p] & 1) { for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) dst[3*j+i] += gR[p][3*i+j]; } \
         else { for (int q = 0; q < 9; q++) dst[q] += gR[p][q]; }                                   \
     }                                                                                              \
+}                                                                                                  \
+                                                                                                   \
+/* one tet, θ̃ given: gather, reverse, add into grot / gth */                                      \
+static inline void bwd_tet_##SUF(const T_ *rot, const T_ *th, const int64_t *ri, const int64_t *ti, \
+                                 const T_ *g, T_ *grot, T_ *gth) {                                 \
+    T_ R[6][9], t[7][3], gR[6][9], gt[7][3];                                                       \
+    gather_##SUF(rot, th, ri, ti, R, t);                                                           \
+    bwd_core_##SUF(R, t, g, gR, gt);                                                               \
+    scatter_rot_##SUF(ri, gR, grot);                                                               \
     for (int k = 0; k < 7; k++) {                                                                  \
         T_ *dst = gth + 3 * ti[k];                                                                 \
         dst[0] += gt[k][0]; dst[1] += gt[k][1]; dst[2] += gt[k][2];                                \
@@ -150,5 +163,75 @@ void tet_dd_bwd_##SUF(const T_ *rot, const T_ *th, const T_ *gin, const int64_t 
     }                                                                                              \
 }
 
+
+/* The same with θ̃ formed in the kernel from the half transports: θ̃_ij = H_e v_e (dir 0),
+ * θ̃_ji = -H_e^T v_e (dir 1), half (nb, E, 9), vec (E, 3) shared by the batch. Backward:
+ * ghalf (nb, E, 9) and gvec (nb, E, 3) (per batch item, summed by the caller). */
+#define DEFINE_TET_SQRT(T_, SUF)                                                                   \
+static inline void theta_sqrt_##SUF(const T_ *half, const T_ *vec, const int64_t *ti, T_ t[7][3]) { \
+    for (int k = 0; k < 7; k++) {                                                                  \
+        int64_t e = ti[k] >> 1;                                                                    \
+        const T_ *H = half + 9 * e, *v = vec + 3 * e;                                              \
+        if (ti[k] & 1) { MTV(t[k], H, v); for (int i = 0; i < 3; i++) t[k][i] = -t[k][i]; }        \
+        else { MV(t[k], H, v); }                                                                   \
+    }                                                                                              \
+}                                                                                                  \
+                                                                                                   \
+void tet_dds_fwd_##SUF(const T_ *rot, const T_ *half, const T_ *vec, const int64_t *ridx,          \
+                       const int64_t *tidx, T_ *out, int64_t nb, int64_t E, int64_t T, int threads) { \
+    for (int64_t bi = 0; bi < nb; bi++) {                                                          \
+        const T_ *rb = rot + bi * 9 * E, *hb = half + bi * 9 * E;                                  \
+        T_ *ob = out + bi * 3 * T;                                                                 \
+        _Pragma("omp parallel for schedule(static) num_threads(threads)")                          \
+        for (int64_t k = 0; k < T; k++) {                                                          \
+            T_ R[6][9], t[7][3], yc[3], yd[3], xb[3], xc[3], xd[3];                                \
+            gather_rot_##SUF(rb, ridx + 6 * k, R);                                                 \
+            theta_sqrt_##SUF(hb, vec, tidx + 7 * k, t);                                            \
+            fwd_##SUF(R, t, ob + 3 * k, yc, yd, xb, xc, xd);                                       \
+        }                                                                                          \
+    }                                                                                              \
+}                                                                                                  \
+                                                                                                   \
+void tet_dds_bwd_##SUF(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,                \
+                       const int64_t *ridx, const int64_t *tidx, const int64_t *order,             \
+                       const int64_t *chunk_start, const int64_t *color_start, int64_t n_colors,   \
+                       T_ *grot, T_ *ghalf, T_ *gvec, int64_t nb, int64_t E, int64_t T, int threads) { \
+    memset(grot, 0, sizeof(T_) * 9 * E * nb);                                                      \
+    memset(ghalf, 0, sizeof(T_) * 9 * E * nb);                                                     \
+    memset(gvec, 0, sizeof(T_) * 3 * E * nb);                                                      \
+    for (int64_t c = 0; c < n_colors; c++) {                                                       \
+        int64_t c0 = color_start[c], nc = color_start[c + 1] - c0;                                 \
+        _Pragma("omp parallel for schedule(dynamic, 1) num_threads(threads)")                      \
+        for (int64_t w = 0; w < nb * nc; w++) {                                                    \
+            int64_t bi = w / nc, ch = c0 + w % nc;                                                 \
+            const T_ *rb = rot + bi * 9 * E, *hb = half + bi * 9 * E, *gb = gin + bi * 3 * T;      \
+            T_ *grb = grot + bi * 9 * E, *ghb = ghalf + bi * 9 * E, *gvb = gvec + bi * 3 * E;      \
+            for (int64_t s = chunk_start[ch]; s < chunk_start[ch + 1]; s++) {                      \
+                int64_t k = order[s];                                                              \
+                const int64_t *ri = ridx + 6 * k, *ti = tidx + 7 * k;                              \
+                T_ R[6][9], t[7][3], gR[6][9], gt[7][3];                                           \
+                gather_rot_##SUF(rb, ri, R);                                                       \
+                theta_sqrt_##SUF(hb, vec, ti, t);                                                  \
+                bwd_core_##SUF(R, t, gb + 3 * k, gR, gt);                                          \
+                scatter_rot_##SUF(ri, gR, grb);                                                    \
+                for (int q = 0; q < 7; q++) {                                                      \
+                    int64_t e = ti[q] >> 1;                                                        \
+                    const T_ *H = hb + 9 * e, *v = vec + 3 * e;                                    \
+                    T_ *gH = ghb + 9 * e, *gv = gvb + 3 * e, u[3];                                 \
+                    if (ti[q] & 1) { /* θ̃ = -H^T v */                                              \
+                        for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) gH[3*i+j] -= v[i] * gt[q][j]; \
+                        MV(u, H, gt[q]); for (int i = 0; i < 3; i++) gv[i] -= u[i];                \
+                    } else { /* θ̃ = H v */                                                         \
+                        for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) gH[3*i+j] += gt[q][i] * v[j]; \
+                        MTV(u, H, gt[q]); for (int i = 0; i < 3; i++) gv[i] += u[i];               \
+                    }                                                                              \
+                }                                                                                  \
+            }                                                                                      \
+        }                                                                                          \
+    }                                                                                              \
+}
+
 DEFINE_TET(float, f32)
 DEFINE_TET(double, f64)
+DEFINE_TET_SQRT(float, f32)
+DEFINE_TET_SQRT(double, f64)
