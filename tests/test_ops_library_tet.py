@@ -54,9 +54,17 @@ def _per_tet_reference(R, th, k):
 # ---------------------------------------------------------------- opcheck
 
 
+_FAST_UTILS = ("test_schema", "test_autograd_registration", "test_faketensor")
+_ALL_UTILS = _FAST_UTILS + ("test_aot_dispatch_dynamic",)
+
+
+@pytest.mark.parametrize("utils", [pytest.param(_FAST_UTILS, id="fast"),
+                                   pytest.param(_ALL_UTILS, id="aot", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("on", SWITCH)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_opcheck(on, dtype):
+def test_opcheck(on, dtype, utils):
+    """Schema, autograd registration and fake tensors in the default run; with
+    ``test_aot_dispatch_dynamic`` (minutes on a loaded 2-core machine) under ``-m slow``."""
     mesh = _two_tets()
     k = ops_tet.tet_kernel(mesh)
     R, th = _data(mesh, dtype)
@@ -66,13 +74,13 @@ def test_opcheck(on, dtype):
     rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
     with _switch(on):
         for args in ((R, th), (torch.stack((R, R.flip(0))), torch.stack((th, -th)))):  # unbatched, batched
-            torch.library.opcheck(ops_tet._tet_dd_op, (*rg(*args), *k.tables()))
+            torch.library.opcheck(ops_tet._tet_dd_op, (*rg(*args), *k.tables()), test_utils=utils)
         torch.library.opcheck(ops_tet._tet_dd_backward_op,
-                              (*rg(torch.stack((R, R)), torch.stack((th, th)), g), *k.tables()))
+                              (*rg(torch.stack((R, R)), torch.stack((th, th)), g), *k.tables()), test_utils=utils)
         torch.library.opcheck(ops_tet._tet_dd_sqrt_op, (*rg(torch.stack((R, R.flip(0))), torch.stack((H, H)), vec),
-                                                        *k.tables()))
+                                                        *k.tables()), test_utils=utils)
         torch.library.opcheck(ops_tet._tet_dd_sqrt_backward_op,
-                              (*rg(torch.stack((R, R)), torch.stack((H, H)), vec, g), *k.tables()))
+                              (*rg(torch.stack((R, R)), torch.stack((H, H)), vec, g), *k.tables()), test_utils=utils)
 
 
 # ---------------------------------------------------------------- values
@@ -138,13 +146,13 @@ def test_gradcheck_and_gradgradcheck(on):
         assert gradcheck(f, rg(R, th))
         assert gradgradcheck(f, rg(R, th))
         assert gradcheck(fs, rg(R, H, vec))
-        assert gradgradcheck(fs, rg(R, H, vec))
+        assert gradgradcheck(fs, rg(R, H, vec), fast_mode=True)  # 189 inputs: slow mode takes long
         # one input only, and an incoming gradient that depends on the input (square): the
         # double backward must not count the path through the incoming gradient twice
-        assert gradgradcheck(lambda A: f(A, th).square(), rg(R))
-        assert gradgradcheck(lambda t: f(R, t).square(), rg(th))
-        assert gradgradcheck(lambda A: fs(A, H, vec).square(), rg(R))
-        assert gradgradcheck(lambda B: fs(R, B, vec).square(), rg(H))
+        assert gradgradcheck(lambda A: f(A, th).square(), rg(R), fast_mode=True)
+        assert gradgradcheck(lambda t: f(R, t).square(), rg(th), fast_mode=True)
+        assert gradgradcheck(lambda A: fs(A, H, vec).square(), rg(R), fast_mode=True)
+        assert gradgradcheck(lambda B: fs(R, B, vec).square(), rg(H), fast_mode=True)
 
 
 @pytest.mark.parametrize("on", SWITCH)
