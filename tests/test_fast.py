@@ -203,7 +203,7 @@ def test_tet_dd_fused_gradcheck():
     Rr = R.clone().requires_grad_()
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64,
                      requires_grad=True)
-    fused = lambda A, t: ops_tet._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)  # noqa: E731
+    fused = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
 
     def plain(A, t):
         both = torch.stack((A, A.transpose(-1, -2)), 1).reshape(-1, 3, 3)
@@ -219,7 +219,7 @@ def test_tet_dd_fused_gradgradcheck():
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=4)
     k = ops_tet.tet_kernel(mesh)
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
-    fused = lambda A, t: ops_tet._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)  # noqa: E731
+    fused = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
     assert gradgradcheck(fused, (R.clone().requires_grad_(), th.clone().requires_grad_()))
     # one input differentiated only (needs_input_grad of the recorded backward)
     assert gradgradcheck(lambda A: fused(A, th), (R.clone().requires_grad_(),), fast_mode=True)

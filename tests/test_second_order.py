@@ -1,7 +1,7 @@
 """Second-order derivatives through the fused kernels: exact, or a clear error, never silently wrong.
 
-The face-curvature kernel (``torchconn::face_curvature``) and the averaged d∇d∇θ tet
-kernel (``ops.tet._TetDDSoAFn``) have hand-written backward passes that are themselves
+The face-curvature op (``torchconn::face_curvature``) and the averaged d∇d∇θ tet
+op (``torchconn::tet_dd``, ``ops.tet.tet_dd``) have backward passes that are themselves
 differentiable, so ``create_graph=True``, double backward and Hessian-vector products are
 exact: float64 ``gradgradcheck`` of the modules and of the functional entry points through
 ``so3.exp`` of skew parameters, Hessian-vector products against central differences of the
@@ -165,7 +165,7 @@ def test_recorded_backward_equals_first_order_backward():
     R = so3.exp(_skew(mesh, seed=13))
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(14), dtype=DT)
     k = ops_tet.tet_kernel(mesh)
-    ops = [lambda A, t: ops_tet._TetDDSoAFn.apply(A, t, k.rot_base, k.theta_base)]
+    ops = [lambda A, t: ops_tet.tet_dd(A, t, k)]
     ops += [lambda A, t, c=c: ops_curvature.face_curvature(A, mesh, c) * t.sum() for c in (0, 1, 2)]
     for op in ops:
         grads = []

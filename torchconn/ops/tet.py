@@ -1,50 +1,126 @@
-"""Averaged ``d∇d∇θ`` on tets as an op: the per-tet closed form of ``𝔡∇ Alt 𝔡∇ Alt θ̃``.
+"""Averaged ``d∇d∇θ`` on tets as a custom op: the per-tet closed form of ``𝔡∇ Alt 𝔡∇ Alt θ̃``.
 
 The end-of-Ch. 5 tetrahedron formula (:func:`torchconn.dec.dnabla.wedge_curvature_solder_tet`)
-regrouped as three rounds of batched matrix-vector products on the 6 edge rotations of each
-tet, with ``θ̃`` formed once per *edge* (both directions), never per tet, evaluated
-component-major with a hand-written backward (itself differentiable: double backward,
-``create_graph`` and Hessian-vector products are exact) on gather tables built once per mesh
-(:class:`TetKernel`, cached with ``mesh.require``). Any float dtype and device; constants
-follow the input. :func:`tet_dd_solder` is the op that
-:func:`torchconn.dec.dnabla.averaged_dd_solder` and :func:`torchconn.dec.dnabla.wedge_solder`
-call; it returns ``None`` where the kernel does not apply (rank other than 3), and the caller
-then evaluates its generic operators.
+regrouped as three rounds of matrix-vector products on the 6 edge rotations of each tet, with
+``θ̃`` formed once per *edge* (both directions), never per tet, and gathered per tet from index
+tables built once per mesh (:class:`TetKernel`, cached with ``mesh.require``).
+
+The op ``torchconn::tet_dd`` (:func:`tet_dd`) maps ``edge_rot (*B, E, 3, 3)`` and
+``edge_theta (*B, E, 2, 3)`` to ``(*B, T, 3)``:
+
+* CPU kernel: ``csrc/tet.c`` (OpenMP over tets, float32/float64, the leading batch looped in C)
+  when :func:`torchconn.ops.backend.can_use_compiled` allows it, else the generic kernel;
+* generic kernel (every device and float dtype): the component-major torch code of
+  :mod:`torchconn.ops._tet_soa`;
+* fake implementation (``meta``, ``torch.compile``, ``torch.export``);
+* autograd: the backward is the custom op ``torchconn::tet_dd_backward`` (C on CPU: values and
+  gradients in one sweep per tet, scattered into the edges race-free by chunks of tets colored
+  so that no two chunks of a color share an edge), whose own autograd differentiates the
+  generic torch formula: double backward, ``create_graph`` and Hessian-vector products are exact
+  on every path;
+* vmap: :func:`torchconn.ops._library.leading_vmap` (native leading batch dims). Autograd
+  outside ``vmap`` works; ``torch.func.grad`` / ``jvp`` / ``jacrev`` over the op raise
+  ``RuntimeError`` from torch (``torch.library`` autograd registrations do not support
+  functorch transforms in torch 2.13): use ``torch.autograd.grad`` /
+  ``torch.autograd.functional``.
+
+``torchconn::tet_dd_sqrt`` (:func:`tet_dd_sqrt`) is the same op with ``θ̃`` formed inside the
+kernel from ``√R`` and the edge vectors (no ``θ̃`` tensor and no ``θ̃`` gradient in memory);
+:func:`tet_dd_solder` uses it whenever no frames are given.
+
+:func:`tet_dd_solder` is the function that :func:`torchconn.dec.dnabla.averaged_dd_solder` and
+:func:`torchconn.dec.dnabla.wedge_solder` call; it returns ``None`` where the kernel does not
+apply (rank other than 3), and the caller then evaluates its generic operators.
 """
 from __future__ import annotations
 
+import ctypes
+
+import numpy as np
 import torch
 
+from . import _tet_soa
+from . import native as _native
 from ._cache import require as _require
+from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
+from .backend import can_use_compiled
 from .so3 import sqrt as _sqrt
 
-__all__ = ["TetKernel", "tet_kernel", "edge_solder_sqrt", "tet_dd_from_rotations", "tet_dd_solder"]
+__all__ = ["TetKernel", "tet_kernel", "edge_solder_sqrt", "tet_dd", "tet_dd_sqrt", "tet_dd_from_rotations",
+           "tet_dd_solder"]
 
-_FIELDS = ("rot_index", "theta_index", "rot_base", "theta_base")
+#: Tets per chunk of the race-free C backward (see :class:`TetKernel`); chosen by measurement
+#: (benchmarks/operators.py --chunk).
+CHUNK = 512
+
+_FIELDS = ("rot_index", "theta_index", "order", "chunk_start", "color_start")
+_I64 = ctypes.c_int64
+_P = ctypes.c_void_p
+_FWD = {dt: _native.declare("tet", f"tet_dd_fwd_{sfx}", [_P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+        for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+_BWD = {dt: _native.declare("tet", f"tet_dd_bwd_{sfx}",
+                            [_P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+        for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+
+
+def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int):
+    """Race-free order of the C backward: ``(order (T,), chunk_start (K+1,), color_start (C+1,))``.
+
+    Tets sorted by their smallest edge index (a band order when the vertex numbering is
+    coherent), cut into chunks of ``chunk`` consecutive tets; a greedy coloring gives chunks that
+    share an edge different colors (a 63-bit mask per edge; a chunk that finds all 63 taken gets
+    a color of its own, i.e. runs alone). The chunks are listed color by color. One-time cost per
+    mesh: a loop over the ``T / chunk`` chunks (numpy), not over tets."""
+    te = tet_edges.detach().cpu().numpy().astype(np.int64, copy=False)
+    T = te.shape[0]
+    order = np.argsort(te.min(1), kind="stable") if T else np.zeros(0, np.int64)
+    K = (T + chunk - 1) // chunk
+    mask = np.zeros(max(n_edges, 1), np.int64)
+    color = np.empty(K, np.int64)
+    own = 63
+    for k in range(K):
+        edges = te[order[k * chunk:(k + 1) * chunk]].reshape(-1)
+        used = int(np.bitwise_or.reduce(mask[edges]))
+        free = ~used & ((1 << 63) - 1)
+        if free:
+            c = (free & -free).bit_length() - 1
+            mask[edges] |= np.int64(1 << c)
+        else:
+            c, own = own, own + 1
+        color[k] = c
+    chunks = np.argsort(color, kind="stable")  # chunk ids, color by color
+    starts = np.minimum(np.arange(K + 1) * chunk, T)
+    lens = starts[1:] - starts[:-1]
+    new_order = np.concatenate([order[starts[c]:starts[c + 1]] for c in chunks]) if K else order
+    chunk_start = np.concatenate(([0], np.cumsum(lens[chunks])))
+    counts = np.bincount(color, minlength=int(color.max()) + 1 if K else 0)
+    color_start = np.concatenate(([0], np.cumsum(counts)))
+    return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64)) for a in (new_order, chunk_start, color_start))
 
 
 class TetKernel:
-    """Gather tables of a :class:`~torchconn.mesh.TetMesh` for the fused tet kernels (built once).
+    """Gather tables of a :class:`~torchconn.mesh.TetMesh` for the tet kernel (built once per mesh).
 
     Attributes (long, on the mesh device):
-        rot_index ``(T, 6)``: index into ``torch.stack((R, Rᵀ), 1).reshape(2E, 3, 3)`` giving the
-            oriented ``R_{x_i x_j}`` of local pair ``p`` (``pair_list(4)`` order), i.e.
-            ``2 e + (sign < 0)``.
+        rot_index ``(T, 6)``: ``2 e + (sign < 0)``: the oriented ``R_{x_i x_j}`` of local pair
+            ``p`` (``pair_list(4)`` order) is ``R_e`` or, for odd entries, ``R_eᵀ`` (equivalently
+            an index into ``torch.stack((R, Rᵀ), 1).reshape(2E, 3, 3)``).
         theta_index ``(T, 7)``: index into ``stack((θ̃_ij, θ̃_ji), 1).reshape(2E, 3)`` of the
             seven directed edges the formula reads, ``ba, ca, da, cb, db, dc, cd`` (local labels
             ``a, b, c, d = 0..3``).
-        rot_base ``(6, T)``, theta_base ``(7, T)``: the same in component-major layout
-            (:func:`_soa_gather`): column ``e`` plus ``9E`` (``3E``) for the reversed direction.
+        order ``(T,)``, chunk_start ``(K+1,)``, color_start ``(C+1,)``: the race-free schedule of
+            the C backward (:func:`_schedule`; read only by the CPU kernel; on other devices a
+            trivial one-chunk schedule).
     """
 
     # local pairs 01 02 03 12 13 23 and the directed edges (x, y) read as θ̃_xy
     _DIRECTED = ((1, 0), (2, 0), (3, 0), (2, 1), (3, 1), (3, 2), (2, 3))
 
-    def __init__(self, mesh):
+    def __init__(self, mesh, chunk: int = CHUNK):
         te = mesh.tet_edges
         neg = (mesh.tet_edge_signs < 0).long()
-        self.rot_index = 2 * te + neg
+        self.rot_index = (2 * te + neg).contiguous()
         pair = {(0, 1): 0, (0, 2): 1, (0, 3): 2, (1, 2): 3, (1, 3): 4, (2, 3): 5}
         cols = []
         for x, y in self._DIRECTED:
@@ -53,20 +129,42 @@ class TetKernel:
             # runs against the local order, so against the stored edge iff sign > 0
             against = neg[:, p] if x < y else 1 - neg[:, p]
             cols.append(2 * te[:, p] + against)
-        self.theta_index = torch.stack(cols, 1)
-        E = int(mesh.edges.shape[0])
-        # component-major ("structure of arrays") bases, pair-major (6, T) / (7, T): component
-        # q of the oriented R_p is row q (+ 9 if reversed) of the (18, E) table [Rᵀ-rows; R-rows]
-        self.rot_base = (self.rot_index % 2 * 9 * E + self.rot_index // 2).t().contiguous()
-        self.theta_base = (self.theta_index % 2 * 3 * E + self.theta_index // 2).t().contiguous()
-        self.n_edges = E
+        self.theta_index = torch.stack(cols, 1).contiguous()
+        self.n_edges = int(mesh.edges.shape[0])
+        self.chunk = chunk
+        self._set_schedule(te)
+
+    def _set_schedule(self, te):
+        dev = self.rot_index.device
+        if dev.type == "cpu":
+            self.order, self.chunk_start, self.color_start = _schedule(te, self.n_edges, self.chunk)
+        else:  # read only by the CPU kernel; no values needed (meta) and no device sync
+            T = self.rot_index.shape[0]
+            self.order = torch.arange(T, device=dev)
+            self.chunk_start = torch.tensor([0, T], device=dev)
+            self.color_start = torch.tensor([0, 1], device=dev)
+
+    @property
+    def n_colors(self) -> int:
+        """Number of colors of the backward schedule."""
+        return self.color_start.shape[0] - 1
+
+    def tables(self) -> tuple[torch.Tensor, ...]:
+        """``(rot_index, theta_index, order, chunk_start, color_start)``: the table arguments of :func:`tet_dd`."""
+        return tuple(getattr(self, name) for name in _FIELDS)
 
     def to(self, device) -> "TetKernel":
         """A copy with the tables on ``device`` (``self`` is left as it is)."""
         new = object.__new__(TetKernel)
-        for name in _FIELDS:
-            setattr(new, name, getattr(self, name).to(device))
-        new.n_edges = self.n_edges
+        new.n_edges, new.chunk = self.n_edges, self.chunk
+        new.rot_index, new.theta_index = self.rot_index.to(device), self.theta_index.to(device)
+        dev = torch.device(device)
+        if dev.type == "cpu" and self.rot_index.device.type != "cpu":
+            new._set_schedule((self.rot_index // 2).cpu())  # a real schedule for the C kernel
+        elif dev.type == "cpu":
+            new.order, new.chunk_start, new.color_start = self.order, self.chunk_start, self.color_start
+        else:
+            new._set_schedule(None)
         return new
 
 
@@ -80,260 +178,291 @@ def tet_kernel(mesh, device: torch.device | str | None = None) -> TetKernel:
 
 
 def edge_solder_sqrt(half_rot: torch.Tensor, edge_vec: torch.Tensor) -> torch.Tensor:
-    """Half-transported solder form of both directions of every edge: ``(E, 2, 3)``.
+    """Half-transported solder form of both directions of every edge: ``(*B, E, 2, 3)``.
 
     ``[e, 0] = θ̃_ij = √R_ij (v_j - v_i)`` and ``[e, 1] = θ̃_ji = √R_ji (v_i - v_j) =
     -√R_ijᵀ (v_j - v_i)`` for ``edges[e] = (i, j)`` (report Sec. 3.3, docs/conventions.md §1).
 
     Args:
-        half_rot: ``(E, 3, 3)`` ``√R_ij``; edge_vec: ``(E, 3)`` ``v_j - v_i``.
+        half_rot: ``(*B, E, 3, 3)`` ``√R_ij``; edge_vec: ``(E, 3)`` (or broadcastable) ``v_j - v_i``.
     """
-    return torch.stack((_matvec(half_rot, edge_vec), -_matTvec(half_rot, edge_vec)), 1)
+    vec = edge_vec.expand(*half_rot.shape[:-1])
+    return torch.stack((_matvec(half_rot, vec), -_matTvec(half_rot, vec)), -2)
 
 
-def _tet_dd_forward(rot: torch.Tensor, theta: torch.Tensor):
-    """The regrouped formula of :func:`tet_dd_from_rotations` with batched ``bmm``; returns the
-    output and the stacked intermediates ``(y_c, y_d)``, ``(x_b, x_c, x_d)``."""
-    Rbc, Rbd, Rcd = rot[:, 3], rot[:, 4], rot[:, 5]
-    t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = theta.unbind(1)
-    # round 1 (R_yx = R_xyᵀ: transposed products, no copies)
-    p_cd = Rcd.unsqueeze(1) @ torch.stack((t_db, t_da), 1).unsqueeze(-1)  # R_cd θ̃_db, R_cd θ̃_da
-    p_dc = Rcd.transpose(-1, -2).unsqueeze(1) @ torch.stack((t_cb, t_ca), 1).unsqueeze(-1)  # R_dc θ̃_cb, R_dc θ̃_ca
-    p_ba = torch.stack((Rbc, Rbd), 1).transpose(-1, -2) @ t_ba[:, None, :, None]  # R_cb θ̃_ba, R_db θ̃_ba
-    p_cd, p_dc, p_ba = p_cd.squeeze(-1), p_dc.squeeze(-1), p_ba.squeeze(-1)
-    sixth = 1.0 / 6.0
-    y_c = (p_cd[:, 0] - t_ca) * sixth - t_cb / 3.0 + 0.5 * t_cd
-    y_d = (t_da - p_dc[:, 0]) * sixth + t_db / 3.0 - 0.5 * t_dc
-    x_c = (p_ba[:, 0] - p_cd[:, 1]) * sixth + 0.5 * (t_cb - t_cd)
-    x_d = (p_dc[:, 1] - p_ba[:, 1]) * sixth - 0.5 * (t_db - t_dc)
-    # round 2: X_b = R_bc y_c + R_bd y_d
-    y = torch.stack((y_c, y_d), 1)
-    x_b = (rot[:, 3:5] @ y.unsqueeze(-1)).squeeze(-1).sum(1)
-    # round 3: R_ab X_b + R_ac X_c + R_ad X_d
-    x = torch.stack((x_b, x_c, x_d), 1)
-    out = (rot[:, 0:3] @ x.unsqueeze(-1)).squeeze(-1).sum(1)
-    return out, y, x
+# ----------------------------------------------------------------------------- the custom ops
+
+def _flat(edge_rot, edge_theta):
+    E = edge_rot.shape[-3]
+    return edge_rot.reshape(-1, E, 3, 3), edge_theta.reshape(-1, E, 2, 3)
 
 
-def _mv(M, v):
-    """``M v`` on unbound components: ``M`` 9 tensors (row-major), ``v`` 3 tensors -> 3 tensors."""
-    return tuple(torch.addcmul(torch.addcmul(M[3 * i] * v[0], M[3 * i + 1], v[1]), M[3 * i + 2], v[2])
-                 for i in range(3))
+def _generic_fwd(edge_rot, edge_theta, rot_index, theta_index):
+    R, th = _flat(edge_rot, edge_theta)
+    out = _tet_soa.forward(R, th, rot_index, theta_index)
+    return out.reshape(*edge_rot.shape[:-3], rot_index.shape[0], 3)
 
 
-def _mtv(M, v):
-    """``Mᵀ v`` on unbound components."""
-    return tuple(torch.addcmul(torch.addcmul(M[i] * v[0], M[3 + i], v[1]), M[6 + i], v[2]) for i in range(3))
+def _generic_bwd(edge_rot, edge_theta, grad, rot_index, theta_index):
+    R, th = _flat(edge_rot, edge_theta)
+    gR, gth = _tet_soa.backward(R, th, grad.reshape(R.shape[0], -1, 3), rot_index, theta_index)
+    return gR.reshape(edge_rot.shape).contiguous(), gth.reshape(edge_theta.shape).contiguous()
 
 
-def _mv2(M, v, N, w):
-    """``M v + N w`` on unbound components."""
-    out = []
-    for i in range(3):
-        acc = M[3 * i] * v[0]
-        for j in (1, 2):
-            acc = torch.addcmul(acc, M[3 * i + j], v[j])
-        for j in range(3):
-            acc = torch.addcmul(acc, N[3 * i + j], w[j])
-        out.append(acc)
-    return tuple(out)
+def _c_sizes(edge_rot, rot_index):
+    E, T = edge_rot.shape[-3], rot_index.shape[0]
+    return _I64(edge_rot.numel() // (9 * E) if E else 0), _I64(E), _I64(T)
 
 
-def _lin(*terms):
-    """``Σ c_k v_k`` for ``(c_k, v_k)`` pairs, each ``v_k`` 3 tensors (``torch.add(.., alpha=)``)."""
-    c0, v0 = terms[0]
-    out = [v0[i] * c0 if c0 != 1.0 else v0[i] for i in range(3)]
-    for c, v in terms[1:]:
-        out = [torch.add(out[i], v[i], alpha=c) for i in range(3)]
-    return tuple(out)
+@torch.library.custom_op(qualname("tet_dd"), mutates_args=())
+def _tet_dd_op(edge_rot: torch.Tensor, edge_theta: torch.Tensor, rot_index: torch.Tensor,
+               theta_index: torch.Tensor, order: torch.Tensor, chunk_start: torch.Tensor,
+               color_start: torch.Tensor) -> torch.Tensor:
+    """``torchconn::tet_dd``: ``(*B, E, 3, 3)``, ``(*B, E, 2, 3)`` -> ``(*B, T, 3)`` (generic kernel)."""
+    return _generic_fwd(edge_rot, edge_theta, rot_index, theta_index)
 
 
-def _outer_into(G, a, b, acc: bool):
-    """``G += a bᵀ`` (or ``G = a bᵀ``) into the 9 component views ``G`` (in place)."""
-    for i in range(3):
-        for j in range(3):
-            if acc:
-                G[3 * i + j].addcmul_(a[i], b[j])
-            else:
-                torch.mul(a[i], b[j], out=G[3 * i + j])
-
-
-class _OuterInPlace:
-    """Sink of :func:`_soa_backward`: ``∂L/∂R_p`` written into preallocated component views.
-
-    The first-order backward (no graph recorded): no temporaries, no final stack."""
-
-    def __init__(self, gR):
-        self.gR = gR
-
-    def __call__(self, p: int, a, b, acc: bool) -> None:
-        _outer_into(self.gR[p], a, b, acc)
-
-
-class _OuterRecorded:
-    """Sink of :func:`_soa_backward`: ``∂L/∂R_p`` built out of place (``mul``, ``addcmul``).
-
-    For a recorded backward (``create_graph``): ``out=`` and in-place writes into a buffer
-    that autograd does not track are not differentiable. ``gR[p]`` is 9 tensors ``(T,)``."""
-
-    def __init__(self):
-        self.gR = [None] * 6
-
-    def __call__(self, p: int, a, b, acc: bool) -> None:
-        if acc:
-            self.gR[p] = tuple(torch.addcmul(self.gR[p][3 * i + j], a[i], b[j]) for i in range(3) for j in range(3))
-        else:
-            self.gR[p] = tuple(a[i] * b[j] for i in range(3) for j in range(3))
-
-
-def _soa_forward(R, t):
-    """Component form of :func:`_tet_dd_forward`; ``R`` 6 x 9 and ``t`` 7 x 3 tensors ``(T,)``."""
-    Rab, Rac, Rad, Rbc, Rbd, Rcd = R
-    t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = t
-    s6 = 1.0 / 6.0
-    p_cd0, p_cd1 = _mv(Rcd, t_db), _mv(Rcd, t_da)
-    p_dc0, p_dc1 = _mtv(Rcd, t_cb), _mtv(Rcd, t_ca)
-    p_cb, p_db = _mtv(Rbc, t_ba), _mtv(Rbd, t_ba)
-    y_c = _lin((s6, p_cd0), (-s6, t_ca), (-1.0 / 3.0, t_cb), (0.5, t_cd))
-    y_d = _lin((s6, t_da), (-s6, p_dc0), (1.0 / 3.0, t_db), (-0.5, t_dc))
-    x_c = _lin((s6, p_cb), (-s6, p_cd1), (0.5, t_cb), (-0.5, t_cd))
-    x_d = _lin((s6, p_dc1), (-s6, p_db), (-0.5, t_db), (0.5, t_dc))
-    x_b = _mv2(Rbc, y_c, Rbd, y_d)
-    out = _mv2(Rab, x_b, Rac, x_c)
-    out = _add3(out, _mv(Rad, x_d))
-    return out, (y_c, y_d, x_b, x_c, x_d)
-
-
-def _add3(a, b):
-    return tuple(a[i] + b[i] for i in range(3))
-
-
-def _soa_backward(R, t, inter, g, outer):
-    """Reverse of :func:`_soa_forward`: returns ``∂L/∂θ̃`` (7 x 3 tensors) and hands every
-    ``∂L/∂R_p`` term ``a bᵀ`` to ``outer(p, a, b, acc)`` (:class:`_OuterInPlace`,
-    :class:`_OuterRecorded`). Differentiable when ``outer`` is (all other steps are out of place)."""
-    Rab, Rac, Rad, Rbc, Rbd, Rcd = R
-    t_ba, t_ca, t_da, t_cb, t_db, t_dc, t_cd = t
-    y_c, y_d, x_b, x_c, x_d = inter
-    s6 = 1.0 / 6.0
-    outer(0, g, x_b, False)
-    outer(1, g, x_c, False)
-    outer(2, g, x_d, False)
-    gx_b, gx_c, gx_d = _mtv(Rab, g), _mtv(Rac, g), _mtv(Rad, g)
-    outer(3, gx_b, y_c, False)
-    outer(4, gx_b, y_d, False)
-    gy_c, gy_d = _mtv(Rbc, gx_b), _mtv(Rbd, gx_b)
-    gp_cd0, gp_dc0 = _lin((s6, gy_c)), _lin((-s6, gy_d))
-    gp_cb, gp_cd1 = _lin((s6, gx_c)), _lin((-s6, gx_c))
-    gp_dc1, gp_db = _lin((s6, gx_d)), _lin((-s6, gx_d))
-    outer(5, gp_cd0, t_db, False)
-    outer(5, gp_cd1, t_da, True)
-    outer(5, t_cb, gp_dc0, True)
-    outer(5, t_ca, gp_dc1, True)
-    outer(3, t_ba, gp_cb, True)
-    outer(4, t_ba, gp_db, True)
-    return (
-        _mv2(Rbc, gp_cb, Rbd, gp_db),                                    # θ̃_ba
-        _lin((1.0, _mv(Rcd, gp_dc1)), (-s6, gy_c)),                      # θ̃_ca
-        _lin((1.0, _mtv(Rcd, gp_cd1)), (s6, gy_d)),                      # θ̃_da
-        _lin((1.0, _mv(Rcd, gp_dc0)), (-1.0 / 3.0, gy_c), (0.5, gx_c)),  # θ̃_cb
-        _lin((1.0, _mtv(Rcd, gp_cd0)), (1.0 / 3.0, gy_d), (-0.5, gx_d)),  # θ̃_db
-        _lin((-0.5, gy_d), (0.5, gx_d)),                                 # θ̃_dc
-        _lin((0.5, gy_c), (-0.5, gx_c)),                                 # θ̃_cd
-    )
-
-
-def _soa_gather(table: torch.Tensor, base: torch.Tensor, comps: int, E: int) -> torch.Tensor:
-    """``out[q, p, t] = table[q * E + base[p, t]]``: ``(comps, P, T)`` from a flat component table."""
-    flat_base = base.reshape(-1)
-    return torch.stack([table[q * E:].index_select(0, flat_base) for q in range(comps)], 0).reshape(
-        comps, *base.shape)
-
-
-def _soa_scatter(vals: torch.Tensor, base: torch.Tensor, rows: int, E: int) -> torch.Tensor:
-    """Adjoint of :func:`_soa_gather`: ``(rows * E,)`` sums of ``vals (comps, P, T)``."""
-    out = vals.new_zeros(rows * E)
-    flat_base = base.reshape(-1)
-    for q in range(vals.shape[0]):
-        out[q * E:].index_add_(0, flat_base, vals[q].reshape(-1))
+@_tet_dd_op.register_kernel("cpu")
+def _(edge_rot, edge_theta, rot_index, theta_index, order, chunk_start, color_start):
+    if not can_use_compiled("tet", edge_rot, edge_theta):
+        return _generic_fwd(edge_rot, edge_theta, rot_index, theta_index)
+    R, th = edge_rot.contiguous(), edge_theta.contiguous()
+    ri, ti = rot_index.contiguous(), theta_index.contiguous()
+    out = torch.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
+    nb, E, T = _c_sizes(R, ri)
+    if out.numel():
+        _FWD[R.dtype](_native.ptr(R), _native.ptr(th), _native.ptr(ri), _native.ptr(ti), _native.ptr(out),
+                      nb, E, T, torch.get_num_threads())
     return out
 
 
-def _soa_tables(edge_rot, edge_theta, rot_base, theta_base):
-    """Per-tet component arrays: ``rot (9, 6, T)`` of the oriented ``R_p`` and ``th (3, 7, T)``
-    of the seven ``θ̃`` (``index_select`` of edge tables, differentiable)."""
-    E = edge_rot.shape[0]
-    table = torch.cat((edge_rot.reshape(E, 9).t(), edge_rot.transpose(-1, -2).reshape(E, 9).t()), 0)
-    rot = _soa_gather(table.reshape(-1), rot_base, 9, E)  # (9, 6, T)
-    tt = edge_theta.permute(1, 2, 0).reshape(-1)  # (2, 3, E): θ̃_ij rows then θ̃_ji rows
-    return rot, _soa_gather(tt, theta_base, 3, E)  # (3, 7, T)
+@_tet_dd_op.register_fake
+def _(edge_rot, edge_theta, rot_index, theta_index, order, chunk_start, color_start):
+    return edge_rot.new_empty(*edge_rot.shape[:-3], rot_index.shape[0], 3)
 
 
-def _unbind_tables(rot, th):
-    """``R`` 6 x 9 and ``t`` 7 x 3 component tensors ``(T,)`` (views) of :func:`_soa_tables`."""
-    return [[rot[q, p] for q in range(9)] for p in range(6)], [[th[c, k] for c in range(3)] for k in range(7)]
+@torch.library.custom_op(qualname("tet_dd_backward"), mutates_args=())
+def _tet_dd_backward_op(edge_rot: torch.Tensor, edge_theta: torch.Tensor, grad: torch.Tensor,
+                        rot_index: torch.Tensor, theta_index: torch.Tensor, order: torch.Tensor,
+                        chunk_start: torch.Tensor, color_start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torchconn::tet_dd_backward``: the vector-Jacobian product of ``tet_dd`` for ``grad (*B, T, 3)``:
+    ``(∂L/∂edge_rot (*B, E, 3, 3), ∂L/∂edge_theta (*B, E, 2, 3))`` (generic kernel)."""
+    return _generic_bwd(edge_rot, edge_theta, grad, rot_index, theta_index)
 
 
-class _TetDDSoAFn(torch.autograd.Function):
-    """Gather + closed form + scatter, component-major: ``(edge_rot (E,3,3), edge_theta (E,2,3)) -> (T,3)``.
+@_tet_dd_backward_op.register_kernel("cpu")
+def _(edge_rot, edge_theta, grad, rot_index, theta_index, order, chunk_start, color_start):
+    if not can_use_compiled("tet", edge_rot, edge_theta, grad):
+        return _generic_bwd(edge_rot, edge_theta, grad, rot_index, theta_index)
+    R, th, g = edge_rot.contiguous(), edge_theta.contiguous(), grad.contiguous()
+    tabs = [t.contiguous() for t in (rot_index, theta_index, order, chunk_start)]
+    cs = color_start.contiguous()
+    g_rot, g_th = torch.empty(R.shape, dtype=R.dtype), torch.empty(th.shape, dtype=R.dtype)
+    nb, E, T = _c_sizes(R, rot_index)
+    if g_rot.numel():  # the kernel zeroes its outputs
+        _BWD[R.dtype](_native.ptr(R), _native.ptr(th), _native.ptr(g), *(_native.ptr(t) for t in tabs),
+                      _native.ptr(cs), _I64(cs.shape[0] - 1), _native.ptr(g_rot), _native.ptr(g_th),
+                      nb, E, T, torch.get_num_threads())
+    else:
+        g_rot.zero_(), g_th.zero_()
+    return g_rot, g_th
 
-    Every ``(T,)`` component is a contiguous array, so a 3x3 matrix-vector product is 9
-    multiply-adds on contiguous memory (several times faster on CPU than batched 3x3 ``bmm``,
-    which is itself several times faster than a broadcast multiply and a sum). The edge tables
-    are laid out as ``(18, E)`` (``R`` then ``Rᵀ`` components) and ``(6, E)`` (``θ̃_ij`` then
-    ``θ̃_ji``); the per-tet data is gathered with 9 + 3 ``index_select`` of ``(6T,)`` / ``(7T,)``
-    and the backward scatters with ``index_add``.
 
-    The backward is differentiable: when it is recorded (``create_graph=True``, i.e. grad mode
-    on inside the backward: double backward, Hessian-vector products) it gathers the per-tet
-    data and the forward intermediates again from the saved inputs and builds the gradient out
-    of place (:class:`_OuterRecorded`), so autograd sees every dependence on ``edge_rot``,
-    ``edge_theta`` and the incoming gradient; otherwise it reuses the tables saved by the
-    forward and writes into preallocated buffers (:class:`_OuterInPlace`).
+@_tet_dd_backward_op.register_fake
+def _(edge_rot, edge_theta, grad, rot_index, theta_index, order, chunk_start, color_start):
+    return edge_rot.new_empty(edge_rot.shape), edge_theta.new_empty(edge_theta.shape)
+
+
+def _setup_fwd(ctx, inputs, output):
+    ctx.save_for_backward(*inputs)
+
+
+def _backward_fwd(ctx, grad):
+    edge_rot, edge_theta, *tables = ctx.saved_tensors
+    g_rot, g_th = _tet_dd_backward_op(edge_rot, edge_theta, grad.contiguous(), *tables)
+    need = ctx.needs_input_grad
+    return (g_rot if need[0] else None, g_th if need[1] else None) + (None,) * 5
+
+
+def _setup_bwd(ctx, inputs, output):
+    ctx.save_for_backward(*inputs)
+
+
+def _backward_bwd(ctx, gg_rot, gg_th):
+    """Differentiates the generic torch formula (exact second and higher derivatives).
+
+    ``torch.func.vjp`` of the map ``(R, θ̃, g) -> vjp of the generic forward``: a function
+    transform, so its derivatives do not leak into the outer graph (``g`` usually depends on
+    ``R`` there: differentiating with ``autograd.grad`` on the saved tensors would count that
+    path twice), while the result stays differentiable for the outer autograd (third order)."""
+    edge_rot, edge_theta, grad, rot_index, theta_index = ctx.saved_tensors[:5]
+
+    def vjp_generic(R, th, g):
+        return torch.func.vjp(lambda a, b: _generic_fwd(a, b, rot_index, theta_index), R, th)[1](g)
+
+    _, pullback = torch.func.vjp(vjp_generic, edge_rot, edge_theta, grad)
+    gg = (torch.zeros_like(edge_rot) if gg_rot is None else gg_rot,
+          torch.zeros_like(edge_theta) if gg_th is None else gg_th)
+    res = pullback(gg)
+    return tuple(r if n else None for r, n in zip(res, ctx.needs_input_grad[:3])) + (None,) * 5
+
+
+_tet_dd_op.register_autograd(_backward_fwd, setup_context=_setup_fwd)
+_tet_dd_backward_op.register_autograd(_backward_bwd, setup_context=_setup_bwd)
+_tet_dd_op.register_vmap(leading_vmap(_tet_dd_op, "tet_dd", batched=(0, 1)))
+_tet_dd_backward_op.register_vmap(leading_vmap(_tet_dd_backward_op, "tet_dd_backward", batched=(0, 1, 2), n_out=2))
+
+
+# ---- the same with θ̃ formed inside the kernel from √R and v_j - v_i (no θ̃ tensors at all)
+
+_SFWD = {dt: _native.declare("tet", f"tet_dds_fwd_{sfx}", [_P, _P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+         for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+_SBWD = {dt: _native.declare("tet", f"tet_dds_bwd_{sfx}",
+                             [_P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+         for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+
+
+def _generic_sqrt_fwd(edge_rot, half_rot, edge_vec, rot_index, theta_index):
+    return _generic_fwd(edge_rot, edge_solder_sqrt(half_rot, edge_vec), rot_index, theta_index)
+
+
+def _generic_sqrt_bwd(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index):
+    theta = edge_solder_sqrt(half_rot, edge_vec)
+    g_rot, g_th = _generic_bwd(edge_rot, theta, grad, rot_index, theta_index)
+    g0, g1 = g_th[..., 0, :], g_th[..., 1, :]  # θ̃_ij = H v, θ̃_ji = -Hᵀ v
+    g_half = g0.unsqueeze(-1) * edge_vec.unsqueeze(-2) - edge_vec.unsqueeze(-1) * g1.unsqueeze(-2)
+    g_vec = (_matTvec(half_rot, g0) - _matvec(half_rot, g1)).reshape(-1, *edge_vec.shape).sum(0)
+    return g_rot, g_half.contiguous(), g_vec
+
+
+@torch.library.custom_op(qualname("tet_dd_sqrt"), mutates_args=())
+def _tet_dd_sqrt_op(edge_rot: torch.Tensor, half_rot: torch.Tensor, edge_vec: torch.Tensor,
+                    rot_index: torch.Tensor, theta_index: torch.Tensor, order: torch.Tensor,
+                    chunk_start: torch.Tensor, color_start: torch.Tensor) -> torch.Tensor:
+    """``torchconn::tet_dd_sqrt``: ``tet_dd`` with ``θ̃_ij = √R_ij v``, ``θ̃_ji = -√R_ijᵀ v`` formed
+    inside: ``edge_rot``, ``half_rot (*B, E, 3, 3)``, ``edge_vec (E, 3)`` -> ``(*B, T, 3)`` (generic kernel)."""
+    return _generic_sqrt_fwd(edge_rot, half_rot, edge_vec, rot_index, theta_index)
+
+
+@_tet_dd_sqrt_op.register_kernel("cpu")
+def _(edge_rot, half_rot, edge_vec, rot_index, theta_index, order, chunk_start, color_start):
+    if not can_use_compiled("tet", edge_rot, half_rot, edge_vec):
+        return _generic_sqrt_fwd(edge_rot, half_rot, edge_vec, rot_index, theta_index)
+    R, H, v = edge_rot.contiguous(), half_rot.contiguous(), edge_vec.contiguous()
+    ri, ti = rot_index.contiguous(), theta_index.contiguous()
+    out = torch.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
+    nb, E, T = _c_sizes(R, ri)
+    if out.numel():
+        _SFWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(ri), _native.ptr(ti),
+                       _native.ptr(out), nb, E, T, torch.get_num_threads())
+    return out
+
+
+@_tet_dd_sqrt_op.register_fake
+def _(edge_rot, half_rot, edge_vec, rot_index, theta_index, order, chunk_start, color_start):
+    return edge_rot.new_empty(*edge_rot.shape[:-3], rot_index.shape[0], 3)
+
+
+@torch.library.custom_op(qualname("tet_dd_sqrt_backward"), mutates_args=())
+def _tet_dd_sqrt_backward_op(edge_rot: torch.Tensor, half_rot: torch.Tensor, edge_vec: torch.Tensor,
+                             grad: torch.Tensor, rot_index: torch.Tensor, theta_index: torch.Tensor,
+                             order: torch.Tensor, chunk_start: torch.Tensor, color_start: torch.Tensor
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``torchconn::tet_dd_sqrt_backward``: ``(∂L/∂edge_rot, ∂L/∂half_rot, ∂L/∂edge_vec)`` (generic kernel)."""
+    return _generic_sqrt_bwd(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index)
+
+
+@_tet_dd_sqrt_backward_op.register_kernel("cpu")
+def _(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index, order, chunk_start, color_start):
+    if not can_use_compiled("tet", edge_rot, half_rot, edge_vec, grad):
+        return _generic_sqrt_bwd(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index)
+    R, H, v, g = edge_rot.contiguous(), half_rot.contiguous(), edge_vec.contiguous(), grad.contiguous()
+    tabs = [t.contiguous() for t in (rot_index, theta_index, order, chunk_start)]
+    cs = color_start.contiguous()
+    nb, E, T = _c_sizes(R, rot_index)
+    g_rot, g_half = torch.empty(R.shape, dtype=R.dtype), torch.empty(H.shape, dtype=R.dtype)
+    g_vec = torch.empty(nb.value, *v.shape, dtype=R.dtype)
+    if g_rot.numel():  # the kernel zeroes its outputs
+        _SBWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(g),
+                       *(_native.ptr(t) for t in tabs), _native.ptr(cs), _I64(cs.shape[0] - 1),
+                       _native.ptr(g_rot), _native.ptr(g_half), _native.ptr(g_vec), nb, E, T,
+                       torch.get_num_threads())
+    else:
+        g_rot.zero_(), g_half.zero_(), g_vec.zero_()
+    return g_rot, g_half, (g_vec[0].clone() if nb.value == 1 else g_vec.sum(0))
+
+
+@_tet_dd_sqrt_backward_op.register_fake
+def _(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index, order, chunk_start, color_start):
+    return edge_rot.new_empty(edge_rot.shape), half_rot.new_empty(half_rot.shape), edge_vec.new_empty(edge_vec.shape)
+
+
+def _backward_sqrt_fwd(ctx, grad):
+    edge_rot, half_rot, edge_vec, *tables = ctx.saved_tensors
+    gs = _tet_dd_sqrt_backward_op(edge_rot, half_rot, edge_vec, grad.contiguous(), *tables)
+    return tuple(g if n else None for g, n in zip(gs, ctx.needs_input_grad[:3])) + (None,) * 5
+
+
+def _backward_sqrt_bwd(ctx, gg_rot, gg_half, gg_vec):
+    """As :func:`_backward_bwd`: ``torch.func.vjp`` of the vjp of the generic formula."""
+    edge_rot, half_rot, edge_vec, grad, rot_index, theta_index = ctx.saved_tensors[:6]
+
+    def vjp_generic(R, H, v, g):
+        return torch.func.vjp(lambda a, b, c: _generic_sqrt_fwd(a, b, c, rot_index, theta_index), R, H, v)[1](g)
+
+    _, pullback = torch.func.vjp(vjp_generic, edge_rot, half_rot, edge_vec, grad)
+    gg = tuple(torch.zeros_like(x) if g is None else g
+               for g, x in zip((gg_rot, gg_half, gg_vec), (edge_rot, half_rot, edge_vec)))
+    res = pullback(gg)
+    return tuple(r if n else None for r, n in zip(res, ctx.needs_input_grad[:4])) + (None,) * 5
+
+
+_tet_dd_sqrt_op.register_autograd(_backward_sqrt_fwd, setup_context=_setup_fwd)
+_tet_dd_sqrt_backward_op.register_autograd(_backward_sqrt_bwd, setup_context=_setup_bwd)
+_tet_dd_sqrt_op.register_vmap(leading_vmap(_tet_dd_sqrt_op, "tet_dd_sqrt", batched=(0, 1)))
+_tet_dd_sqrt_backward_op.register_vmap(
+    leading_vmap(_tet_dd_sqrt_backward_op, "tet_dd_sqrt_backward", batched=(0, 1, 3), n_out=3))
+
+
+def tet_dd(edge_rot: torch.Tensor, edge_theta: torch.Tensor, kernel: TetKernel) -> torch.Tensor:
+    """``torchconn::tet_dd`` on the tables of ``kernel``: ``(*B, E, 3, 3)``, ``(*B, E, 2, 3)`` -> ``(*B, T, 3)``.
+
+    Value at ``tets[t, 0]`` of the closed form :func:`tet_dd_from_rotations` on the gathered
+    oriented rotations ``edge_rot`` (``R_ij`` of the canonical edges) and half-transported solder
+    forms ``edge_theta`` (``[e, 0] = θ̃_ij``, ``[e, 1] = θ̃_ji``, :func:`edge_solder_sqrt`).
+    ``edge_theta`` has the batch dims of ``edge_rot``.
     """
+    E = kernel.n_edges
+    if edge_rot.dim() < 3 or edge_rot.shape[-3:] != (E, 3, 3):
+        raise ValueError(f"tet_dd: edge_rot must have shape (*B, {E}, 3, 3), got {tuple(edge_rot.shape)}")
+    if edge_theta.shape != (*edge_rot.shape[:-3], E, 2, 3):
+        raise ValueError(f"tet_dd: edge_theta must have shape {(*edge_rot.shape[:-3], E, 2, 3)} (the batch "
+                         f"dims of edge_rot), got {tuple(edge_theta.shape)}")
+    if edge_theta.dtype != edge_rot.dtype or edge_theta.device != edge_rot.device:
+        raise ValueError(f"tet_dd: edge_theta ({edge_theta.dtype}, {edge_theta.device}) must match edge_rot "
+                         f"({edge_rot.dtype}, {edge_rot.device})")
+    return _tet_dd_op(edge_rot, edge_theta, *kernel.tables())
 
-    @staticmethod
-    def forward(ctx, edge_rot, edge_theta, rot_base, theta_base):
-        rot, th = _soa_tables(edge_rot, edge_theta, rot_base, theta_base)
-        out, inter = _soa_forward(*_unbind_tables(rot, th))
-        ctx.save_for_backward(edge_rot, edge_theta, rot, th, *[c for v in inter for c in v], rot_base, theta_base)
-        return torch.stack(out, -1)
 
-    @staticmethod
-    def backward(ctx, g):
-        saved = ctx.saved_tensors
-        edge_rot, edge_theta, rot, th = saved[:4]
-        rot_base, theta_base = saved[19], saved[20]
-        E = edge_rot.shape[0]
-        gc = tuple(g[:, i].contiguous() for i in range(3))
-        if torch.is_grad_enabled():
-            # a recorded backward: the saved tables carry no graph (the forward ran without
-            # recording), so rebuild them and the intermediates from the inputs
-            rot, th = _soa_tables(edge_rot, edge_theta, rot_base, theta_base)
-            R, t = _unbind_tables(rot, th)
-            _, inter = _soa_forward(R, t)
-            sink = _OuterRecorded()
-            vals = _soa_backward(R, t, inter, gc, sink)
-            g_rot = torch.stack([torch.stack(sink.gR[p], 0) for p in range(6)], 1)  # (9, 6, T)
-            g_th = torch.stack([torch.stack([vals[k][c] for k in range(7)], 0) for c in range(3)], 0)  # (3, 7, T)
-        else:
-            inter_flat = saved[4:19]
-            inter = tuple(tuple(inter_flat[3 * k:3 * k + 3]) for k in range(5))
-            R, t = _unbind_tables(rot, th)
-            g_rot = torch.empty_like(rot)
-            g_th = torch.empty_like(th)
-            vals = _soa_backward(R, t, inter, gc, _OuterInPlace([[g_rot[q, p] for q in range(9)] for p in range(6)]))
-            for k in range(7):
-                for c in range(3):
-                    g_th[c, k].copy_(vals[k][c])
-        g_edge_rot = g_edge_theta = None
-        if ctx.needs_input_grad[0]:
-            gtab = _soa_scatter(g_rot, rot_base, 18, E).reshape(18, E)
-            g_edge_rot = (gtab[:9].t() + gtab[9:].t().reshape(E, 3, 3).transpose(-1, -2).reshape(E, 9)
-                          ).reshape(E, 3, 3)
-        if ctx.needs_input_grad[1]:
-            g_edge_theta = _soa_scatter(g_th, theta_base, 6, E).reshape(2, 3, E).permute(2, 0, 1)
-        return g_edge_rot, g_edge_theta, None, None
+def tet_dd_sqrt(edge_rot: torch.Tensor, half_rot: torch.Tensor, edge_vec: torch.Tensor,
+                kernel: TetKernel) -> torch.Tensor:
+    """``torchconn::tet_dd_sqrt``: :func:`tet_dd` with ``θ̃ = edge_solder_sqrt(half_rot, edge_vec)``
+    formed inside the kernel (no ``θ̃`` tensors: less memory and one pass less).
+
+    ``edge_rot``, ``half_rot``: ``(*B, E, 3, 3)`` (``R_ij``, ``√R_ij``; ``half_rot`` broadcast to
+    the batch of ``edge_rot``); ``edge_vec``: ``(E, 3)`` ``v_j - v_i`` (shared by the batch)
+    -> ``(*B, T, 3)``.
+    """
+    E = kernel.n_edges
+    if edge_rot.dim() < 3 or edge_rot.shape[-3:] != (E, 3, 3):
+        raise ValueError(f"tet_dd_sqrt: edge_rot must have shape (*B, {E}, 3, 3), got {tuple(edge_rot.shape)}")
+    if half_rot.shape[-3:] != (E, 3, 3):
+        raise ValueError(f"tet_dd_sqrt: half_rot must have shape (*B, {E}, 3, 3), got {tuple(half_rot.shape)}")
+    if edge_vec.shape != (E, 3):
+        raise ValueError(f"tet_dd_sqrt: edge_vec must have shape ({E}, 3), got {tuple(edge_vec.shape)}")
+    batch = torch.broadcast_shapes(edge_rot.shape[:-3], half_rot.shape[:-3])
+    return _tet_dd_sqrt_op(edge_rot.expand(*batch, E, 3, 3), half_rot.expand(*batch, E, 3, 3),
+                           edge_vec.to(edge_rot), *kernel.tables())
 
 
 def tet_dd_from_rotations(rot: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -351,18 +480,16 @@ def tet_dd_from_rotations(rot: torch.Tensor, theta: torch.Tensor) -> torch.Tenso
         X_c = (R_cb θ̃_ba - R_cd θ̃_da)/6 + θ̃_cb/2 - θ̃_cd/2
         X_d = (R_dc θ̃_ca - R_db θ̃_ba)/6 - (θ̃_db - θ̃_dc)/2
 
-    Three rounds of batched matrix-vector products (6, then 2, then 3 per tet) instead of the
-    8 matrix-matrix products and 16 matrix-vector products of the printed formula.
-    Differentiated by plain autograd: the reference of the fused component-major kernel
-    (``_TetDDSoAFn``, hand-written differentiable backward) that the mesh-level
-    :func:`tet_dd_solder` uses.
+    Three rounds of matrix-vector products (6, then 2, then 3 per tet) instead of the 8
+    matrix-matrix products and 16 matrix-vector products of the printed formula. Batched
+    ``bmm``, differentiated by plain autograd: the per-tet reference of the op :func:`tet_dd`.
     """
-    return _tet_dd_forward(rot, theta)[0]
+    return _tet_soa.tet_dd_dense(rot, theta)[0]
 
 
 def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = None,
                   frames: torch.Tensor | None = None) -> torch.Tensor | None:
-    """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet of ``mesh``: ``(T, 3)`` at ``tets[t,0]``.
+    """Averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` on every tet of ``mesh``: ``(*B, T, 3)`` at ``tets[t,0]``.
 
     Same value (to round-off) as the generic operators of
     :func:`torchconn.dec.dnabla.averaged_dd_solder` with the same arguments, without the dense
@@ -370,13 +497,13 @@ def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = 
     not of rank 3). Arguments are not validated (the caller does that).
 
     Args:
-        edge_rot: ``(E, 3, 3)`` ``R_ij`` of the canonical edges (read in ``frames`` if given).
+        edge_rot: ``(*B, E, 3, 3)`` ``R_ij`` of the canonical edges (read in ``frames`` if given).
         mesh: :class:`~torchconn.mesh.TetMesh`.
-        half_rot: ``(E, 3, 3)`` ``√R_ij`` (in the vertex frames when ``frames`` is given);
+        half_rot: ``(*B, E, 3, 3)`` ``√R_ij`` (in the vertex frames when ``frames`` is given);
             default :func:`torchconn.ops.so3.sqrt` (of ``F_i R_ij F_jᵀ`` with frames). For a
             connection given by skew parameters ``ω`` pass :func:`torchconn.ops.so3.half_exp`
             of ``ω``: no logarithm is needed.
-        frames: ``(V, 3, 3)`` or ``None`` (conventions of
+        frames: ``(V, 3, 3)`` (or ``(*B, V, 3, 3)``) or ``None`` (conventions of
             :func:`torchconn.dec.dnabla.tet_solder_sqrt`: ``θ̃'_ij = F_iᵀ √R^amb_ij (v_j - v_i)``).
     """
     if edge_rot.shape[-1] != 3 or mesh.vertices.shape[-1] != 3:
@@ -385,15 +512,17 @@ def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = 
     k = tet_kernel(mesh, dev)
     e = mesh.edges.to(dev)
     verts = mesh.vertices.to(device=dev, dtype=dt)
-    vec = verts[e[:, 1]] - verts[e[:, 0]]  # (E, 3) v_j - v_i
+    vec = verts.index_select(0, e[:, 1]) - verts.index_select(0, e[:, 0])  # (E, 3) v_j - v_i
     if frames is None:
         H = _sqrt(edge_rot) if half_rot is None else half_rot
-        theta = edge_solder_sqrt(H, vec)
+        return tet_dd_sqrt(edge_rot, H, vec, k)
     else:
         Fv = frames.to(device=dev, dtype=dt)
-        Fi, Fj = Fv[e[:, 0]], Fv[e[:, 1]]
+        Fi, Fj = Fv.index_select(-3, e[:, 0]), Fv.index_select(-3, e[:, 1])
         H = _sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2)) if half_rot is None \
             else Fi @ half_rot @ Fj.transpose(-1, -2)
-        amb = edge_solder_sqrt(H, vec)  # (E, 2, 3) ambient
-        theta = torch.stack((_matTvec(Fi, amb[:, 0]), _matTvec(Fj, amb[:, 1])), 1)
-    return _TetDDSoAFn.apply(edge_rot, theta, k.rot_base, k.theta_base)
+        amb = edge_solder_sqrt(H, vec)  # (*B, E, 2, 3) ambient
+        theta = torch.stack((_matTvec(Fi, amb[..., 0, :]), _matTvec(Fj, amb[..., 1, :])), -2)
+    batch = torch.broadcast_shapes(edge_rot.shape[:-3], theta.shape[:-3])
+    E = edge_rot.shape[-3]
+    return tet_dd(edge_rot.expand(*batch, E, 3, 3), theta.expand(*batch, E, 2, 3), k)

@@ -1,0 +1,311 @@
+"""The averaged d∇d∇θ tet op ``torchconn::tet_dd`` (and ``tet_dd_backward``) per the custom-op contract.
+
+opcheck in float32 and float64 with the compiled kernels on and off; gradcheck and gradgradcheck
+in float64 through the public functions, switch on and off; a Hessian-vector product against
+central differences of the gradient; batched calls and vmap against per-item loops; the C
+backward's colored-chunk schedule (many colors) against the generic kernel; meta tensors;
+``torch.compile(fullgraph=True)``. (``torch.func.grad`` / ``jvp`` over the op are not supported by
+torch for ``custom_op`` autograd registrations; see the :mod:`torchconn.ops.tet` doc.)
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.autograd import gradcheck, gradgradcheck
+
+from torchconn import dnabla, io, so3
+from torchconn.mesh import TetMesh
+from torchconn.ops import compiled, native
+from torchconn.ops import tet as ops_tet
+
+DT = torch.float64
+SWITCH = [pytest.param(True, id="compiled"), pytest.param(False, id="generic")]
+_has_c = native.library("tet") is not None
+
+
+def _switch(on: bool):
+    if on and not _has_c:
+        pytest.skip("no C compiler (or TORCHCONN_NATIVE=0): csrc/tet.c cannot be built")
+    return compiled(on)
+
+
+def _two_tets():
+    """Two tets sharing a face: the smallest mesh where tets share edges (fast gradgradcheck)."""
+    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.2]], dtype=DT)
+    return TetMesh(v, [[0, 1, 2, 3], [1, 2, 3, 4]], reorient=True)
+
+
+def _data(mesh, dtype=DT, seed=0, batch=()):
+    g = torch.Generator().manual_seed(seed)
+    E = mesh.edges.shape[0]
+    R = so3.exp(0.7 * torch.randn(*batch, E, 3, generator=g, dtype=torch.float64)).to(dtype)
+    th = torch.randn(*batch, E, 2, 3, generator=g, dtype=torch.float64).to(dtype)
+    return R, th
+
+
+def _per_tet_reference(R, th, k):
+    """Slow reference: per-tet gathers with plain indexing and the bmm formula (autograd)."""
+    both = torch.stack((R, R.transpose(-1, -2)), -3).reshape(*R.shape[:-3], -1, 3, 3)
+    return ops_tet.tet_dd_from_rotations(both[..., k.rot_index, :, :].reshape(-1, 6, 3, 3),
+                                         th.reshape(*th.shape[:-3], -1, 3)[..., k.theta_index, :].reshape(-1, 7, 3)
+                                         ).reshape(*R.shape[:-3], -1, 3)
+
+
+# ---------------------------------------------------------------- opcheck
+
+
+_FAST_UTILS = ("test_schema", "test_autograd_registration", "test_faketensor")
+_ALL_UTILS = _FAST_UTILS + ("test_aot_dispatch_dynamic",)
+
+
+@pytest.mark.parametrize("utils", [pytest.param(_FAST_UTILS, id="fast"),
+                                   pytest.param(_ALL_UTILS, id="aot", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("on", SWITCH)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_opcheck(on, dtype, utils):
+    """Schema, autograd registration and fake tensors in the default run; with
+    ``test_aot_dispatch_dynamic`` (minutes on a loaded 2-core machine) under ``-m slow``."""
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, dtype)
+    H = so3.sqrt(R)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(2), dtype=dtype)
+    g = torch.randn(2, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        for args in ((R, th), (torch.stack((R, R.flip(0))), torch.stack((th, -th)))):  # unbatched, batched
+            torch.library.opcheck(ops_tet._tet_dd_op, (*rg(*args), *k.tables()), test_utils=utils)
+        torch.library.opcheck(ops_tet._tet_dd_backward_op,
+                              (*rg(torch.stack((R, R)), torch.stack((th, th)), g), *k.tables()), test_utils=utils)
+        torch.library.opcheck(ops_tet._tet_dd_sqrt_op, (*rg(torch.stack((R, R.flip(0))), torch.stack((H, H)), vec),
+                                                        *k.tables()), test_utils=utils)
+        torch.library.opcheck(ops_tet._tet_dd_sqrt_backward_op,
+                              (*rg(torch.stack((R, R)), torch.stack((H, H)), vec, g), *k.tables()), test_utils=utils)
+
+
+# ---------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize("on", SWITCH)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_values_match_per_tet_reference_and_generic_operators(on, dtype):
+    mesh = io.box(2)
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, dtype)
+    tol = 1e-5 if dtype == torch.float32 else 1e-13
+    with _switch(on):
+        out = ops_tet.tet_dd(R, th, k)
+        torch.testing.assert_close(out, _per_tet_reference(R, th, k), atol=tol, rtol=0)
+        # the mesh-level function against the dense generic operators (𝔡∇ Alt 𝔡∇ Alt θ̃)
+        dd = ops_tet.tet_dd_solder(R, mesh)
+    ref = dnabla.averaged_dd_tet(dnabla.tet_transports(R, mesh), dnabla.tet_solder_sqrt(R, mesh))
+    torch.testing.assert_close(dd, ref, atol=10 * tol, rtol=0)
+
+
+@pytest.mark.skipif(not _has_c, reason="no C compiler: csrc/tet.c cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_equals_generic_with_a_many_color_schedule(dtype):
+    """Chunks of 3 tets: many colors and chunks, so the race-free scatter is really exercised."""
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=3)
+    assert k.n_colors > 4 and k.chunk_start.shape[0] > 50
+    # the schedule: a permutation of the tets, and no two chunks of one color share an edge
+    assert torch.equal(k.order.sort().values, torch.arange(mesh.tets.shape[0]))
+    te = mesh.tet_edges
+    for c in range(k.n_colors):
+        seen = set()
+        for ch in range(int(k.color_start[c]), int(k.color_start[c + 1])):
+            edges = set(te[k.order[k.chunk_start[ch]:k.chunk_start[ch + 1]]].reshape(-1).tolist())
+            assert not (edges & seen)
+            seen |= edges
+    R, th = _data(mesh, dtype, seed=3, batch=(2,))
+    g = torch.randn(2, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    res = {}
+    for on in (True, False):
+        with compiled(on):
+            res[on] = (ops_tet.tet_dd(R, th, k), *ops_tet._tet_dd_backward_op(R, th, g, *k.tables()))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol, rtol=0)
+
+
+# ---------------------------------------------------------------- derivatives
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_gradcheck_and_gradgradcheck(on):
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, seed=5)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(6), dtype=DT)
+    H = so3.sqrt(R)
+    f = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
+    fs = lambda A, B, v: ops_tet.tet_dd_sqrt(A, B, v, k)  # noqa: E731
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        assert gradcheck(f, rg(R, th))
+        assert gradgradcheck(f, rg(R, th))
+        assert gradcheck(fs, rg(R, H, vec))
+        assert gradgradcheck(fs, rg(R, H, vec), fast_mode=True)  # 189 inputs: slow mode takes long
+        # one input only, and an incoming gradient that depends on the input (square): the
+        # double backward must not count the path through the incoming gradient twice
+        assert gradgradcheck(lambda A: f(A, th).square(), rg(R), fast_mode=True)
+        assert gradgradcheck(lambda t: f(R, t).square(), rg(th), fast_mode=True)
+        assert gradgradcheck(lambda A: fs(A, H, vec).square(), rg(R), fast_mode=True)
+        assert gradgradcheck(lambda B: fs(R, B, vec).square(), rg(H), fast_mode=True)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+@pytest.mark.parametrize("with_frames", [False, True])
+def test_gradgradcheck_through_skew_parameters(on, with_frames):
+    """The mesh-level function of ω (so3.exp, so3.sqrt, θ̃ formation, the op), batched."""
+    mesh = _two_tets()
+    g = torch.Generator().manual_seed(6)
+    w = 0.6 * torch.randn(2, mesh.edges.shape[0], 3, generator=g, dtype=DT)
+    frames = so3.random_rotation(mesh.vertices.shape[0], generator=g, dtype=DT) if with_frames else None
+    f = lambda p: ops_tet.tet_dd_solder(so3.exp(p), mesh, frames=frames)  # noqa: E731
+    with _switch(on):
+        assert gradcheck(f, (w.clone().requires_grad_(),))
+        assert gradgradcheck(f, (w.clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_hvp_matches_central_differences(on):
+    mesh = io.box(2)
+    g = torch.Generator().manual_seed(7)
+    w = 0.6 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=DT)
+    v = torch.randn(w.shape, generator=g, dtype=DT)
+    loss = lambda p: ops_tet.tet_dd_solder(so3.exp(p), mesh).square().sum()  # noqa: E731
+
+    def grad(p):
+        p = p.clone().requires_grad_()
+        return torch.autograd.grad(loss(p), p)[0]
+
+    with _switch(on):
+        _, hv = torch.autograd.functional.hvp(loss, w, v)
+        h = 1e-5
+        fd = (grad(w + h * v) - grad(w - h * v)) / (2 * h)
+    assert hv.abs().max() > 1e-3  # not trivially zero
+    torch.testing.assert_close(hv, fd, atol=1e-6 * (1 + fd.abs().max()), rtol=1e-6)
+
+
+def test_switch_on_off_same_values_and_gradients():
+    if not _has_c:
+        pytest.skip("no C compiler: csrc/tet.c cannot be built")
+    mesh = io.box(3)
+    w = 0.6 * torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(8), dtype=DT)
+    res = []
+    for on in (True, False):
+        with compiled(on):
+            p = w.clone().requires_grad_()
+            out = ops_tet.tet_dd_solder(so3.exp(p), mesh)
+            (gp,) = torch.autograd.grad(out.square().sum(), p)
+            res.append((out.detach(), gp))
+    for a, b in zip(*res):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
+# ---------------------------------------------------------------- batching
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_batched_matches_loop(on):
+    mesh = io.box(2)
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, seed=9, batch=(2, 3))
+    G = torch.randn(2, 3, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(10), dtype=DT)
+    with _switch(on):
+        Rb, thb = R.clone().requires_grad_(), th.clone().requires_grad_()
+        out = ops_tet.tet_dd(Rb, thb, k)
+        gR, gth = torch.autograd.grad((out * G).sum(), (Rb, thb))
+        for i in range(2):
+            for j in range(3):
+                Ri, ti = R[i, j].clone().requires_grad_(), th[i, j].clone().requires_grad_()
+                oi = ops_tet.tet_dd(Ri, ti, k)
+                gi = torch.autograd.grad((oi * G[i, j]).sum(), (Ri, ti))
+                torch.testing.assert_close(out[i, j], oi, atol=1e-13, rtol=0)
+                torch.testing.assert_close(gR[i, j], gi[0], atol=1e-13, rtol=0)
+                torch.testing.assert_close(gth[i, j], gi[1], atol=1e-13, rtol=0)
+        # the mesh-level function broadcasts (B, E, 3, 3) against shared frames
+        frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(11), dtype=DT)
+        batched = ops_tet.tet_dd_solder(R[0], mesh, frames=frames)
+        for j in range(3):
+            torch.testing.assert_close(batched[j], ops_tet.tet_dd_solder(R[0, j], mesh, frames=frames),
+                                       atol=1e-13, rtol=0)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_vmap_matches_loop(on):
+    mesh = io.box(2)
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, seed=12, batch=(3,))
+    with _switch(on):
+        f = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
+        out = torch.vmap(f)(R, th)
+        # vmap over dim 1 of θ̃ only (R shared); gradients through the vmapped op (autograd
+        # outside vmap: the vmap rule calls the op once on the batch)
+        out_t = torch.vmap(f, in_dims=(None, 1))(R[0], th.movedim(0, 1))
+        Rg = R.clone().requires_grad_()
+        (gR,) = torch.autograd.grad(torch.vmap(f)(Rg, th).square().sum(), Rg)
+        for i in range(3):
+            torch.testing.assert_close(out[i], f(R[i], th[i]), atol=1e-13, rtol=0)
+            torch.testing.assert_close(out_t[i], f(R[0], th[i]), atol=1e-13, rtol=0)
+            Ri = R[i].clone().requires_grad_()
+            (gi,) = torch.autograd.grad(f(Ri, th[i]).square().sum(), Ri)
+            torch.testing.assert_close(gR[i], gi, atol=1e-12, rtol=0)
+        # the sqrt op, vmapped over R and √R (v shared)
+        vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(14), dtype=DT)
+        H = so3.sqrt(R)
+        outs = torch.vmap(lambda A, B: ops_tet.tet_dd_sqrt(A, B, vec, k))(R, H)
+        for i in range(3):
+            torch.testing.assert_close(outs[i], ops_tet.tet_dd_sqrt(R[i], H[i], vec, k), atol=1e-13, rtol=0)
+    with pytest.raises(NotImplementedError, match="tet_dd"):
+        torch.vmap(lambda ri: ops_tet._tet_dd_op(R[0], th[0], ri, *k.tables()[1:]))(k.rot_index[None])
+
+
+# ---------------------------------------------------------------- meta, compile, errors
+
+
+def test_meta_tensors():
+    mesh = io.box(2)
+    k = ops_tet.tet_kernel(mesh, "meta")
+    E, T = mesh.edges.shape[0], mesh.tets.shape[0]
+    R = torch.empty(4, E, 3, 3, device="meta", requires_grad=True)
+    th = torch.empty(4, E, 2, 3, device="meta")
+    out = ops_tet.tet_dd(R, th, k)
+    assert out.device.type == "meta" and out.shape == (4, T, 3)
+    (g,) = torch.autograd.grad(out.sum(), R)
+    assert g.shape == R.shape and g.device.type == "meta"
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_compile_fullgraph(on):
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh, seed=13)
+
+    def loss(A, t):
+        return ops_tet.tet_dd(A, t, k).square().sum()
+
+    with _switch(on):
+        cf = torch.compile(loss, fullgraph=True, backend="aot_eager")
+        A, t = R.clone().requires_grad_(), th.clone().requires_grad_()
+        val = cf(A, t)
+        val.backward()
+        A2, t2 = R.clone().requires_grad_(), th.clone().requires_grad_()
+        ref = loss(A2, t2)
+        ref.backward()
+    torch.testing.assert_close(val, ref, atol=1e-12, rtol=0)
+    torch.testing.assert_close(A.grad, A2.grad, atol=1e-12, rtol=0)
+
+
+def test_shape_errors_name_the_argument():
+    mesh = io.box(1)
+    k = ops_tet.tet_kernel(mesh)
+    R, th = _data(mesh)
+    with pytest.raises(ValueError, match="tet_dd: edge_rot"):
+        ops_tet.tet_dd(R[:-1], th, k)
+    with pytest.raises(ValueError, match="tet_dd: edge_theta"):
+        ops_tet.tet_dd(torch.stack((R, R)), th, k)
+    with pytest.raises(ValueError, match="tet_dd: edge_theta"):
+        ops_tet.tet_dd(R, th.float(), k)
