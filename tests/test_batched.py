@@ -311,12 +311,6 @@ def test_gradcheck_gradgradcheck_batched_module(mesh):
 
 
 # ----------------------------------------------------------------------------- vmap
-# so3.sqrt (ops/so3.py) gathers its obtuse entries with torch.nonzero, which vmap cannot batch;
-# the ops helpers replace it with a custom op (issue 11). Until then these cases fail visibly.
-_SQRT_NONZERO = pytest.mark.xfail(
-    raises=RuntimeError, strict=False,
-    reason="so3.sqrt (torchconn/ops/so3.py) calls torch.nonzero, which vmap cannot batch; "
-           "fixed by the ops/so3 custom op of issue 11, not by dec/")
 VMAP_OPS = {
     "curvature": lambda R, m: curvature.face_curvature(R, m),
     "holonomy": lambda R, m: curvature.face_curvature(R, m, kind="holonomy"),
@@ -335,7 +329,7 @@ VMAP_SQRT_OPS = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(VMAP_OPS) + [pytest.param(n, marks=_SQRT_NONZERO) for n in sorted(VMAP_SQRT_OPS)])
+@pytest.mark.parametrize("name", sorted(VMAP_OPS) + sorted(VMAP_SQRT_OPS))
 def test_vmap_equals_loop(mesh, name):
     fn = {**VMAP_OPS, **VMAP_SQRT_OPS}[name]
     R = rots(mesh, (3,))
@@ -399,22 +393,16 @@ def test_jvp_matches_central_differences(mesh, name, batch):
     _jvp_check(JVP_OPS[name], mesh, R, forward_ad=name not in SQRT_USERS)
 
 
-# these go through so3.sqrt (torchconn/ops/so3.py), whose compiled kernel drops the tangent of a
-# torch.autograd.forward_ad dual tensor (returns no tangent); torch.func.jvp is exact (above)
+# these go through so3.sqrt (the torchconn::so3_sqrt op, whose eager wrapper has a jvp rule):
+# the forward_ad API is checked separately below
 SQRT_USERS = {"torsion_sqrt", "averaged_dd", "wedge", "bianchi_algebraic", "module_averaged", "module_torsion"}
 
 
-@pytest.mark.xfail(raises=(AssertionError, TypeError), strict=False,
-                   reason="so3.sqrt/so3.log (torchconn/ops/so3.py, compiled kernel) drop the tangent of a "
-                          "torch.autograd.forward_ad dual tensor; fixed by the ops/so3 custom op of issue 11")
 @pytest.mark.parametrize("name", ["torsion_sqrt", "averaged_dd"])
 def test_forward_ad_api_through_sqrt(mesh, name):
     _jvp_check(JVP_OPS[name], mesh, rots(mesh, (2,), scale=0.25))
 
 
-@pytest.mark.xfail(raises=NotImplementedError, strict=False,
-                   reason="so3.sqrt (torchconn/ops/so3.py) evaluates angles > pi/2 with an autograd.Function "
-                          "(_ExpFn) that has no jvp; fixed by the ops/so3 custom op of issue 11, not by dec/")
 @pytest.mark.parametrize("name", ["torsion_sqrt", "averaged_dd"])
 def test_jvp_obtuse_angles_through_sqrt(mesh, name):
     R = rots(mesh, (2,), scale=1.5)

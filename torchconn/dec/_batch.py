@@ -5,31 +5,20 @@ of one mesh (``batch`` may be empty) and returns its values with the same leadin
 ``(*batch, F, n, n)``, ``(*batch, T, n)``, ... . Mesh data (vertex positions, index tables)
 carries no batch dims and is shared by every item.
 
-The kernels of :mod:`torchconn.ops` are asked first, with the batched tensor (the issue-11
-custom ops take leading batch dims themselves and have a vmap rule). :func:`ask_op` falls back to the
-generic torch formula of the caller, which broadcasts over the leading dims, when the op
+The ops of :mod:`torchconn.ops` (``torchconn::`` custom ops) take the leading batch dims
+themselves and have vmap rules, so the batched tensor goes straight to the op. :func:`ask_op`
+falls back to the generic torch formula of the caller (which broadcasts over the leading dims)
+only when
 
-* returns ``None`` (it does not apply: rank, cut, mesh kind);
-* raises ``ValueError``, ``RuntimeError`` or ``IndexError`` for an input with leading dims:
-  the caller has already checked the shape ``(*batch, E, n, n)`` against the mesh, so this can
-  only be an op that refuses (or, with an unchecked reshape, fails on) batch dims — the
-  pre-issue-11 kernels take ``(E, 3, 3)`` only (``ops.curvature``/``ops.torsion`` raise
-  ``ValueError``, ``ops.tet`` fails in a reshape or an index with ``RuntimeError`` /
-  ``IndexError``). Once every op takes leading batch dims itself this case never triggers and the
-  batched tensor goes straight to the op;
-* raises ``RuntimeError`` while a functorch transform (``vmap``, ``grad``) wraps the input:
-  an op without a rule for that transform (an ``autograd.Function`` without
-  ``setup_context``/``vmap``, e.g. ``aten::nonzero`` under ``vmap``).
+* the op returns ``None`` (it does not apply: rank, cut, mesh kind), or
+* a forward-mode tangent is being propagated (``torch.func.jvp``,
+  ``torch.autograd.forward_ad``; :func:`forward_mode`): a ``torch.library`` custom op with
+  ``register_autograd`` has no forward-mode formula and returns a zero tangent under
+  ``torch.func.jvp`` (torch 2.13, measured), so forward mode runs the generic formula — torch
+  operations with exact forward-mode derivatives. Under ``torch.compile`` this is not asked
+  (dynamo traces no jvp, and the functorch interpreter stack is not traceable).
 
-Forward-mode AD (``torch.func.jvp``, ``torch.autograd.forward_ad``) never reaches the ops:
-neither the pre-issue-11 ``autograd.Function`` kernels nor a ``torch.library`` custom op with
-``register_autograd`` has a forward-mode formula, and both silently drop the tangent (a custom
-op returns a zero tangent under ``torch.func.jvp`` in torch 2.13 — measured; the tet kernel a
-wrong one), so :func:`ask_op` returns ``None`` without calling the op whenever a tangent is
-being propagated (:func:`forward_mode`), and the generic formula — torch operations, exact
-forward-mode derivatives — runs instead. The ``so3`` maps it calls are the ``lie.so3`` ones.
-
-Any other exception propagates.
+Every exception of an op propagates.
 """
 from __future__ import annotations
 
@@ -37,7 +26,7 @@ from typing import Callable
 
 import torch
 
-__all__ = ["edge_batch", "check_frames", "batch_text", "forward_mode", "transformed", "ask_op", "expand_to", "on_device"]
+__all__ = ["edge_batch", "check_frames", "batch_text", "forward_mode", "ask_op", "expand_to", "on_device"]
 
 
 def batch_text(batch: tuple[int, ...]) -> str:
@@ -82,7 +71,10 @@ def check_frames(frames, V: int, n: int, batch: tuple[int, ...], fn: str):
 
 def forward_mode(*tensors) -> bool:
     """Whether a forward-mode tangent is being propagated: a ``torch.func.jvp`` level on the
-    functorch interpreter stack, or a ``forward_ad`` dual tensor among ``tensors``."""
+    functorch interpreter stack, or a ``forward_ad`` dual tensor among ``tensors``. Always
+    ``False`` while ``torch.compile`` traces."""
+    if torch.compiler.is_compiling():
+        return False
     stack = torch._C._functorch.get_interpreter_stack()
     if stack and any(i.key() == torch._C._functorch.TransformType.Jvp for i in stack):
         return True
@@ -90,28 +82,12 @@ def forward_mode(*tensors) -> bool:
                for t in tensors)
 
 
-def transformed(*tensors) -> bool:
-    """Whether a functorch transform (vmap, grad, jvp) or a forward-mode AD level wraps a tensor."""
-    for t in tensors:
-        if not isinstance(t, torch.Tensor):
-            continue
-        if torch._C._functorch.is_functorch_wrapped_tensor(t):
-            return True
-    return forward_mode(*tensors)
-
-
 def ask_op(call: Callable, R: torch.Tensor, *others):
     """``call()`` (an op of :mod:`torchconn.ops`), or ``None`` where the caller must use its
-    generic formula (see the module docstring for the three cases; under forward-mode AD the
-    op is not called)."""
+    generic formula: the op returned ``None``, or forward mode (see the module docstring)."""
     if forward_mode(R, *others):
         return None
-    try:
-        return call()
-    except (ValueError, RuntimeError, IndexError) as err:
-        if R.ndim > 3 or (isinstance(err, RuntimeError) and transformed(R, *others)):
-            return None
-        raise
+    return call()
 
 
 def expand_to(x: torch.Tensor, batch: tuple[int, ...]) -> torch.Tensor:

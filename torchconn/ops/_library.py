@@ -55,3 +55,36 @@ def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1
         return out, (0 if n_out == 1 else (0,) * n_out)
 
     return rule
+
+
+def jvp(f: Callable, primals: Sequence[torch.Tensor], tangents: Sequence[torch.Tensor | None]):
+    """Forward-mode derivative ``J t`` of the torch function ``f`` at ``primals`` (double-vjp identity).
+
+    For use inside an ``autograd.Function.jvp``. Under a functorch transform it is
+    ``torch.func.jvp``; under the ``torch.autograd.forward_ad`` API ``torch.func.jvp`` would open
+    a nested forward-AD level, which is refused ("Nested forward mode AD is not supported"),
+    so there it uses reverse mode: with ``g(u) = Jᵀ u`` (a reverse-mode product, linear in ``u``),
+    ``J t = (∂g/∂u)ᵀ t``: two reverse passes through the generic formula, no dual level.
+    ``tangents`` may hold ``None`` (no tangent for that input). Returns a tensor, or a tuple when
+    ``f`` returns one.
+    """
+    if torch._C._functorch.get_interpreter_stack():
+        # inside a functorch transform (torch.func.jvp, vmap, grad): its own jvp nests fine,
+        # while reverse mode on fresh leaves (requires_grad_) is refused there
+        tans = tuple(torch.zeros_like(p) if t is None else t for p, t in zip(primals, tangents))
+        return torch.func.jvp(f, tuple(primals), tans)[1]
+    with torch.enable_grad():
+        xs = [p.detach().requires_grad_(p.is_floating_point()) for p in primals]
+        out = f(*xs)
+        outs = out if isinstance(out, tuple) else (out,)
+        us = [torch.zeros_like(o).requires_grad_() for o in outs]
+        diff = [(x, t) for x, t in zip(xs, tangents) if t is not None and x.requires_grad]
+        res = [None] * len(outs)
+        if diff:
+            gs = torch.autograd.grad(outs, [x for x, _ in diff], us, create_graph=True, allow_unused=True)
+            pairs = [(g, t) for g, (_, t) in zip(gs, diff) if g is not None and g.requires_grad]
+            if pairs:
+                res = list(torch.autograd.grad([g for g, _ in pairs], us, [t for _, t in pairs],
+                                               allow_unused=True))
+    res = tuple(torch.zeros_like(o) if r is None else r for r, o in zip(res, outs))
+    return res if isinstance(out, tuple) else res[0]

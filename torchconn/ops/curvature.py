@@ -30,6 +30,7 @@ import torch
 
 from . import native as _native
 from ._cache import require as _require
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
 
@@ -243,7 +244,7 @@ class _CurvatureFn(torch.autograd.Function):
     def jvp(ctx, t_rot, *_):
         (edge_rot,) = ctx.saved_tensors[:1]
         f = lambda r: _curvature_generic(r, ctx.face_index, ctx.kind)  # noqa: E731
-        return torch.func.jvp(f, (edge_rot,), (t_rot,))[1]
+        return _library_jvp(f, (edge_rot,), (t_rot,))
 
 
 class _CurvatureBwdFn(torch.autograd.Function):
@@ -271,7 +272,7 @@ class _CurvatureBwdFn(torch.autograd.Function):
     def jvp(ctx, t_rot, t_grad, *_):
         edge_rot, grad = ctx.saved_tensors
         f = lambda r, g: _curvature_bwd_generic(r, g, ctx.face_index, ctx.kind)  # noqa: E731
-        return torch.func.jvp(f, (edge_rot, grad), (t_rot, t_grad))[1]
+        return _library_jvp(f, (edge_rot, grad), (t_rot, t_grad))
 
 
 # ----------------------------------------------------------------------------- tables, public

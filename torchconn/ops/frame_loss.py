@@ -65,6 +65,7 @@ import torch
 from . import _frame_loss_torch as _T
 from . import native as _native
 from ._cache import require as _require
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
 from .curvature import _sorted_triangles
@@ -393,9 +394,9 @@ class _BackwardFn(torch.autograd.Function):
     def jvp(ctx, t_rot, t_frames, *tangents):
         R, Fr, *tables, gv = ctx.saved_tensors
         t_gv = tangents[_N_TABLES - 2]
-        return torch.func.jvp(lambda a, b, g: _grad_generic(a, b, g, tables, ctx.options), (R, Fr, gv),
+        return _library_jvp(lambda a, b, g: _grad_generic(a, b, g, tables, ctx.options), (R, Fr, gv),
                               tuple(torch.zeros_like(x) if t is None else t
-                                    for x, t in ((R, t_rot), (Fr, t_frames), (gv, t_gv))))[1]
+                                    for x, t in ((R, t_rot), (Fr, t_frames), (gv, t_gv))))
 
 
 class _LossFn(torch.autograd.Function):
@@ -440,9 +441,9 @@ class _LossFn(torch.autograd.Function):
     def jvp(ctx, t_rot, t_frames, *_):
         R, Fr, *tables = ctx.saved_tensors
         smooth, tie, flat, torsion, _, _, _, _, power, eps = ctx.options
-        t = torch.func.jvp(lambda a, b: terms_generic(a, b, *tables, smooth, tie, flat, torsion, power, eps),
+        t = _library_jvp(lambda a, b: terms_generic(a, b, *tables, smooth, tie, flat, torsion, power, eps),
                            (R, Fr), (torch.zeros_like(R) if t_rot is None else t_rot,
-                                     torch.zeros_like(Fr) if t_frames is None else t_frames))[1]
+                                     torch.zeros_like(Fr) if t_frames is None else t_frames))
         return t, None, None
 
 

@@ -35,6 +35,7 @@ import torch
 
 from . import _so3_formulas as _f
 from . import native as _native
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
 from ..tolerances import get_eps
@@ -181,7 +182,7 @@ def _func_wrapper(op, bwd_op, fwd_f, bwd_f, name: str):
         @staticmethod
         def jvp(ctx, tx, tg):
             x, grad = ctx.saved_tensors
-            return torch.func.jvp(bwd_f, (x, grad), (tx, tg))[1]
+            return _library_jvp(bwd_f, (x, grad), (tx, tg))
 
     class Map(torch.autograd.Function):
         generate_vmap_rule = True
@@ -203,7 +204,7 @@ def _func_wrapper(op, bwd_op, fwd_f, bwd_f, name: str):
         @staticmethod
         def jvp(ctx, tx):
             (x,) = ctx.saved_tensors
-            return torch.func.jvp(fwd_f, (x,), (tx,))[1]
+            return _library_jvp(fwd_f, (x,), (tx,))
 
 
     def call(x: torch.Tensor) -> torch.Tensor:

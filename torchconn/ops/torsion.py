@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from . import _so3_formulas as _f
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
 from .backend import can_use_compiled
@@ -179,7 +180,7 @@ class _TorsionFn(torch.autograd.Function):
         edge_rot, edge_vec, face_index = ctx.saved_tensors
         t_vec = torch.zeros_like(edge_vec) if t_vec is None else t_vec
         f = lambda r, v: _torsion_generic(r, v, face_index)  # noqa: E731
-        return torch.func.jvp(f, (edge_rot, edge_vec), (t_rot, t_vec))[1]
+        return _library_jvp(f, (edge_rot, edge_vec), (t_rot, t_vec))
 
 
 class _TorsionBwdFn(torch.autograd.Function):
@@ -205,7 +206,7 @@ class _TorsionBwdFn(torch.autograd.Function):
         z = torch.zeros_like
         t = (z(edge_rot) if t_rot is None else t_rot, z(edge_vec) if t_vec is None else t_vec,
              z(grad) if t_grad is None else t_grad)
-        return torch.func.jvp(f, (edge_rot, edge_vec, grad), t)[1]
+        return _library_jvp(f, (edge_rot, edge_vec, grad), t)
 
 
 def face_torsion_sqrt(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor) -> torch.Tensor:
