@@ -49,6 +49,10 @@ VARIANTS: dict[str, dict] = {
     "singular_4_from_sh": {"steps": 0, "quality": {"singular_weight": 4.0}},
     # the matched Dirichlet term in the connection loss too
     "loss_dirichlet": {"weights": {"dirichlet": 1.0}},
+    # further towards L1 and a choice that favours the mean angle
+    "to_l1": {"quality": {"dirichlet_end": 0.05, "steps": 400}},
+    "to_l1_score": {"quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
+    "to_l1_score_from_sh": {"steps": 0, "quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
     # the guard at the 1% tolerance instead of 0
     "slack_1pct": {"quality": {"slack": 0.01}},
 }

@@ -133,6 +133,7 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.singular_weight": _float(0),
     "quality.check_every": _int(1),
     "quality.slack": _float(0),
+    "quality.score_dirichlet": _float(0),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),
     "sh.mbo_steps": _int(0),

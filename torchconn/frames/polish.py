@@ -133,17 +133,19 @@ def guard_violations(metrics: dict, reference: dict, slack: float = 0.0) -> list
     return bad
 
 
-def quality_score(metrics: dict, reference: dict) -> float:
-    """``log(mean angle / reference's) + log(Dirichlet energy / reference's)`` (lower is better; 0 at the reference)."""
+def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0) -> float:
+    """``log(mean angle / reference's) + b log(Dirichlet energy / reference's)`` with ``b = dirichlet_weight``
+    (lower is better; 0 at the reference)."""
     tiny = 1e-300
     return (math.log(max(metrics["smoothness_mean_deg"], tiny) / max(reference["smoothness_mean_deg"], tiny))
-            + math.log(max(metrics["dirichlet_energy_mean"], tiny) / max(reference["dirichlet_energy_mean"], tiny)))
+            + dirichlet_weight
+            * math.log(max(metrics["dirichlet_energy_mean"], tiny) / max(reference["dirichlet_energy_mean"], tiny)))
 
 
 def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *, steps: int = 300,
                    lr: float = 0.01, dirichlet_weight: tuple[float, float] = (4.0, 0.25),
                    feature_weight: float = 1.0, singular_weight: float = 0.0, check_every: int = 20,
-                   slack: float = 0.0, eps: float = 1e-3,
+                   slack: float = 0.0, score_dirichlet: float = 1.0, eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded polish that lowers the mean edge angle and the Dirichlet energy together.
@@ -173,7 +175,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
 
     The guard: every ``check_every`` steps the field is scored by :func:`frame_metrics`;
     a checkpoint is admissible when :func:`guard_violations` against the reference field is
-    empty, and the admissible one with the lowest :func:`quality_score` is returned. The
+    empty, and the admissible one with the lowest :func:`quality_score` (``score_dirichlet``) is returned. The
     reference field itself and the start field are candidates too, so the result is never worse
     than the reference on any guarded metric (at worst it *is* the reference field).
 
@@ -188,6 +190,8 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         singular_weight: extra weight ``c`` of the edges of half-turn and complex singular faces.
         check_every: scoring interval of the guard.
         slack: relative tolerance of the guard on the continuous metrics (0: never worse).
+        score_dirichlet: weight ``b`` of the Dirichlet ratio in :func:`quality_score`, the
+            choice among admissible checkpoints (< 1 favours the mean angle).
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
 
     Returns:
@@ -218,7 +222,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         nonlocal best
         m = frame_metrics(F, mesh, angle_deg)
         bad = guard_violations(m, ref, slack)
-        sc = quality_score(m, ref)
+        sc = quality_score(m, ref, score_dirichlet)
         checks.append((step, sc, not bad, bad))
         if not bad and sc < best[0]:
             best = (sc, F, kind, step, m)
