@@ -114,6 +114,13 @@ def run(models: list[str], variants: list[str], out: Path, options: dict | None 
                 row.update({k: r.metrics["final"][k] for k in r.metrics["final"]})
                 q = r.metrics.get("quality")
                 if q:
+                    # how often each guarded metric blocked a checkpoint (why a model kept the SH field)
+                    blocked = {}
+                    for _, _, _, bad in q["checks"]:
+                        for k in bad:
+                            blocked[k] = blocked.get(k, 0) + 1
+                    row["quality_blocked"] = blocked
+                    row["quality_n_checks"] = len(q["checks"])
                     row["quality_accepted"] = q["accepted"]
                     row["quality_step"] = q["accepted_step"]
                     row["quality_s"] = q["seconds"]
