@@ -35,6 +35,8 @@ VARIANTS: dict[str, dict] = {
     "default": {},
     # the default before issue 13: connection optimization + the angle-only guarded polish
     "old_default": {"polish": {"steps": 600}, "quality": {"enabled": False}},
+    # no connection optimization (the SH field is the path's start and the only other candidate)
+    "no_connection": {"steps": 0},
     # the quality polish started from the SH field (no connection optimization)
     "quality_from_sh": {"steps": 0},
     # the guard only: the better of the connection result and the SH field, no polish steps
@@ -53,6 +55,11 @@ VARIANTS: dict[str, dict] = {
     "to_l1": {"quality": {"dirichlet_end": 0.05, "steps": 400}},
     "to_l1_score": {"quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
     "to_l1_score_from_sh": {"steps": 0, "quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
+    # the default before the tangent lock: path from the optimized field, feature curves free
+    # (bounded by the guard's max(SH, 2 deg))
+    "free_tangents": {"quality": {"lock_tangents": False, "path_from": "start"}},
+    "lock_from_start": {"quality": {"lock_tangents": True, "path_from": "start"}},
+    "free_from_reference": {"quality": {"lock_tangents": False, "path_from": "reference"}},
     # the guard at the issue's 1% tolerance instead of 0
     "slack_1pct": {"quality": {"slack": 0.01}},
 }

@@ -122,6 +122,32 @@ def test_quality_polish_singular_weight_stays_guarded(cyl):
     assert torch.equal(F, plain)
 
 
+def test_quality_polish_lock_tangents_keeps_the_curve_alignment(cyl):
+    from torchconn.frames.constraints import BoundaryConstraint
+
+    m, F0 = cyl
+    bc = BoundaryConstraint.from_mesh(m)
+    inner = bc.tangent_vertices[~bc.tangent_at_corner]
+    assert inner.numel() > 0  # the cylinder's rims are feature curves
+    F, info = quality_polish(m, F0, F0, steps=40, check_every=20, lock_tangents=True)
+    assert info["accepted"] == "step"  # a moved field, not the input
+    before = frame_metrics(F0, m)["feature_curve_alignment_mean_deg"]
+    assert frame_metrics(F, m)["feature_curve_alignment_mean_deg"] == pytest.approx(before, abs=1e-7)
+    assert not torch.allclose(F[inner], F0[inner])  # the curve frames did turn, about the tangent axis
+
+
+def test_quality_polish_path_from_reference(cyl):
+    m, F0 = cyl
+    gen = torch.Generator().manual_seed(2)
+    noisy = so3.exp(0.3 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
+    # from the reference the path is the same whatever the start; the start is one more candidate
+    a, ia = quality_polish(m, noisy, F0, steps=40, check_every=20, path_from="reference")
+    b, ib = quality_polish(m, F0, F0, steps=40, check_every=20, path_from="start")
+    assert [c[1] for c in ia["checks"][1:]] == pytest.approx([c[1] for c in ib["checks"][1:]], abs=1e-12)
+    assert ia["checks"][0][2] is False  # the noisy start is scored (and fails the guard)
+    assert torch.allclose(a, b)
+
+
 def test_quality_polish_falls_back_to_the_reference(cyl):
     m, F0 = cyl
     gen = torch.Generator().manual_seed(1)
@@ -132,7 +158,8 @@ def test_quality_polish_falls_back_to_the_reference(cyl):
     F, info = quality_polish(m, F0, F0, steps=0)
     assert torch.equal(F, F0)  # the start equals the reference: score 0, the reference is kept
     for kw, msg in [({"steps": -1}, "steps"), ({"check_every": 0}, "check_every"), ({"lr": 0.0}, "lr"),
-                    ({"slack": -0.1}, "slack"), ({"singular_weight": -1.0}, "singular_weight"), ({"dirichlet_weight": (1.0, float("nan"))}, "dirichlet_weight")]:
+                    ({"slack": -0.1}, "slack"), ({"singular_weight": -1.0}, "singular_weight"),
+                    ({"path_from": "middle"}, "path_from"), ({"dirichlet_weight": (1.0, float("nan"))}, "dirichlet_weight")]:
         with pytest.raises(ValueError, match=msg):
             quality_polish(m, F0, F0, **kw)
     with pytest.raises(ValueError, match="reference_frames"):

@@ -134,6 +134,8 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.check_every": _int(1),
     "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
+    "quality.lock_tangents": _bool(),
+    "quality.path_from": _choice("start", "reference"),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),
     "sh.mbo_steps": _int(0),

@@ -145,7 +145,8 @@ def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0)
 def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *, steps: int = 300,
                    lr: float = 0.01, dirichlet_weight: tuple[float, float] = (4.0, 0.25),
                    feature_weight: float = 1.0, singular_weight: float = 0.0, check_every: int = 20,
-                   slack: float = 0.0, score_dirichlet: float = 1.0, eps: float = 1e-3,
+                   slack: float = 0.0, score_dirichlet: float = 1.0, lock_tangents: bool = False,
+                   path_from: str = "start", eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded polish that lowers the mean edge angle and the Dirichlet energy together.
@@ -192,6 +193,12 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         slack: relative tolerance of the guard on the continuous metrics (0: never worse).
         score_dirichlet: weight ``b`` of the Dirichlet ratio in :func:`quality_score`, the
             choice among admissible checkpoints (< 1 favours the mean angle).
+        lock_tangents: at the vertices inside the feature curves
+            (:class:`~torchconn.frames.constraints.BoundaryConstraint` tangent pairs), rotate only
+            about the start frame's axis closest to the curve tangent, so the feature-curve
+            alignment of the path's first field is kept exactly (it can then neither improve nor worsen).
+        path_from: ``"start"`` (the path starts at ``frames``) or ``"reference"`` (at
+            ``reference_frames``; ``frames`` is then only a candidate, scored as step 0).
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
 
     Returns:
@@ -200,6 +207,8 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         "final": the returned field's metrics}`` (``accepted_step`` is -1 for the reference field,
         0 for the start field).
     """
+    if path_from not in ("start", "reference"):
+        raise ValueError(f"quality_polish: path_from must be 'start' or 'reference', got {path_from!r}")
     if steps < 0 or check_every < 1 or not lr > 0 or slack < 0 or not singular_weight >= 0:
         raise ValueError(f"quality_polish: need steps >= 0, check_every >= 1, lr > 0, slack >= 0, "
                          f"singular_weight >= 0; got {steps}, {check_every}, {lr}, {slack}, {singular_weight}")
@@ -228,6 +237,8 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
             best = (sc, F, kind, step, m)
 
     consider(F0, 0, "start")
+    if path_from == "reference":
+        F0 = Fr
     if steps > 0:
         bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
         fv, fn = bc.feature_targets()
@@ -237,8 +248,18 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         w = torch.zeros_like(F0[:, :, 0], requires_grad=True)
         opt = torch.optim.Adam([w], lr=lr)
 
+        cons, axis = bc.constrained, bc.normals.to(dtype)
+        if lock_tangents and bc.tangent_vertices is not None and bc.tangent_vertices.numel():
+            inner = ~bc.tangent_at_corner
+            tv, td = bc.tangent_vertices[inner], bc.tangent_dirs[inner].to(dtype)
+            Ft = F0[tv]
+            k = (Ft * td[:, :, None]).sum(-2).abs().argmax(-1)  # the axis closest to the tangent
+            cons, axis = cons.clone(), axis.clone()
+            cons[tv] = True
+            axis[tv] = torch.gather(Ft, -1, k[:, None, None].expand(-1, 3, 1)).squeeze(-1)
+
         def current():
-            return constrained_frames(w, F0, bc.constrained, bc.normals)
+            return constrained_frames(w, F0, cons, axis)
 
         def edge_weights(F):  # 1 + c on the edges of half-turn / complex singular faces (None: all 1)
             if not singular_weight:
