@@ -55,11 +55,9 @@ VARIANTS: dict[str, dict] = {
     "to_l1": {"quality": {"dirichlet_end": 0.05, "steps": 400}},
     "to_l1_score": {"quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
     "to_l1_score_from_sh": {"steps": 0, "quality": {"dirichlet_end": 0.05, "steps": 400, "score_dirichlet": 0.3}},
-    # the default before the tangent lock: path from the optimized field, feature curves free
-    # (bounded by the guard's max(SH, 2 deg))
-    "free_tangents": {"quality": {"lock_tangents": False, "path_from": "start"}},
+    # tangents locked to the SH field's (the path starts there; the optimized field is a candidate)
+    "lock_from_reference": {"quality": {"lock_tangents": True, "path_from": "reference"}},
     "lock_from_start": {"quality": {"lock_tangents": True, "path_from": "start"}},
-    "free_from_reference": {"quality": {"lock_tangents": False, "path_from": "reference"}},
     # the guard at the 1% tolerance instead of 0
     "slack_1pct": {"quality": {"slack": 0.01}},
 }

@@ -44,6 +44,8 @@ def test_guard_names_every_worse_metric():
     assert guard_violations({**ref, "feature_curve_alignment_mean_deg": 2.9}, ref) == []
     fc = "feature_curve_alignment_mean_deg"
     assert guard_violations({**ref, fc: 3.1}, ref) == [fc]
+    low = {**ref, fc: 0.5}
+    assert guard_violations({**low, fc: 0.6}, low) == [fc]  # held at the reference's, not at 2 degrees
     nofc = {**ref, "feature_curve_alignment_mean_deg": float("nan")}
     assert guard_violations(nofc, nofc) == []
     assert guard_violations({**nofc, fc: 2.5}, nofc) == [fc]

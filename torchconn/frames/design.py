@@ -81,7 +81,7 @@ DEFAULTS: dict[str, Any] = {
     "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "steps": 300, "lr": 0.01, "dirichlet_start": 4.0, "dirichlet_end": 0.25,
                 "feature_weight": 1.0, "singular_weight": 0.0, "check_every": 20, "slack": 0.0,
-                "score_dirichlet": 1.0, "lock_tangents": True, "path_from": "reference"},
+                "score_dirichlet": 1.0, "lock_tangents": False, "path_from": "start"},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,

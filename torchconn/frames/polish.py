@@ -13,6 +13,16 @@ with ``g_ij`` re-matched at every step (no gradient through the matching) and th
 into new singular faces, so the result is *guarded*: every ``check_every`` steps the field is
 scored, and the best-smoothness checkpoint (step 0, the input, included) with at most
 ``max_singular_faces`` singular faces and no tet with exactly one singular face is returned.
+The mean angle is an L1 measure: lowered alone it concentrates the turning of the frames and
+raises the RMS angle and the Dirichlet energy (issue 13), so this polish is off by default.
+
+:func:`quality_polish` (the connection method's last stage) lowers the mean angle *and* the
+matched Dirichlet energy ``mean_e ||F_i g_ij - F_j||^2`` (Ray et al. 2016, Palmer et al. 2020)
+along a path whose Dirichlet weight is annealed from high to low, and its guard
+(:func:`guard_violations`) admits only fields no worse than a reference field (the SH baseline)
+on every guarded metric: mean and RMS angle, Dirichlet energy, singular and complex singular
+faces, singular curves ending inside, tets with one singular face, boundary and feature-curve
+alignment. The reference itself is always a candidate, so the result is never worse than it.
 """
 from __future__ import annotations
 
@@ -105,8 +115,11 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
 GUARD_CONTINUOUS = ("smoothness_mean_deg", "smoothness_rms_deg", "dirichlet_energy_mean")
 #: Counts the quality guard holds at or below the reference's.
 GUARD_COUNTS = ("n_singular_faces", "n_singular_faces_complex", "n_curves_ending_inside", "n_tets_one_singular_face")
-#: ``metric: floor``: held at or below ``max(reference, floor)`` (degrees; the issue's per-model bounds).
-GUARD_BOUNDS = {"alignment_mean_deg": 0.5, "feature_curve_alignment_mean_deg": 2.0}
+#: ``metric: floor``: held at or below ``max(reference, floor)`` (degrees). Boundary alignment may
+#: reach the issue's 0.5 degree bound; the feature-curve alignment is held at the reference's (a
+#: floor of 2 degrees, the issue's bound, let the polish trade the tangents for smoothness up to
+#: it: measured in studies/frame_quality.py).
+GUARD_BOUNDS = {"alignment_mean_deg": 0.5, "feature_curve_alignment_mean_deg": 0.0}
 
 
 def guard_violations(metrics: dict, reference: dict, slack: float = 0.0) -> list[str]:
