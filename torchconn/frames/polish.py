@@ -215,10 +215,10 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
 
     Returns:
-        ``(frames, info)`` with ``info = {"accepted": "reference" | "start" | "step", "accepted_step",
-        "score", "checks": [(step, score, admissible, violations)], "reference": reference metrics,
-        "final": the returned field's metrics}`` (``accepted_step`` is -1 for the reference field,
-        0 for the start field).
+        ``(frames, info)``; ``info`` has ``"accepted"`` (``"reference"``, ``"start"`` or
+        ``"step"``), ``"accepted_step"`` (-1 for the reference field, 0 for the start field),
+        ``"score"``, ``"checks"`` (a list of ``(step, score, admissible, violations)``),
+        ``"reference"`` (the reference's metrics) and ``"final"`` (the returned field's metrics).
     """
     if path_from not in ("start", "reference"):
         raise ValueError(f"quality_polish: path_from must be 'start' or 'reference', got {path_from!r}")
