@@ -58,6 +58,8 @@ VARIANTS: dict[str, dict] = {
     # tangents locked to the SH field's (the path starts there; the optimized field is a candidate)
     "lock_from_reference": {"quality": {"lock_tangents": True, "path_from": "reference"}},
     "lock_from_start": {"quality": {"lock_tangents": True, "path_from": "start"}},
+    # the guard lets the feature-curve alignment rise to the 2-degree bound
+    "curve_floor_2": {"quality": {"feature_curve_floor": 2.0}},
     # the guard at the 1% tolerance instead of 0
     "slack_1pct": {"quality": {"slack": 0.01}},
 }

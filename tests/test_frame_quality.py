@@ -46,6 +46,7 @@ def test_guard_names_every_worse_metric():
     assert guard_violations({**ref, fc: 3.1}, ref) == [fc]
     low = {**ref, fc: 0.5}
     assert guard_violations({**low, fc: 0.6}, low) == [fc]  # held at the reference's, not at 2 degrees
+    assert guard_violations({**low, fc: 1.9}, low, bounds={fc: 2.0}) == []  # a floor of 2 degrees
     nofc = {**ref, "feature_curve_alignment_mean_deg": float("nan")}
     assert guard_violations(nofc, nofc) == []
     assert guard_violations({**nofc, fc: 2.5}, nofc) == [fc]
@@ -161,7 +162,9 @@ def test_quality_polish_falls_back_to_the_reference(cyl):
     assert torch.equal(F, F0)  # the start equals the reference: score 0, the reference is kept
     for kw, msg in [({"steps": -1}, "steps"), ({"check_every": 0}, "check_every"), ({"lr": 0.0}, "lr"),
                     ({"slack": -0.1}, "slack"), ({"singular_weight": -1.0}, "singular_weight"),
-                    ({"path_from": "middle"}, "path_from"), ({"dirichlet_weight": (1.0, float("nan"))}, "dirichlet_weight")]:
+                    ({"path_from": "middle"}, "path_from"),
+                    ({"feature_curve_floor": -1.0}, "feature_curve_floor"),
+                    ({"dirichlet_weight": (1.0, float("nan"))}, "dirichlet_weight")]:
         with pytest.raises(ValueError, match=msg):
             quality_polish(m, F0, F0, **kw)
     with pytest.raises(ValueError, match="reference_frames"):

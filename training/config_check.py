@@ -136,6 +136,7 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.score_dirichlet": _float(0),
     "quality.lock_tangents": _bool(),
     "quality.path_from": _choice("start", "reference"),
+    "quality.feature_curve_floor": _float(0),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),
     "sh.mbo_steps": _int(0),

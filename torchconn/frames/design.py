@@ -81,7 +81,7 @@ DEFAULTS: dict[str, Any] = {
     "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "steps": 300, "lr": 0.01, "dirichlet_start": 4.0, "dirichlet_end": 0.25,
                 "feature_weight": 1.0, "singular_weight": 0.0, "check_every": 20, "slack": 0.0,
-                "score_dirichlet": 1.0, "lock_tangents": False, "path_from": "start"},
+                "score_dirichlet": 1.0, "lock_tangents": False, "path_from": "start", "feature_curve_floor": 0.0},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,
@@ -457,7 +457,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                 feature_weight=float(q["feature_weight"]), singular_weight=float(q["singular_weight"]),
                 check_every=int(q["check_every"]), slack=float(q["slack"]),
                 score_dirichlet=float(q["score_dirichlet"]), lock_tangents=bool(q["lock_tangents"]),
-                path_from=str(q["path_from"]),
+                path_from=str(q["path_from"]), feature_curve_floor=float(q["feature_curve_floor"]),
                 angle_deg=angle, align_eps=float(opts["align_eps"]),
                 reference_metrics=init_metrics)
             if quality_info["accepted"] != "start":  # the connection that transports the returned frames

@@ -122,7 +122,7 @@ GUARD_COUNTS = ("n_singular_faces", "n_singular_faces_complex", "n_curves_ending
 GUARD_BOUNDS = {"alignment_mean_deg": 0.5, "feature_curve_alignment_mean_deg": 0.0}
 
 
-def guard_violations(metrics: dict, reference: dict, slack: float = 0.0) -> list[str]:
+def guard_violations(metrics: dict, reference: dict, slack: float = 0.0, bounds: dict | None = None) -> list[str]:
     """The metrics of ``metrics`` that are worse than ``reference`` (both :func:`frame_metrics` dicts).
 
     A field passes the guard (empty list) when: ``smoothness_mean_deg``, ``smoothness_rms_deg``
@@ -139,7 +139,7 @@ def guard_violations(metrics: dict, reference: dict, slack: float = 0.0) -> list
     for k in GUARD_COUNTS:
         if metrics[k] > reference[k]:
             bad.append(k)
-    for k, floor in GUARD_BOUNDS.items():
+    for k, floor in (GUARD_BOUNDS if bounds is None else bounds).items():
         v, r = metrics[k], reference[k]
         if v == v and v > (max(r, floor) if r == r else floor):
             bad.append(k)
@@ -159,7 +159,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                    lr: float = 0.01, dirichlet_weight: tuple[float, float] = (4.0, 0.25),
                    feature_weight: float = 1.0, singular_weight: float = 0.0, check_every: int = 20,
                    slack: float = 0.0, score_dirichlet: float = 1.0, lock_tangents: bool = False,
-                   path_from: str = "start", eps: float = 1e-3,
+                   path_from: str = "start", feature_curve_floor: float = 0.0, eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded polish that lowers the mean edge angle and the Dirichlet energy together.
@@ -210,6 +210,10 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
             (:class:`~torchconn.frames.constraints.BoundaryConstraint` tangent pairs), rotate only
             about the start frame's axis closest to the curve tangent, so the feature-curve
             alignment of the path's first field is kept exactly (it can then neither improve nor worsen).
+        feature_curve_floor: the guard holds the feature-curve alignment mean at or below
+            ``max(reference's, feature_curve_floor)`` degrees (0: never worse than the reference;
+            2: the issue's per-model bound, which lets the polish trade tangent alignment for
+            smoothness up to it).
         path_from: ``"start"`` (the path starts at ``frames``) or ``"reference"`` (at
             ``reference_frames``; ``frames`` is then only a candidate, scored as step 0).
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
@@ -237,13 +241,16 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     F0 = frames.detach().to(dtype)
     Fr = reference_frames.detach().to(dtype)
     ref = reference_metrics if reference_metrics is not None else frame_metrics(Fr, mesh, angle_deg)
+    if not feature_curve_floor >= 0:
+        raise ValueError(f"quality_polish: feature_curve_floor must be >= 0, got {feature_curve_floor}")
+    bounds = {**GUARD_BOUNDS, "feature_curve_alignment_mean_deg": float(feature_curve_floor)}
     checks = []
     best = (0.0, Fr, "reference", -1, ref)  # the reference always passes its own guard
 
     def consider(F, step, kind):
         nonlocal best
         m = frame_metrics(F, mesh, angle_deg)
-        bad = guard_violations(m, ref, slack)
+        bad = guard_violations(m, ref, slack, bounds)
         sc = quality_score(m, ref, score_dirichlet)
         checks.append((step, sc, not bad, bad))
         if not bad and sc < best[0]:
