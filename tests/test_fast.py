@@ -361,7 +361,8 @@ def test_frame_field_loss_shared_path_matches_term_by_term_composition(dtype):
     tor = torsion.face_torsion(R, mesh, kind="sqrt", cut=torch.tensor(-1), frames=F)  # generic loop
     ok = unrel[mesh.face_edges].all(-1)
     ref = {"smooth": losses.smoothness_loss(R), "tie": tie, "flat": losses.symmetric_flatness_loss(hol),
-           "torsion": ((tor ** 2).sum(-1) / lf.face_area)[ok].mean()}
+           "torsion": ((tor ** 2).sum(-1) / lf.face_area)[ok].mean(),
+           "dirichlet": losses.matched_dirichlet_loss(F, mesh.edges)}
     tol = 5 * TOL[dtype]
     for k, v in ref.items():
         torch.testing.assert_close(out[k], v, atol=tol, rtol=tol)

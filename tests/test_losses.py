@@ -112,7 +112,7 @@ def test_axis_angle_loss_gradient_finite_at_alignment(gen):
 def test_frame_field_loss_terms_and_total(box, gen):
     from torchconn.frames.model import matched_connection
 
-    w = {"smooth": 1.0, "tie": 2.0, "flat": 0.5, "torsion": 0.1, "align": 3.0, "feature": 4.0}
+    w = {"smooth": 1.0, "tie": 2.0, "flat": 0.5, "torsion": 0.1, "align": 3.0, "feature": 4.0, "dirichlet": 0.5}
     lf = FrameFieldLoss(box, w)
     F = _random_frames(box.n_vertices, gen)
     R = matched_connection(F, box.edges)

@@ -76,7 +76,9 @@ def test_cli_end_to_end(tmp_path):
 
 
 def test_loss_decreases_and_field_improves(tmp_path):
-    m = train(_cfg(tmp_path, steps=25))
+    # the angle-only polish as the last stage (the quality polish off: it may return the SH field,
+    # whose mean angle is higher than the optimized field's; tests/test_frame_quality.py covers it)
+    m = train(_cfg(tmp_path, steps=25, quality={"enabled": False}))
     h = m["loss_history"]
     assert h["total"][-1] < h["total"][0]
     # the guarded polish never returns a field worse than the optimized one, nor more singular

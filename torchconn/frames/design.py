@@ -7,12 +7,15 @@ design() -> writers``); nothing is written to disk. Methods:
   (:func:`~torchconn.frames.sh.sh_frame_field`, or ``init_frames``) initializes a
   :class:`~torchconn.frames.model.FrameFieldModel` (connection + frames), optimized against
   :class:`~torchconn.frames.loss.FrameFieldLoss` (:func:`~torchconn.frames.solver.optimize`), then
-  the guarded frames-only polish (:func:`~torchconn.frames.polish.polish_frames`);
+  the guarded frames-only polish (:func:`~torchconn.frames.polish.polish_frames`, ``polish``; off by
+  default), then the guarded quality polish (:func:`~torchconn.frames.polish.quality_polish`,
+  ``quality``): mean angle and matched Dirichlet energy lowered together, and the result never
+  worse than the initialization (the SH field) on any guarded metric — at worst it is that field;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
 Options are the keys of ``configs/train_frames.yaml`` that belong to the method (:data:`OPTIONS`,
-defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``polish``, ``sh``) are merged
-onto their defaults, so ``weights={"tie": 5.0}`` changes one weight. Unknown names raise
+defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``polish``, ``quality``, ``sh``) are
+merged onto their defaults, so ``weights={"tie": 5.0}`` changes one weight. Unknown names raise
 ``TypeError`` listing the known ones.
 
 Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`): ``frames[i][:, k]`` is
@@ -49,7 +52,7 @@ from .constraints import BoundaryConstraint
 from .loss import ALIGN_KINDS, FrameFieldLoss
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
-from .polish import polish_frames
+from .polish import polish_frames, quality_polish
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
@@ -63,7 +66,8 @@ _ALIASES = {"sh_baseline": "sh"}
 #: Default value of every option; the same values as ``configs/train_frames.yaml`` (a test checks it).
 DEFAULTS: dict[str, Any] = {
     "formulation": "vertex",
-    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "align": 10.0, "feature": 1.0},
+    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "align": 10.0, "feature": 1.0,
+                "dirichlet": 0.0},
     "feature_angle_deg": 30.0,
     "smooth_power": 1.0,
     "smooth_eps": 1e-3,
@@ -74,7 +78,10 @@ DEFAULTS: dict[str, Any] = {
     "lr": 0.02,
     "lr_schedule": "cosine",
     "lbfgs": {"history_size": 20, "max_iter": 5},
-    "polish": {"steps": 600, "lr": 0.01, "check_every": 50},
+    "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
+    "quality": {"enabled": True, "steps": 300, "lr": 0.01, "dirichlet_start": 4.0, "dirichlet_end": 0.25,
+                "feature_weight": 1.0, "singular_weight": 0.0, "check_every": 20, "slack": 0.0,
+                "score_dirichlet": 1.0, "lock_tangents": False, "path_from": "start", "feature_curve_floor": 0.0},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,
@@ -366,7 +373,8 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
     t_opt = t_polish = 0.0
     start = steps = iterations = 0
     stopped = False
-    polish_info = final_terms = None
+    polish_info = final_terms = quality_info = None
+    t_quality = 0.0
     if method == "sh":
         F = F0
         R = matched_connection(F, mesh.edges)
@@ -438,6 +446,25 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                 R = matched_connection(F, mesh.edges)
             t_polish = time.perf_counter() - t0
             polish_info["seconds"] = t_polish
+        # 4b. guarded quality polish against the initialization (the SH baseline): never worse on
+        # any guarded metric, the best mean-angle x Dirichlet-energy checkpoint otherwise
+        q = opts["quality"]
+        if q["enabled"]:
+            t0 = time.perf_counter()
+            F, quality_info = quality_polish(
+                mesh, F, F0, steps=int(q["steps"]), lr=float(q["lr"]),
+                dirichlet_weight=(float(q["dirichlet_start"]), float(q["dirichlet_end"])),
+                feature_weight=float(q["feature_weight"]), singular_weight=float(q["singular_weight"]),
+                check_every=int(q["check_every"]), slack=float(q["slack"]),
+                score_dirichlet=float(q["score_dirichlet"]), lock_tangents=bool(q["lock_tangents"]),
+                path_from=str(q["path_from"]), feature_curve_floor=float(q["feature_curve_floor"]),
+                angle_deg=angle, align_eps=float(opts["align_eps"]),
+                reference_metrics=init_metrics)
+            if quality_info["accepted"] != "start":  # the connection that transports the returned frames
+                R = matched_connection(F, mesh.edges)
+            t_quality = time.perf_counter() - t0
+            quality_info = {k: v for k, v in quality_info.items() if k not in ("reference", "final")}
+            quality_info["seconds"] = t_quality
         with torch.no_grad():
             final_terms = {k: float(v) for k, v in loss_fn(R, F).items()}
         iterations = done - start
@@ -456,6 +483,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "init": init_metrics,
         "edge_classes": edge_class_breakdown(F, mesh, angle),
         "polish": polish_info,
+        "quality": quality_info,
         "final_loss_terms": final_terms,
         "invariants": _invariants(R, mask, mesh, atol),
     }
@@ -464,6 +492,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "init_s": t_init,
         "optimize_s": t_opt,
         "polish_s": t_polish,
+        "quality_s": t_quality,
         "iterations": iterations,
         "total_steps": steps,
         "s_per_iteration": t_opt / max(iterations, 1),

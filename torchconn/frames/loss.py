@@ -45,6 +45,11 @@ dimensionless):
   one frame (dihedral angles that are not multiples of 90 degrees, curved faces), the quartic
   penalty settles at a least-squares compromise, which has a larger *mean* angle than the
   L1 optimum (measurements: ``docs/results/frame-fields.md``).
+* ``dirichlet`` — the matched Dirichlet energy of the *frames*, ``mean_e ||F_i g_ij - F_j||_F^2``
+  with ``g_ij`` the best octahedral match (chosen without gradient, re-chosen at every
+  evaluation; :func:`matched_dirichlet_loss`): the measure hex-meshing papers score a field by
+  (Ray et al. 2016, Palmer et al. 2020) and the metric ``dirichlet_energy_mean`` of
+  :func:`torchconn.frames.metrics.frame_metrics`. It reads the frames only (not the connection).
 """
 from __future__ import annotations
 
@@ -67,10 +72,11 @@ __all__ = [
     "axis_angle_loss",
     "ALIGN_KINDS",
     "FrameFieldLoss",
+    "matched_dirichlet_loss",
 ]
 
 #: Names of the loss terms, in display order.
-TERMS = ("smooth", "tie", "flat", "torsion", "align", "feature")
+TERMS = ("smooth", "tie", "flat", "torsion", "align", "feature", "dirichlet")
 #: Forms of the ``align``/``feature`` terms (:func:`normal_alignment_loss`, :func:`axis_angle_loss`).
 ALIGN_KINDS = ("quartic", "angle")
 
@@ -121,6 +127,22 @@ def _tie_from(FiR: torch.Tensor, Fj: torch.Tensor, power: float, eps: float
         idx, g = octahedral.match(Fj, FiR)  # F_j h ~ F_i R_ij
     d = _rho(((FiR - Fj @ g) ** 2).sum((-2, -1)), power, eps)
     return d.mean(), idx == 0
+
+
+def matched_dirichlet_loss(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """``mean_e ||F_i g_ij - F_j||_F^2`` for ``frames (V, 3, 3)`` and ``edges (E, 2)`` rows ``(i, j)``.
+
+    ``g_ij = argmin_{g in O} ||F_i g - F_j||`` (:func:`octahedral.match_edges`, without gradient:
+    the min over the 24 smooth branches has the gradient of the active one). For a residual
+    rotation of angle ``t`` the edge's value is ``4 (1 - cos t) = 8 sin^2(t / 2)``. Empty ``edges``
+    give 0. The value equals ``dirichlet_energy_mean`` of :func:`~torchconn.frames.metrics.frame_metrics`.
+    """
+    if edges.shape[0] == 0:
+        return frames.new_zeros(())
+    with torch.no_grad():
+        _, g = octahedral.match_edges(frames.detach(), edges)
+    d = frames.index_select(0, edges[:, 0]) @ g.to(frames.dtype) - frames.index_select(0, edges[:, 1])
+    return (d**2).sum((-2, -1)).mean()
 
 
 def symmetric_flatness_loss(face_hol: torch.Tensor) -> torch.Tensor:
@@ -299,6 +321,8 @@ class FrameFieldLoss:
             out["align"] = self._align(frames[self.align_vertices], self.align_normals.to(frames.dtype))
         if w["feature"]:
             out["feature"] = self._align(frames[self.feature_vertices_rep], self.feature_normals.to(frames.dtype))
+        if w["dirichlet"]:
+            out["dirichlet"] = matched_dirichlet_loss(frames, self.mesh.edges)
         total = frames.new_zeros(())
         for k, v in out.items():
             if w[k]:
