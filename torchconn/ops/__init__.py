@@ -1,19 +1,30 @@
-"""Kernels: the one place that chooses and dispatches compiled or torch implementations.
+"""Kernels: the one registry of ``torchconn::`` custom ops and the one place that picks a kernel.
 
-One module per op family, each op deciding its own path in one place:
+Every hot op is declared once with :func:`torch.library.custom_op` (namespace
+:data:`._library.NAMESPACE`, ``torch.ops.torchconn.<name>``) with a generic torch
+implementation (every device and dtype), a CPU kernel running the compiled C code of ``csrc/``
+when the switch allows it, a fake implementation (meta, ``torch.compile``, ``export``), an
+autograd registration whose backward is itself a custom op with exact derivatives (double
+backward, ``create_graph``, Hessian-vector products), and a vmap rule (native leading batch dims):
 
-* :mod:`.so3`: ``exp``, ``log``, ``sqrt``, ``half_exp`` (compiled ``csrc/so3.c`` or torch);
-* :mod:`.curvature`: face curvature of sorted-triangle meshes (fused torch kernel);
-* :mod:`.torsion`: per-edge solder forms and face torsion (fused torch kernels);
-* :mod:`.tet`: the averaged ``d∇d∇θ`` per tet (fused torch kernel, :class:`~.tet.TetKernel`);
-* :mod:`.frame_loss`: the compiled frame-field loss terms (``csrc/frame_loss.c``).
+* :mod:`.so3`: ``so3_exp``, ``so3_log``, ``so3_log_checked``, ``so3_sqrt`` (+ backward ops;
+  ``csrc/so3.c``; generic formulas in ``_so3_formulas``);
+* :mod:`.curvature`: ``face_curvature`` of sorted-triangle meshes (``csrc/curvature.c``);
+* :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
+* :mod:`.tet`: ``tet_dd`` / ``tet_dd_sqrt``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet
+  (``csrc/tet.c``; generic SoA kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
+* :mod:`.frame_loss`: ``frame_loss``, the frame-field loss sweep (``csrc/frame_loss.c``;
+  generic terms in ``_frame_loss_torch``).
 
 :mod:`.backend` holds the one global switch for the compiled kernels (:func:`compiled_enabled`,
 :func:`set_compiled`, the context manager :func:`compiled`; initialized from the environment
-variable ``TORCHCONN_NATIVE``) and the one predicate every op asks
-(:func:`can_use_compiled`); :mod:`.native` builds and loads the C sources of ``csrc/``.
-Ops that apply only to some inputs return ``None`` elsewhere, and their caller evaluates its
-generic formula. This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
+variable ``TORCHCONN_NATIVE``) and the one predicate the CPU kernels ask
+(:func:`can_use_compiled`); :mod:`.native` builds the C sources with the system compiler at
+first use and declares each C signature once (:func:`.native.declare`); ``_library`` holds the
+namespace, the shared vmap rule and the forward-mode helper. The public functions of each
+module keep mesh objects out of the ops (index tables built once per mesh are op arguments);
+some return ``None`` where they do not apply, and their caller evaluates its generic formula.
+This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
 """
 from . import backend, curvature, frame_loss, native, so3, tet, torsion
 from .backend import can_use_compiled, compiled, compiled_enabled, set_compiled

@@ -282,6 +282,8 @@ def _tables(mesh, device):
     def build(m):
         fi = m.face_edges[:, [2, 0, 1]].t().contiguous()  # rows ab, bc, ac
         E = int(m.edges.shape[0])
+        if fi.device.type == "meta":  # a meta mesh has no values: tables of the right shapes only
+            return fi, fi.new_empty(E + 1, dtype=torch.int32), fi.new_empty(fi.numel(), dtype=torch.int32)
         by_code = fi.t().reshape(-1)  # position 3 f + slot -> edge
         order = torch.sort(by_code, stable=True).indices  # codes grouped by edge, increasing
         ptr = torch.zeros(E + 1, dtype=torch.int64, device=fi.device)
