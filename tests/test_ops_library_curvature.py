@@ -300,4 +300,8 @@ def test_generic_kernels_on_every_device(mesh, device):
     for a, b in zip(*outs):
         torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
     x = R[0].to(device).requires_grad_()
-    assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh).square(), (x,), fast_mode=True)
+    # off the CPU the generic backward scatters with index_add_ (atomic adds: summation order
+    # varies between runs), so repeated backwards agree to round-off, not bit for bit
+    nondet = 0.0 if device == "cpu" else 1e-12
+    assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh).square(), (x,), fast_mode=True,
+                         nondet_tol=nondet)

@@ -167,7 +167,9 @@ class _Derived:
     """
 
     def require(self, name: str, builder: Callable):
-        cache = self.__dict__.setdefault("_derived", {})
+        cache = self.__dict__.get("_derived")
+        if cache is None:  # plain get/assign: torch.compile (2.11) cannot trace dict.setdefault here
+            cache = self.__dict__["_derived"] = {}
         if name not in cache:
             cache[name] = builder(self)
         return cache[name]
