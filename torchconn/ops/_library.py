@@ -35,7 +35,7 @@ def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1
     The vmapped dimension of each of those arguments is moved to the front (an argument that is
     not vmapped is expanded to the batch size); the op then runs once on the whole batch and
     every output carries the batch at dimension 0. Any other argument (index tables, scalars)
-    must not be vmapped: that raises ``NotImplementedError`` naming the op and the argument.
+    must not be vmapped: that raises ``ValueError`` naming the op and the argument.
     """
     batched = tuple(batched)
 
@@ -48,7 +48,7 @@ def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1
                 elif d != 0:
                     args[i] = args[i].movedim(d, 0)
             elif d is not None:
-                raise NotImplementedError(
+                raise ValueError(
                     f"torchconn::{name}: vmap over argument {i} is not supported "
                     f"(only arguments {list(batched)} take leading batch dimensions)")
         out = op(*args)

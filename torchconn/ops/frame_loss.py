@@ -359,8 +359,8 @@ def _bwd_vmap(info, in_dims, *args):
             elif d != 0:
                 args[i] = args[i].movedim(d, 0)
         elif d is not None:
-            raise NotImplementedError(f"torchconn::frame_loss_backward: vmap over argument {i} is not supported "
-                                      f"(only arguments {list(batched)} take leading batch dimensions)")
+            raise ValueError(f"torchconn::frame_loss_backward: vmap over argument {i} is not supported "
+                             f"(only arguments {list(batched)} take leading batch dimensions)")
     return _frame_loss_backward(*args), (0, 0)
 
 
