@@ -196,16 +196,19 @@ void tet_dds_bwd_##SUF(const T_ *rot, const T_ *half, const T_ *vec, const T_ *g
                        const int64_t *ridx, const int64_t *tidx, const int64_t *order,             \
                        const int64_t *chunk_start, const int64_t *color_start, int64_t n_colors,   \
                        T_ *grot, T_ *ghalf, T_ *gvec, int64_t nb, int64_t E, int64_t T, int threads) { \
+    /* pass 1 (tets, colored chunks): grot and the gradient of every directed θ̃, gth (2E, 3) per  \
+     * item, scattered as 3-vectors; pass 2 (edges): ghalf, gvec from gth, once per edge instead  \
+     * of once per (tet, edge) incidence. gth lives in ghalf's first 6E entries of each item     \
+     * (ghalf is 9E per item), read into registers before ghalf is written. */                   \
     memset(grot, 0, sizeof(T_) * 9 * E * nb);                                                      \
     memset(ghalf, 0, sizeof(T_) * 9 * E * nb);                                                     \
-    memset(gvec, 0, sizeof(T_) * 3 * E * nb);                                                      \
     for (int64_t c = 0; c < n_colors; c++) {                                                       \
         int64_t c0 = color_start[c], nc = color_start[c + 1] - c0;                                 \
         _Pragma("omp parallel for schedule(dynamic, 1) num_threads(threads)")                      \
         for (int64_t w = 0; w < nb * nc; w++) {                                                    \
             int64_t bi = w / nc, ch = c0 + w % nc;                                                 \
             const T_ *rb = rot + bi * 9 * E, *hb = half + bi * 9 * E, *gb = gin + bi * 3 * T;      \
-            T_ *grb = grot + bi * 9 * E, *ghb = ghalf + bi * 9 * E, *gvb = gvec + bi * 3 * E;      \
+            T_ *grb = grot + bi * 9 * E, *gth = ghalf + bi * 9 * E;                                \
             for (int64_t s = chunk_start[ch]; s < chunk_start[ch + 1]; s++) {                      \
                 int64_t k = order[s];                                                              \
                 const int64_t *ri = ridx + 6 * k, *ti = tidx + 7 * k;                              \
@@ -215,18 +218,28 @@ void tet_dds_bwd_##SUF(const T_ *rot, const T_ *half, const T_ *vec, const T_ *g
                 bwd_core_##SUF(R, t, gb + 3 * k, gR, gt);                                          \
                 scatter_rot_##SUF(ri, gR, grb);                                                    \
                 for (int q = 0; q < 7; q++) {                                                      \
-                    int64_t e = ti[q] >> 1;                                                        \
-                    const T_ *H = hb + 9 * e, *v = vec + 3 * e;                                    \
-                    T_ *gH = ghb + 9 * e, *gv = gvb + 3 * e, u[3];                                 \
-                    if (ti[q] & 1) { /* θ̃ = -H^T v */                                              \
-                        for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) gH[3*i+j] -= v[i] * gt[q][j]; \
-                        MV(u, H, gt[q]); for (int i = 0; i < 3; i++) gv[i] -= u[i];                \
-                    } else { /* θ̃ = H v */                                                         \
-                        for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++) gH[3*i+j] += gt[q][i] * v[j]; \
-                        MTV(u, H, gt[q]); for (int i = 0; i < 3; i++) gv[i] += u[i];               \
-                    }                                                                              \
+                    T_ *d = gth + 3 * ti[q];                                                       \
+                    d[0] += gt[q][0]; d[1] += gt[q][1]; d[2] += gt[q][2];                          \
                 }                                                                                  \
             }                                                                                      \
+        }                                                                                          \
+    }                                                                                              \
+    for (int64_t bi = 0; bi < nb; bi++) {                                                          \
+        const T_ *hb = half + bi * 9 * E;                                                          \
+        T_ *ghb = ghalf + bi * 9 * E, *gvb = gvec + bi * 3 * E;                                    \
+        /* edge e reads gth[6e .. 6e+6) and writes ghalf[9e .. 9e+9): in place from the last     \
+         * edge down, every read of edge e precedes the writes that could overlap it (9e >= 6e), \
+         * so this pass is sequential per item (it is O(E), memory-bound, small next to pass 1) */ \
+        for (int64_t e = E - 1; e >= 0; e--) {                                                     \
+            const T_ *H = hb + 9 * e, *v = vec + 3 * e;                                            \
+            T_ gp[3], gm[3], u[3], w[3];                                                           \
+            for (int i = 0; i < 3; i++) { gp[i] = ghb[6 * e + i]; gm[i] = ghb[6 * e + 3 + i]; }    \
+            /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */ \
+            MTV(u, H, gp); MV(w, H, gm);                                                           \
+            T_ *gH = ghb + 9 * e;                                                                  \
+            for (int i = 0; i < 3; i++) for (int j = 0; j < 3; j++)                                \
+                gH[3*i+j] = gp[i] * v[j] - v[i] * gm[j];                                           \
+            for (int i = 0; i < 3; i++) gvb[3 * e + i] = u[i] - w[i];                              \
         }                                                                                          \
     }                                                                                              \
 }
