@@ -22,7 +22,9 @@ Sets (``--set``): ``hexme``: the parameter files ``../shared/data/hexme/meta/XNN
 for the kinds ``--kinds`` (``c``, ``u``), meshed by gmsh with the dataset's parameters and one
 thread (:func:`torchconn.mesh.cad.load_hexme`; deterministic, so every method sees the same
 mesh); ``--models`` keeps the names that start with one of the given prefixes (``s,n,i``: all;
-``s02c,n05``: those). A mesh over ``--max-tets`` tets is an error row ("over max-tets").
+``s02c,n05``: those; ``i02c_m2@lmax=0.15``: that parameter file with
+``Mesh.CharacteristicLengthMax = 0.15``, a finer mesh, about a million tets here). A mesh over
+``--max-tets`` tets is an error row ("over max-tets").
 ``shared``: ``sphere_r0.17``, ``78322_gear.2``, ``dinosaur``, ``bunny`` (tetrahedralized with
 edge length 0.08) and ``fandisk`` (0.2).
 
@@ -81,7 +83,8 @@ FEATURE_ANGLE = 30.0
 def list_cases(set_name: str = "hexme", kinds=("c",), models=None, data_dir: Path | None = None) -> list[str]:
     """Model names of a set: HexMe parameter-file stems (``s02c_prism``) or :data:`SHARED` keys.
 
-    ``models``: prefixes (``["s", "n02"]``); ``None`` keeps all. ``kinds``: HexMe mesh kinds.
+    ``models``: prefixes (``["s", "n02"]``; an entry ``NAME@lmax=X`` is the case of :func:`load_case`);
+    ``None`` keeps all. ``kinds``: HexMe mesh kinds.
     """
     data = Path(data_dir) if data_dir else DATA
     if set_name == "shared":
@@ -98,12 +101,18 @@ def list_cases(set_name: str = "hexme", kinds=("c",), models=None, data_dir: Pat
     else:
         raise ValueError(f"unknown set {set_name!r}; known: {list(SETS)}")
     if models:
-        names = [n for n in names if any(n.startswith(m) for m in models)]
+        # a model with '@' is a case of its own (NAME@lmax=X, see load_case), listed as given
+        exact = [m for m in models if "@" in m and m.partition("@")[0] in names]
+        names = [n for n in names if any(n.startswith(m) for m in models if "@" not in m)] + exact
     return names
 
 
 def load_case(set_name: str, name: str, data_dir: Path | None = None):
-    """The float64 ``TetMesh`` of one model."""
+    """The float64 ``TetMesh`` of one model.
+
+    A HexMe name may end in ``@lmax=X``: the model's parameter file with
+    ``Mesh.CharacteristicLengthMax = X`` (a finer mesh of the same kind, e.g. ``i02c_m2@lmax=0.15``).
+    """
     import torch
 
     from torchconn.mesh import load_mesh
@@ -112,10 +121,17 @@ def load_case(set_name: str, name: str, data_dir: Path | None = None):
     if set_name == "hexme":
         from torchconn.mesh.cad import load_hexme
 
-        path = data / "hexme" / "meta" / f"{name}.yaml"
+        stem, _, spec = name.partition("@")
+        options = {}
+        if spec:
+            key, _, value = spec.partition("=")
+            if key != "lmax" or not value:
+                raise ValueError(f"{name!r}: a HexMe case is NAME or NAME@lmax=X, got {spec!r} after '@'")
+            options["Mesh.CharacteristicLengthMax"] = float(value)
+        path = data / "hexme" / "meta" / f"{stem}.yaml"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such HexMe parameter file")
-        return load_hexme(path, dtype=torch.float64)
+        return load_hexme(path, dtype=torch.float64, options=options)
     if name not in SHARED:
         raise ValueError(f"unknown shared mesh {name!r}; known: {list(SHARED)}")
     file, el = SHARED[name]
@@ -310,7 +326,7 @@ def _hydra_sweep(cases, methods, out: Path, launcher: str, jobs: int, extra: lis
     launch = {"joblib": ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"],
               "hexme_slurm": ["hydra/launcher=hexme_slurm"]}[launcher]
     cmd = [sys.executable, "-m", "benchmarks.frames_hexme", "hydra-job", "--multirun",
-           f"case={','.join(cases)}", f"method={','.join(methods)}", f"out_dir={out}", *launch, *extra]
+           "case=" + ",".join(f"'{c}'" for c in cases), f"method={','.join(methods)}", f"out_dir={out}", *launch, *extra]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     return subprocess.run(cmd, cwd=ROOT, env=env).returncode

@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn.frames.loss import ALIGN_KINDS
 from torchconn.frames.model import FORMULATIONS
+from torchconn.frames.refine import PATH_KINDS
 from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS
 
 __all__ = ["DEMO", "TRAIN_FRAMES", "ConfigError", "Spec", "check_config", "check_device", "resolve_num_threads"]
@@ -44,11 +45,12 @@ class Spec:
     """What one config key accepts.
 
     Attributes:
-        kind: ``"bool" | "int" | "float" | "str" | "choice" | "device" | "threads"``.
+        kind: ``"bool" | "int" | "float" | "str" | "choice" | "device" | "threads" | "list"``.
         lo, hi: inclusive bounds for ``int``/``float`` (``None``: unbounded).
         lo_open: ``lo`` itself is excluded (``lr > 0``).
         choices: allowed values of a ``choice``.
         nullable: ``null`` is allowed.
+        item: the spec of every element of a ``list`` (a non-empty list; ``lo``/``hi`` unused).
     """
 
     kind: str
@@ -57,6 +59,7 @@ class Spec:
     lo_open: bool = False
     choices: tuple = ()
     nullable: bool = False
+    item: "Spec | None" = None
 
     def describe(self) -> str:
         """What is allowed, in words (used in the error message)."""
@@ -74,6 +77,8 @@ class Spec:
             s = "an available torch device: 'cpu', or 'cuda'/'cuda:N' where CUDA is available"
         elif self.kind == "threads":
             s = "'auto' or an integer >= 1"
+        elif self.kind == "list":
+            s = f"a non-empty list, each element {self.item.describe()}"
         else:
             s = "a non-empty string"
         return s + (" or null" if self.nullable else "")
@@ -97,6 +102,10 @@ def _str(nullable=False) -> Spec:
 
 def _choice(*values) -> Spec:
     return Spec("choice", choices=tuple(values))
+
+
+def _list(item: Spec) -> Spec:
+    return Spec("list", item=item)
 
 
 def _positive() -> Spec:
@@ -125,18 +134,16 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "polish.lr": _positive(),
     "polish.check_every": _int(1),
     "quality.enabled": _bool(),
-    "quality.steps": _int(0),
-    "quality.lr": _positive(),
-    "quality.dirichlet_start": _float(0),
-    "quality.dirichlet_end": _float(0),
+    "quality.paths": _list(_choice(*PATH_KINDS)),
+    "quality.dirichlet_weights": _list(_float(0)),
+    "quality.rounds": _int(1),
+    "quality.iters": _int(1),
     "quality.feature_weight": _float(0),
-    "quality.singular_weight": _float(0),
-    "quality.check_every": _int(1),
+    "quality.tangent_weight": _float(0),
+    "quality.complex_weight": _float(0),
     "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
-    "quality.lock_tangents": _bool(),
-    "quality.path_from": _choice("start", "reference"),
-    "quality.feature_curve_floor": _float(0),
+    "quality.feature_curve_bound": _float(0),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),
     "sh.mbo_steps": _int(0),
@@ -210,6 +217,16 @@ def _check_value(key: str, v, spec: Spec, source: str) -> str | None:
     if v is None:
         return None if spec.nullable else "null is not allowed"
     kind = spec.kind
+    if kind == "list":
+        if isinstance(v, (str, bytes)) or not hasattr(v, "__len__") or not hasattr(v, "__iter__"):
+            return "not a list"
+        if len(v) == 0:
+            return "an empty list"
+        for i, x in enumerate(v):
+            why = _check_value(f"{key}[{i}]", x, spec.item, source)
+            if why is not None:
+                return f"element {i} ({x!r}) is {why}"
+        return None
     if kind == "bool":
         return None if isinstance(v, bool) else "not a boolean"
     if kind == "threads":

@@ -123,13 +123,15 @@ def axis_alignment_angle(frames: torch.Tensor, normals: torch.Tensor) -> torch.T
     return torch.atan2(s, torch.gather(c, -1, k).squeeze(-1).abs())
 
 
-def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
+def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0, *, curl: bool = True) -> dict:
     """All fixed metrics of a frame field (see the module docstring) as a dict of Python numbers.
 
     Args:
         frames: ``(V, 3, 3)`` rotations, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
         mesh: a ``TetMesh``.
         angle_deg: feature-edge threshold (30 degrees in the fixed definition).
+        curl: compute the integrability measure (``False``: ``curl_mean``/``curl_p95`` are
+            ``nan``; a guard that does not read them saves a pass over the faces).
 
     Returns:
         dict with exactly the keys of :data:`METRIC_KEYS` (floats, counts as ints).
@@ -161,11 +163,13 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
     mask, _ = octahedral.singular_faces(frames, mesh)
     one = octahedral.tets_with_one_singular_face(mask, mesh)
     sg = singular_graph(frames, mesh, g).counts()
-    interior = (mesh.face_tets >= 0).all(1)
-    fi = mesh.faces[interior]
-    Xf = mesh.vertices.to(frames.dtype)[fi]
-    perim = (Xf.roll(-1, 1) - Xf).norm(dim=-1).sum(1)
-    curl = face_closure(frames, mesh, g)[interior].norm(dim=-1) / perim
+    if curl:
+        interior = (mesh.face_tets >= 0).all(1)
+        Xf = mesh.vertices.to(frames.dtype)[mesh.faces[interior]]
+        perim = (Xf.roll(-1, 1) - Xf).norm(dim=-1).sum(1)
+        closure = face_closure(frames, mesh, g)[interior].norm(dim=-1) / perim
+    else:
+        closure = frames.new_zeros(0)
     fca = feature_curve_alignment(frames, mesh, angle_deg)  # tangent pairs inside the feature curves
 
     def _mean(x):
@@ -195,8 +199,8 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0) -> dict:
         "singular_valid_fraction": sg["valid_fraction"],
         "n_singular_junctions": sg["n_junctions"],
         "n_curves_ending_inside": sg["n_curves_ending_inside"],
-        "curl_mean": _mean(curl),
-        "curl_p95": float(torch.quantile(curl, 0.95)) if curl.numel() else float("nan"),
+        "curl_mean": _mean(closure),
+        "curl_p95": float(torch.quantile(closure, 0.95)) if closure.numel() else float("nan"),
         "feature_curve_alignment_mean_deg": fca["feature_curve_alignment_mean_deg"],
         "feature_curve_alignment_max_deg": fca["feature_curve_alignment_max_deg"],
     }

@@ -16,17 +16,19 @@ scored, and the best-smoothness checkpoint (step 0, the input, included) with at
 The mean angle is an L1 measure: lowered alone it concentrates the turning of the frames and
 raises the RMS angle and the Dirichlet energy (issue 13), so this polish is off by default.
 
-:func:`quality_polish` (the connection method's last stage) lowers the mean angle *and* the
-matched Dirichlet energy ``mean_e ||F_i g_ij - F_j||^2`` (Ray et al. 2016, Palmer et al. 2020)
-along a path whose Dirichlet weight is annealed from high to low, and its guard
-(:func:`guard_violations`) admits only fields no worse than a reference field (the SH baseline)
-on every guarded metric: mean and RMS angle, Dirichlet energy, singular and complex singular
-faces, singular curves ending inside, tets with one singular face, boundary and feature-curve
+:func:`quality_polish` (the connection method's last stage) runs the quality paths of
+:mod:`torchconn.frames.refine` (L-BFGS on the frames, the mean angle and the matched Dirichlet
+energy ``mean_e ||F_i g_ij - F_j||^2`` of Ray et al. 2016 / Palmer et al. 2020 traded along an
+annealed weight, with the feature curves soft or held) and its guard (:func:`guard_violations`)
+admits only fields no worse than a reference field (the SH baseline), within ``slack``, on every
+guarded metric: mean and RMS angle, Dirichlet energy, singular and complex singular faces,
+singular curves ending inside, tets with one singular face, boundary and feature-curve
 alignment. The reference itself is always a candidate, so the result is never worse than it.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -36,11 +38,11 @@ from .constraints import BoundaryConstraint
 from .loss import axis_angle_loss
 from .metrics import frame_metrics
 from .param import constrained_frames
-from .singular import classify_holonomy, face_holonomy_from_matchings
+from .refine import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
 from .solver import cosine_factor
 
-__all__ = ["polish_frames", "quality_polish", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
-           "GUARD_COUNTS", "GUARD_BOUNDS"]
+__all__ = ["polish_frames", "quality_polish", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
+           "GUARD_COUNTS", "GUARD_STRICT", "GUARD_BOUNDS"]
 
 
 def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, check_every: int = 50,
@@ -113,30 +115,34 @@ def polish_frames(mesh, frames: torch.Tensor, steps: int, lr: float = 0.01, chec
 # ----------------------------------------------------------------------------- quality polish
 #: Metrics the quality guard holds at or below the reference's (times ``1 + slack``).
 GUARD_CONTINUOUS = ("smoothness_mean_deg", "smoothness_rms_deg", "dirichlet_energy_mean")
-#: Counts the quality guard holds at or below the reference's.
-GUARD_COUNTS = ("n_singular_faces", "n_singular_faces_complex", "n_curves_ending_inside", "n_tets_one_singular_face")
-#: ``metric: floor``: held at or below ``max(reference, floor)`` (degrees). Boundary alignment may
-#: reach the issue's 0.5 degree bound; the feature-curve alignment is held at the reference's (a
-#: floor of 2 degrees, the issue's bound, let the polish trade the tangents for smoothness up to
-#: it: measured in studies/frame_quality.py).
-GUARD_BOUNDS = {"alignment_mean_deg": 0.5, "feature_curve_alignment_mean_deg": 0.0}
+#: Counts the quality guard holds at or below the reference's times ``1 + slack``.
+GUARD_COUNTS = ("n_singular_faces", "n_singular_faces_complex")
+#: Counts the quality guard holds at or below the reference's exactly (defects of the singular graph).
+GUARD_STRICT = ("n_curves_ending_inside", "n_tets_one_singular_face")
+#: ``metric: floor``: held at or below ``max(reference, floor)`` (degrees): the boundary alignment
+#: may reach the issue's 0.5 degree bound, the feature-curve alignment its 2 degree bound.
+GUARD_BOUNDS = {"alignment_mean_deg": 0.5, "feature_curve_alignment_mean_deg": 2.0}
 
 
 def guard_violations(metrics: dict, reference: dict, slack: float = 0.0, bounds: dict | None = None) -> list[str]:
     """The metrics of ``metrics`` that are worse than ``reference`` (both :func:`frame_metrics` dicts).
 
-    A field passes the guard (empty list) when: ``smoothness_mean_deg``, ``smoothness_rms_deg``
-    and ``dirichlet_energy_mean`` are at most ``(1 + slack)`` times the reference's; the counts of
-    :data:`GUARD_COUNTS` (singular faces, complex-type singular faces, singular curves ending
-    inside, tets with one singular face) at most the reference's; and each metric of
-    :data:`GUARD_BOUNDS` at most ``max(reference, floor)`` (a ``nan`` value, e.g. no feature
-    curve, passes). NaN in a continuous metric fails.
+    A field passes the guard (empty list) when: ``smoothness_mean_deg``, ``smoothness_rms_deg``,
+    ``dirichlet_energy_mean`` and the counts of :data:`GUARD_COUNTS` (singular and complex-type
+    singular faces) are at most ``(1 + slack)`` times the reference's; the counts of
+    :data:`GUARD_STRICT` (singular curves ending inside, tets with one singular face) at most the
+    reference's; and each metric of :data:`GUARD_BOUNDS` (or ``bounds``) at most
+    ``max(reference, floor)`` (a ``nan`` value, e.g. no feature curve, passes). NaN in a
+    continuous metric fails.
     """
     bad = []
     for k in GUARD_CONTINUOUS:
         if not metrics[k] <= reference[k] * (1.0 + slack):
             bad.append(k)
     for k in GUARD_COUNTS:
+        if metrics[k] > reference[k] * (1.0 + slack):
+            bad.append(k)
+    for k in GUARD_STRICT:
         if metrics[k] > reference[k]:
             bad.append(k)
     for k, floor in (GUARD_BOUNDS if bounds is None else bounds).items():
@@ -155,83 +161,68 @@ def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0)
             * math.log(max(metrics["dirichlet_energy_mean"], tiny) / max(reference["dirichlet_energy_mean"], tiny)))
 
 
-def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *, steps: int = 300,
-                   lr: float = 0.01, dirichlet_weight: tuple[float, float] = (4.0, 0.25),
-                   feature_weight: float = 1.0, singular_weight: float = 0.0, check_every: int = 20,
-                   slack: float = 0.0, score_dirichlet: float = 1.0, lock_tangents: bool = False,
-                   path_from: str = "start", feature_curve_floor: float = 0.0, eps: float = 1e-3,
-                   angle_deg: float = 30.0, align_eps: float = 1e-3,
+def choose_candidate(scored: Sequence[tuple[float, dict]], feature_curve_bound: float = 2.0) -> int:
+    """Index of the candidate :func:`quality_polish` returns among admissible ``(score, metrics)`` pairs.
+
+    Candidates whose ``feature_curve_alignment_mean_deg`` is within ``feature_curve_bound`` (or
+    ``nan``: no feature curve) come first; among them (all of them when none is) the lowest score
+    wins, the first one on a tie.
+    """
+    if not scored:
+        raise ValueError("choose_candidate: no candidate")
+    within = [i for i, (_, m) in enumerate(scored) if not m["feature_curve_alignment_mean_deg"] > feature_curve_bound]
+    pool = within or list(range(len(scored)))
+    return min(pool, key=lambda i: scored[i][0])
+
+
+def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *,
+                   paths: Sequence[str] = PATH_KINDS, dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS,
+                   rounds: int = 2, iters: int = 40, feature_weight: float = 1.0, tangent_weight: float = 0.25,
+                   complex_weight: float = 0.0, slack: float = 0.01, score_dirichlet: float = 1.0, feature_curve_bound: float = 2.0,
+                   eps: float = 1e-3, angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
-    """Guarded polish that lowers the mean edge angle and the Dirichlet energy together.
+    """Guarded quality stage: the checkpoints of quality paths, the best one no worse than a reference.
 
-    Adam on per-vertex rotations ``F_i = exp(hat(w_i)) F_i^start`` (about the normal only at
-    non-feature boundary vertices, :mod:`torchconn.frames.param`; constant ``lr``) minimizing
-
-        mean_e a_e / a_ref  +  lambda(s) mean_e ||F_i g_ij - F_j||_F^2 / D_ref  +  w_f feature angle / a_ref
-
-    with ``a_e = 2 asin(sqrt(d_e^2 + eps^2) / (2 sqrt 2))`` the smoothed edge angle (radians),
-    ``d_e^2 = ||F_i g_ij - F_j||^2`` the matched Dirichlet energy of the edge (Ray et al. 2016,
-    Palmer et al. 2020; ``g_ij`` re-matched every step without gradient), ``a_ref`` and
-    ``D_ref`` the reference field's mean angle and mean energy (so the two terms are
-    commensurate on any mesh), the feature term :func:`~torchconn.frames.loss.axis_angle_loss`
-    over :meth:`~torchconn.frames.constraints.BoundaryConstraint.feature_targets`, and the
-    Dirichlet weight annealed geometrically from ``dirichlet_weight[0]`` to
-    ``dirichlet_weight[1]`` over the steps: the path starts near the Dirichlet minimum (which
-    lowers every metric of a field that is not already at it) and moves towards the L1 one
-    (lower mean angle, higher energy), tracing the trade-off between the two.
-
-    ``singular_weight = c > 0`` charges half-turn and complex singular faces more than quarter
-    turns: at the start and at every check, the faces whose matched holonomy
-    (:func:`~torchconn.frames.singular.classify_holonomy`) is a half turn or complex are found,
-    and the edge terms (angle and energy) of their edges weigh ``1 + c`` instead of 1 until the
-    next check; the frames around such a face are pulled together, which moves the defect off
-    the face or splits it into quarter turns.
-
-    The guard: every ``check_every`` steps the field is scored by :func:`frame_metrics`;
-    a checkpoint is admissible when :func:`guard_violations` against the reference field is
-    empty, and the admissible one with the lowest :func:`quality_score` (``score_dirichlet``) is returned. The
-    reference field itself and the start field are candidates too, so the result is never worse
-    than the reference on any guarded metric (at worst it *is* the reference field).
+    Runs :func:`~torchconn.frames.refine.quality_path` from ``frames`` for every kind in ``paths``
+    (``"soft"``, ``"tangent"``; L-BFGS on the frames along ``mean angle / a_ref + lambda Dirichlet /
+    D_ref`` with ``lambda`` over ``dirichlet_weights``, ``a_ref`` and ``D_ref`` the reference's)
+    and scores every checkpoint, ``frames`` itself and ``reference_frames`` with
+    :func:`frame_metrics`. A candidate is *admissible* when :func:`guard_violations` against the
+    reference is empty: mean and RMS angle, Dirichlet energy, singular and complex-type singular
+    faces at most ``1 + slack`` times the reference's (the issue's "no more than 1% worse" with
+    ``slack = 0.01``), no more singular curves ending inside or tets with one singular face, the
+    boundary alignment within ``max(reference, 0.5 deg)`` and the feature-curve alignment within
+    ``max(reference, feature_curve_bound)``. Among the admissible candidates those whose
+    feature-curve alignment is within ``feature_curve_bound`` come first (the bound is a target
+    of its own), and the one with the lowest :func:`quality_score` (``score_dirichlet``) is
+    returned. The reference is always admissible, so the result is never worse than it beyond
+    ``slack`` on any guarded metric (at worst it *is* the reference field).
 
     Args:
         mesh: ``TetMesh``.
-        frames: ``(V, 3, 3)`` start field (non-feature boundary frames aligned).
-        reference_frames: ``(V, 3, 3)`` the field to beat (e.g. the SH baseline).
-        steps: Adam steps (0: only the candidates ``frames`` and ``reference_frames`` are scored).
-        lr: Adam learning rate (constant; the annealed weight does the scheduling).
-        dirichlet_weight: ``(first, last)`` weight ``lambda`` of the normalized Dirichlet term.
-        feature_weight: weight ``w_f`` of the feature-alignment angle term.
-        singular_weight: extra weight ``c`` of the edges of half-turn and complex singular faces.
-        check_every: scoring interval of the guard.
-        slack: relative tolerance of the guard on the continuous metrics (0: never worse).
-        score_dirichlet: weight ``b`` of the Dirichlet ratio in :func:`quality_score`, the
-            choice among admissible checkpoints (< 1 favours the mean angle).
-        lock_tangents: at the vertices inside the feature curves
-            (:class:`~torchconn.frames.constraints.BoundaryConstraint` tangent pairs), rotate only
-            about the start frame's axis closest to the curve tangent, so the feature-curve
-            alignment of the path's first field is kept exactly (it can then neither improve nor worsen).
-        feature_curve_floor: the guard holds the feature-curve alignment mean at or below
-            ``max(reference's, feature_curve_floor)`` degrees (0: never worse than the reference;
-            2: the issue's per-model bound, which lets the polish trade tangent alignment for
-            smoothness up to it).
-        path_from: ``"start"`` (the path starts at ``frames``) or ``"reference"`` (at
-            ``reference_frames``; ``frames`` is then only a candidate, scored as step 0).
+        frames: ``(V, 3, 3)`` start field of the paths (non-feature boundary frames aligned).
+        reference_frames: ``(V, 3, 3)`` the field to beat (the SH baseline).
+        paths: path kinds to run (``()``: only ``frames`` and the reference are scored).
+        dirichlet_weights, rounds, iters, feature_weight, tangent_weight, complex_weight, eps: of
+            :func:`~torchconn.frames.refine.quality_path`.
+        slack: relative tolerance of the guard on the continuous metrics and the face counts.
+        score_dirichlet: weight ``b`` of the Dirichlet ratio in :func:`quality_score`.
+        feature_curve_bound: the feature-curve alignment bound in degrees (above).
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
 
     Returns:
-        ``(frames, info)``; ``info`` has ``"accepted"`` (``"reference"``, ``"start"`` or
-        ``"step"``), ``"accepted_step"`` (-1 for the reference field, 0 for the start field),
-        ``"score"``, ``"checks"`` (a list of ``(step, score, admissible, violations)``),
-        ``"reference"`` (the reference's metrics) and ``"final"`` (the returned field's metrics).
+        ``(frames, info)``; ``info`` has ``"accepted"`` (``"reference"``, ``"start"`` or the path
+        kind), ``"dirichlet_weight"`` of the accepted checkpoint (``None`` for the two fields),
+        ``"score"``, ``"checks"`` (a list of ``(kind, dirichlet_weight, score, admissible,
+        violations)``), ``"reference"`` (the reference's metrics) and ``"final"`` (the returned
+        field's metrics).
     """
-    if path_from not in ("start", "reference"):
-        raise ValueError(f"quality_polish: path_from must be 'start' or 'reference', got {path_from!r}")
-    if steps < 0 or check_every < 1 or not lr > 0 or slack < 0 or not singular_weight >= 0:
-        raise ValueError(f"quality_polish: need steps >= 0, check_every >= 1, lr > 0, slack >= 0, "
-                         f"singular_weight >= 0; got {steps}, {check_every}, {lr}, {slack}, {singular_weight}")
-    lam0, lam1 = (float(x) for x in dirichlet_weight)
-    if not (lam0 >= 0 and lam1 >= 0 and math.isfinite(lam0) and math.isfinite(lam1)):
-        raise ValueError(f"quality_polish: dirichlet_weight must be two finite numbers >= 0, got {dirichlet_weight}")
+    bad_paths = [k for k in paths if k not in PATH_KINDS]
+    if bad_paths:
+        raise ValueError(f"quality_polish: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
+    if not (slack >= 0 and math.isfinite(slack)) or not feature_curve_bound >= 0:
+        raise ValueError(f"quality_polish: need slack >= 0 and feature_curve_bound >= 0, got {slack}, "
+                         f"{feature_curve_bound}")
     dtype = mesh.vertices.dtype
     V = mesh.vertices.shape[0]
     for name, x in (("frames", frames), ("reference_frames", reference_frames)):
@@ -241,80 +232,27 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     F0 = frames.detach().to(dtype)
     Fr = reference_frames.detach().to(dtype)
     ref = reference_metrics if reference_metrics is not None else frame_metrics(Fr, mesh, angle_deg)
-    if not feature_curve_floor >= 0:
-        raise ValueError(f"quality_polish: feature_curve_floor must be >= 0, got {feature_curve_floor}")
-    bounds = {**GUARD_BOUNDS, "feature_curve_alignment_mean_deg": float(feature_curve_floor)}
+    bounds = {**GUARD_BOUNDS, "feature_curve_alignment_mean_deg": float(feature_curve_bound)}
     checks = []
-    best = (0.0, Fr, "reference", -1, ref)  # the reference always passes its own guard
+    cands = [(0.0, ref, Fr, "reference", None)]  # admissible candidates: (score, metrics, F, kind, lambda)
 
-    def consider(F, step, kind):
-        nonlocal best
-        m = frame_metrics(F, mesh, angle_deg)
+    def consider(F, kind, lam):
+        m = frame_metrics(F, mesh, angle_deg, curl=False)
         bad = guard_violations(m, ref, slack, bounds)
         sc = quality_score(m, ref, score_dirichlet)
-        checks.append((step, sc, not bad, bad))
-        if not bad and sc < best[0]:
-            best = (sc, F, kind, step, m)
+        checks.append((kind, lam, sc, not bad, bad))
+        if not bad:
+            cands.append((sc, m, F, kind, lam))
 
-    consider(F0, 0, "start")
-    if path_from == "reference":
-        F0 = Fr
-    if steps > 0:
-        bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
-        fv, fn = bc.feature_targets()
-        e0, e1 = mesh.edges[:, 0], mesh.edges[:, 1]
-        a_ref = max(math.radians(ref["smoothness_mean_deg"]), 1e-12)
-        d_ref = max(ref["dirichlet_energy_mean"], 1e-12)
-        w = torch.zeros_like(F0[:, :, 0], requires_grad=True)
-        opt = torch.optim.Adam([w], lr=lr)
-
-        cons, axis = bc.constrained, bc.normals.to(dtype)
-        if lock_tangents and bc.tangent_vertices is not None and bc.tangent_vertices.numel():
-            inner = ~bc.tangent_at_corner
-            tv, td = bc.tangent_vertices[inner], bc.tangent_dirs[inner].to(dtype)
-            Ft = F0[tv]
-            k = (Ft * td[:, :, None]).sum(-2).abs().argmax(-1)  # the axis closest to the tangent
-            cons, axis = cons.clone(), axis.clone()
-            cons[tv] = True
-            axis[tv] = torch.gather(Ft, -1, k[:, None, None].expand(-1, 3, 1)).squeeze(-1)
-
-        def current():
-            return constrained_frames(w, F0, cons, axis)
-
-        def edge_weights(F):  # 1 + c on the edges of half-turn / complex singular faces (None: all 1)
-            if not singular_weight:
-                return None
-            _, g = octahedral.match_edges(F, mesh.edges)
-            typ = classify_holonomy(face_holonomy_from_matchings(g, mesh)[2])[0]
-            bad = mesh.face_edges[typ >= 2].reshape(-1)
-            ew = torch.ones(mesh.edges.shape[0], dtype=F.dtype, device=F.device)
-            ew[bad] = 1.0 + float(singular_weight)
-            return ew / ew.mean()
-
-        ew = edge_weights(F0)
-
-        with torch.enable_grad():
-            for s in range(steps):
-                lam = lam0 * (lam1 / lam0) ** (s / max(steps - 1, 1)) if lam0 > 0 and lam1 > 0 else (
-                    lam0 + (lam1 - lam0) * s / max(steps - 1, 1))
-                F = current()
-                with torch.no_grad():
-                    _, g = octahedral.match_edges(F, mesh.edges)
-                d2 = ((F[e0] @ g - F[e1]) ** 2).sum((-2, -1))
-                ang = 2.0 * torch.asin((torch.sqrt(d2 + eps * eps) / (2.0 * math.sqrt(2.0))).clamp(max=1.0))
-                if ew is not None:
-                    ang, d2 = ang * ew, d2 * ew
-                total = ang.mean() / a_ref + lam * d2.mean() / d_ref
-                if feature_weight and fv.numel():
-                    total = total + feature_weight * axis_angle_loss(F[fv], fn.to(F.dtype), align_eps) / a_ref
-                opt.zero_grad(set_to_none=True)
-                total.backward()
-                opt.step()
-                if (s + 1) % check_every == 0 or s + 1 == steps:
-                    with torch.no_grad():
-                        Fs = so3.project_to_rotation(current())
-                        consider(Fs, s + 1, "step")
-                        ew = edge_weights(Fs)
-    score, F, kind, step, m = best
-    return F, {"accepted": kind, "accepted_step": step, "score": score, "checks": checks, "reference": ref,
+    consider(F0, "start", None)
+    a_ref = math.radians(ref["smoothness_mean_deg"])
+    for kind in dict.fromkeys(paths):  # each kind once, in the given order
+        for cp in quality_path(mesh, F0, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
+                               dirichlet_weights=dirichlet_weights, rounds=rounds, iters=iters,
+                               feature_weight=feature_weight, tangent_weight=tangent_weight,
+                               complex_weight=complex_weight, eps=eps,
+                               align_eps=align_eps, angle_deg=angle_deg):
+            consider(cp.frames, kind, cp.dirichlet_weight)
+    score, m, F, kind, lam = cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
+    return F, {"accepted": kind, "dirichlet_weight": lam, "score": score, "checks": checks, "reference": ref,
                "final": m}

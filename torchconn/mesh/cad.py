@@ -284,7 +284,7 @@ def _read_meta(meta) -> dict:
 
 
 def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta=None, threads: int | None = 1,
-             **kwargs) -> TetMesh:
+             options: dict | None = None, **kwargs) -> TetMesh:
     """Tetrahedralize a CAD model with gmsh and keep its entities as tags (``mesh.cad``).
 
     Args:
@@ -301,6 +301,9 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
         threads: ``General.NumThreads``, applied last; 1 (default) makes gmsh's output
             reproducible (with more threads HXT varies by a few tets); ``None`` keeps the
             value of ``meta``.
+        options: further ``gmsh.option.setNumber`` entries (``{name: number}``), applied after
+            ``meta``'s (e.g. ``{"Mesh.CharacteristicLengthMax": 0.15}`` for a finer mesh of a
+            ``c`` parameter file).
         **kwargs: passed to :class:`TetMesh` (``dtype``, ``device``).
 
     Returns:
@@ -328,6 +331,10 @@ def load_cad(path, size: float | None = None, *, size_factor: float = 0.05, meta
     if suf == ".geo" and re.search(r"(?m)^\s*Exit\s*;", path.read_text(encoding="utf-8", errors="replace")):
         raise MeshError(f"{path} calls 'Exit;', which would end the Python process inside gmsh; remove that line")
     opts = _read_meta(meta) if meta is not None else {}
+    for k, v in (options or {}).items():
+        if not isinstance(k, str) or isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"options must map gmsh option names to finite numbers, got {k!r}: {v!r}")
+        opts[k] = float(v)
     gmsh = _import_gmsh()
     own = not gmsh.isInitialized()
     if own:
