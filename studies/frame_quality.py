@@ -49,7 +49,9 @@ VARIANTS: dict[str, dict] = {
     "angle_only": {"quality": {"dirichlet_weights": [0.0]}},
     # cheaper paths (fewer weights or iterations)
     "lambda_4": {"quality": {"dirichlet_weights": [8.0, 2.0, 1.0, 0.5]}},
-    "iters_20": {"quality": {"iters": 20}},
+    "iters_40": {"quality": {"iters": 40}},
+    # the paths from the optimized field instead of the SH field
+    "paths_from_frames": {"quality": {"path_start": "frames"}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},
     # no feature-normal term in the paths

@@ -229,6 +229,21 @@ def test_quality_polish_never_worse_than_the_reference(cyl):
     assert {c[0] for c in one["checks"]} == {"start", "tangent"}
 
 
+def test_quality_polish_paths_start_at_the_reference(cyl):
+    m, F0 = cyl
+    gen = torch.Generator().manual_seed(2)
+    noisy = so3.exp(0.3 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
+    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
+    # the paths start at the reference whatever the candidate; the candidate is scored as "start"
+    a, ia = quality_polish(m, noisy, F0, **kw)
+    b, ib = quality_polish(m, F0, F0, **kw)
+    assert [c[2] for c in ia["checks"][1:]] == pytest.approx([c[2] for c in ib["checks"][1:]], abs=1e-12)
+    assert ia["checks"][0][0] == "start" and ia["checks"][0][3] is False  # the noisy candidate fails the guard
+    assert torch.allclose(a, b)
+    _, ic = quality_polish(m, noisy, F0, path_start="frames", **kw)
+    assert ic["checks"][1][2] != pytest.approx(ib["checks"][1][2], abs=1e-6)  # a path from the noisy field
+
+
 def test_quality_polish_falls_back_to_the_reference(cyl):
     m, F0 = cyl
     gen = torch.Generator().manual_seed(1)
@@ -241,7 +256,7 @@ def test_quality_polish_falls_back_to_the_reference(cyl):
     for kw, msg in [({"paths": ("hard",)}, "path kind"), ({"slack": -0.1}, "slack"),
                     ({"feature_curve_bound": -1.0}, "feature_curve_bound"),
                     ({"dirichlet_weights": (1.0, float("nan"))}, "dirichlet_weights"),
-                    ({"iters": 0}, "iters")]:
+                    ({"iters": 0}, "iters"), ({"path_start": "middle"}, "path_start")]:
         with pytest.raises(ValueError, match=msg):
             quality_polish(m, F0, F0, **kw)
     with pytest.raises(ValueError, match="reference_frames"):

@@ -141,6 +141,7 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.feature_weight": _float(0),
     "quality.tangent_weight": _float(0),
     "quality.complex_weight": _float(0),
+    "quality.path_start": _choice("reference", "frames"),
     "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
     "quality.feature_curve_bound": _float(0),

@@ -177,13 +177,16 @@ def choose_candidate(scored: Sequence[tuple[float, dict]], feature_curve_bound: 
 
 def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *,
                    paths: Sequence[str] = PATH_KINDS, dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS,
-                   rounds: int = 2, iters: int = 40, feature_weight: float = 1.0, tangent_weight: float = 0.25,
-                   complex_weight: float = 0.0, slack: float = 0.01, score_dirichlet: float = 1.0, feature_curve_bound: float = 2.0,
+                   rounds: int = 2, iters: int = 20, feature_weight: float = 1.0, tangent_weight: float = 0.25,
+                   complex_weight: float = 0.0, path_start: str = "reference", slack: float = 0.01, score_dirichlet: float = 1.0, feature_curve_bound: float = 2.0,
                    eps: float = 1e-3, angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded quality stage: the checkpoints of quality paths, the best one no worse than a reference.
 
-    Runs :func:`~torchconn.frames.refine.quality_path` from ``frames`` for every kind in ``paths``
+    The candidates are ``frames``, ``reference_frames`` and every path checkpoint.
+
+    Runs :func:`~torchconn.frames.refine.quality_path` from ``reference_frames`` (``path_start``)
+    for every kind in ``paths``
     (``"soft"``, ``"tangent"``; L-BFGS on the frames along ``mean angle / a_ref + lambda Dirichlet /
     D_ref`` with ``lambda`` over ``dirichlet_weights``, ``a_ref`` and ``D_ref`` the reference's)
     and scores every checkpoint, ``frames`` itself and ``reference_frames`` with
@@ -200,8 +203,13 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
 
     Args:
         mesh: ``TetMesh``.
-        frames: ``(V, 3, 3)`` start field of the paths (non-feature boundary frames aligned).
+        frames: ``(V, 3, 3)`` a candidate field (the connection method's optimized field;
+            non-feature boundary frames aligned).
         reference_frames: ``(V, 3, 3)`` the field to beat (the SH baseline).
+        path_start: ``"reference"`` (the paths start at ``reference_frames``; default) or
+            ``"frames"``. Measured: from the SH field the paths keep its singular structure
+            (e.g. HexMe i02u: complex faces 6 -> 4 along the soft path), from the optimized field
+            they inherit its extra singular faces and fail the guard there.
         paths: path kinds to run (``()``: only ``frames`` and the reference are scored).
         dirichlet_weights, rounds, iters, feature_weight, tangent_weight, complex_weight, eps: of
             :func:`~torchconn.frames.refine.quality_path`.
@@ -217,6 +225,8 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         violations)``), ``"reference"`` (the reference's metrics) and ``"final"`` (the returned
         field's metrics).
     """
+    if path_start not in ("reference", "frames"):
+        raise ValueError(f"quality_polish: path_start must be 'reference' or 'frames', got {path_start!r}")
     bad_paths = [k for k in paths if k not in PATH_KINDS]
     if bad_paths:
         raise ValueError(f"quality_polish: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
@@ -247,7 +257,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     consider(F0, "start", None)
     a_ref = math.radians(ref["smoothness_mean_deg"])
     for kind in dict.fromkeys(paths):  # each kind once, in the given order
-        for cp in quality_path(mesh, F0, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
+        for cp in quality_path(mesh, Fr if path_start == "reference" else F0, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
                                dirichlet_weights=dirichlet_weights, rounds=rounds, iters=iters,
                                feature_weight=feature_weight, tangent_weight=tangent_weight,
                                complex_weight=complex_weight, eps=eps,

@@ -30,7 +30,7 @@ Constraints (:class:`~torchconn.frames.constraints.BoundaryConstraint`), two pat
 * ``"tangent"``: at every vertex inside a feature curve the axis closest to the curve tangent is
   snapped onto it and the frame rotates about the tangent only (exact tangent alignment),
   **except** at the vertices of singular faces of the round's start field (matched holonomy
-  ``!= I``, :func:`~torchconn.frames.octahedral.singular_faces`): there the frame is singular and a
+  ``!= I``, :func:`~torchconn.frames.singular.classify_holonomy` of the round's matchings): there the frame is singular and a
   frame axis along the curve is not defined, so those vertices are free and carry the soft
   tangent term ``tangent_weight x axis_angle_loss / a_ref``. The set is re-detected every round.
   The feature term covers the incident face normals.
@@ -139,7 +139,7 @@ class _EdgeTerms(torch.autograd.Function):
 
 
 def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float, d_ref: float,
-                 dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 40,
+                 dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
                  feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
                  eps: float = 1e-3, align_eps: float = 1e-3, angle_deg: float = 30.0) -> list[Checkpoint]:
     """One quality path from ``start`` (module docstring): a :class:`Checkpoint` per Dirichlet weight.
@@ -198,25 +198,27 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
                 _, g = octahedral.match_edges(F, mesh.edges)
                 gi, gs = _signed_permutation(g)
                 gti, gts = _signed_permutation(g.transpose(-1, -2))
+                typ = None
+                if complex_weight or tv is not None:  # holonomy types of the round's matchings
+                    typ = classify_holonomy(face_holonomy_from_matchings(g, mesh)[2])[0]
                 ew = None
                 if complex_weight:
-                    typ = classify_holonomy(face_holonomy_from_matchings(g, mesh)[2])[0]
                     bad = mesh.face_edges[typ == 3].reshape(-1)
                     if bad.numel():
                         ew = torch.ones(e0.shape[0], dtype=dtype, device=F.device)
                         ew[bad] = 1.0 + float(complex_weight)
-                cons, axis, free_t = cons0, axis0, None
+                cons, axis, free_v, free_d = cons0, axis0, None, None
                 if tv is not None:
-                    mask, _ = octahedral.singular_faces(F, mesh)
                     on_sing = torch.zeros(F.shape[0], dtype=torch.bool, device=F.device)
-                    on_sing[mesh.faces[mask].reshape(-1)] = True
+                    on_sing[mesh.faces[typ != 0].reshape(-1)] = True
                     lock = ~on_sing[tv]
                     F = F.clone()
                     F[tv[lock]] = snap_axes(F[tv[lock]], td[lock])
                     cons, axis = cons0.clone(), axis0.clone()
                     cons[tv[lock]] = True
                     axis[tv[lock]] = td[lock]
-                    free_t = ~lock
+                    if tangent_weight and not bool(lock.all()):
+                        free_v, free_d = tv[~lock], td[~lock]
             Fb = F
             w = torch.zeros_like(Fb[:, :, 0], requires_grad=True)
             opt = torch.optim.LBFGS([w], lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe",
@@ -229,8 +231,8 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
                                         eps, ew)
                 if feature_weight and fv.numel():
                     loss = loss + feature_weight * axis_angle_loss(Fc[fv], fn, align_eps) / a_ref
-                if tangent_weight and free_t is not None and bool(free_t.any()):
-                    loss = loss + tangent_weight * axis_angle_loss(Fc[tv[free_t]], td[free_t], align_eps) / a_ref
+                if free_v is not None:
+                    loss = loss + tangent_weight * axis_angle_loss(Fc[free_v], free_d, align_eps) / a_ref
                 loss.backward()
                 return loss
 
