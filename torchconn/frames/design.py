@@ -450,8 +450,8 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                 R = matched_connection(F, mesh.edges)
             t_polish = time.perf_counter() - t0
             polish_info["seconds"] = t_polish
-        # 4b. guarded quality polish against the initialization (the SH baseline): never worse on
-        # any guarded metric, the best mean-angle x Dirichlet-energy checkpoint otherwise
+        # 4b. guarded quality stage against the initialization (the SH baseline): the best
+        # mean-angle x Dirichlet-energy candidate no more than quality.slack worse on any guarded metric
         q = opts["quality"]
         if q["enabled"]:
             t0 = time.perf_counter()
