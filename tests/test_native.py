@@ -110,3 +110,14 @@ def test_declared_signature_rejects_wrong_calls():
     with pytest.raises(RuntimeError, match="not available"):
         native._LIBS["nothing"] = None
         native.function("nothing", "f", [])
+
+
+@pytest.mark.parametrize("shape", [(0, 3), (5, 3, 3), (native.HUGE_MIN_BYTES // 4 + 7,)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_empty_is_an_ordinary_writable_tensor(shape, dtype):
+    """Small, empty and huge-page-advised buffers: the shape and dtype asked, contiguous, on the
+    CPU, every element writable (the advice changes how pages are backed, never the contents)."""
+    t = native.empty(*shape, dtype=dtype)
+    assert t.shape == shape and t.dtype == dtype and t.device.type == "cpu" and t.is_contiguous()
+    t.fill_(3.0)
+    assert bool((t == 3.0).all())

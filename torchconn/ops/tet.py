@@ -228,7 +228,7 @@ def _(edge_rot, edge_theta, rot_index, theta_index, order, chunk_start, color_st
         return _generic_fwd(edge_rot, edge_theta, rot_index, theta_index)
     R, th = edge_rot.contiguous(), edge_theta.contiguous()
     ri, ti = rot_index.contiguous(), theta_index.contiguous()
-    out = torch.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
+    out = _native.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
     nb, E, T = _c_sizes(R, ri)
     if out.numel():
         _FWD[R.dtype](_native.ptr(R), _native.ptr(th), _native.ptr(ri), _native.ptr(ti), _native.ptr(out),
@@ -257,7 +257,7 @@ def _(edge_rot, edge_theta, grad, rot_index, theta_index, order, chunk_start, co
     R, th, g = edge_rot.contiguous(), edge_theta.contiguous(), grad.contiguous()
     tabs = [t.contiguous() for t in (rot_index, theta_index, order, chunk_start)]
     cs = color_start.contiguous()
-    g_rot, g_th = torch.empty(R.shape, dtype=R.dtype), torch.empty(th.shape, dtype=R.dtype)
+    g_rot, g_th = _native.empty(*R.shape, dtype=R.dtype), _native.empty(*th.shape, dtype=R.dtype)
     nb, E, T = _c_sizes(R, rot_index)
     if g_rot.numel():  # the kernel zeroes its outputs
         _BWD[R.dtype](_native.ptr(R), _native.ptr(th), _native.ptr(g), *(_native.ptr(t) for t in tabs),
@@ -350,7 +350,7 @@ def _(edge_rot, half_rot, edge_vec, rot_index, theta_index, order, chunk_start, 
         return _generic_sqrt_fwd(edge_rot, half_rot, edge_vec, rot_index, theta_index)
     R, H, v = edge_rot.contiguous(), half_rot.contiguous(), edge_vec.contiguous()
     ri, ti = rot_index.contiguous(), theta_index.contiguous()
-    out = torch.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
+    out = _native.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
     nb, E, T = _c_sizes(R, ri)
     if out.numel():
         _SFWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(ri), _native.ptr(ti),
@@ -380,8 +380,8 @@ def _(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index, order, chunk_s
     tabs = [t.contiguous() for t in (rot_index, theta_index, order, chunk_start)]
     cs = color_start.contiguous()
     nb, E, T = _c_sizes(R, rot_index)
-    g_rot, g_half = torch.empty(R.shape, dtype=R.dtype), torch.empty(H.shape, dtype=R.dtype)
-    g_vec = torch.empty(nb.value, *v.shape, dtype=R.dtype)
+    g_rot, g_half = _native.empty(*R.shape, dtype=R.dtype), _native.empty(*H.shape, dtype=R.dtype)
+    g_vec = _native.empty(nb.value, *v.shape, dtype=R.dtype)
     if g_rot.numel():  # the kernel zeroes its outputs
         _SBWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(g),
                        *(_native.ptr(t) for t in tabs), _native.ptr(cs), _I64(cs.shape[0] - 1),
