@@ -309,3 +309,60 @@ def test_shape_errors_name_the_argument():
         ops_tet.tet_dd(torch.stack((R, R)), th, k)
     with pytest.raises(ValueError, match="tet_dd: edge_theta"):
         ops_tet.tet_dd(R, th.float(), k)
+
+
+def test_edge_vectors_cache_follows_the_vertices():
+    """The per-mesh edge vectors ``v_j - v_i`` (cached for the vertex tensor they come from):
+    recomputed after an in-place edit of the vertices, per dtype, and differentiable (never
+    cached) when the vertices require grad."""
+    from torchconn.nn import MeshBuffers
+    from torchconn.ops._cache import edge_vectors
+
+    mesh = io.box(2)
+    e = mesh.edges
+    direct = lambda v: v[e[:, 1]] - v[e[:, 0]]  # noqa: E731
+    a = edge_vectors(mesh, "cpu", DT)
+    assert torch.equal(a, direct(mesh.vertices)) and edge_vectors(mesh, "cpu", DT) is a
+    assert edge_vectors(mesh, "cpu", torch.float32).dtype == torch.float32
+    mesh.vertices.mul_(2.0)
+    b = edge_vectors(mesh, "cpu", DT)
+    assert torch.equal(b, direct(mesh.vertices)) and torch.equal(b, 2 * a)
+    mb = MeshBuffers(mesh)
+    mb.vertices.requires_grad_(True)
+    c = edge_vectors(mb, "cpu", DT)
+    assert c.requires_grad
+    c.sum().backward()
+    assert mb.vertices.grad is not None and torch.equal(mb.vertices.grad.sum(0), torch.zeros(3, dtype=DT))
+
+
+@pytest.mark.skipif(not _has_c, reason="no C compiler: csrc/tet.c cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_equals_generic_with_many_super_blocks(dtype):
+    """Chunks of 5 tets in super-blocks of 4 chunks: the groups (one color of one super-block)
+    are edge-disjoint and cover every tet once, and both C backwards (θ̃ given, √R) equal the
+    generic kernels, with a partial lane block at the end of most chunks."""
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=5, sup=4)
+    T = mesh.tets.shape[0]
+    assert k.n_colors > 2 * ((T + 19) // 20)  # several groups per super-block
+    assert torch.equal(k.order.sort().values, torch.arange(T))
+    te = mesh.tet_edges
+    for c in range(k.n_colors):
+        seen = set()
+        for ch in range(int(k.color_start[c]), int(k.color_start[c + 1])):
+            edges = set(te[k.order[k.chunk_start[ch]:k.chunk_start[ch + 1]]].reshape(-1).tolist())
+            assert not (edges & seen)
+            seen |= edges
+    R, th = _data(mesh, dtype, seed=7, batch=(2,))
+    H = so3.sqrt(R)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(8), dtype=dtype)
+    g = torch.randn(2, T, 3, generator=torch.Generator().manual_seed(9), dtype=dtype)
+    res = {}
+    for on in (True, False):
+        with compiled(on):
+            res[on] = (*ops_tet._tet_dd_backward_op(R, th, g, *k.tables()),
+                       *ops_tet._tet_dd_sqrt_backward_op(R, H, vec, g, *k.tables()),
+                       ops_tet._tet_dd_sqrt_op(R, H, vec, *k.tables()))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol, rtol=0)

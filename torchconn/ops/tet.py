@@ -41,6 +41,7 @@ import torch
 
 from . import _tet_soa
 from . import native as _native
+from ._cache import edge_vectors as _edge_vectors
 from ._cache import require as _require
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
@@ -50,9 +51,12 @@ from .so3 import sqrt as _sqrt
 __all__ = ["TetKernel", "tet_kernel", "edge_solder_sqrt", "tet_dd", "tet_dd_sqrt", "tet_dd_from_rotations",
            "tet_dd_solder"]
 
-#: Tets per chunk of the race-free C backward (see :class:`TetKernel`); chosen by measurement
-#: (benchmarks/operators.py --chunk).
+#: Tets per chunk of the race-free C backward (see :class:`TetKernel`).
 CHUNK = 512
+#: Consecutive chunks per super-block of the backward schedule (see :func:`_schedule`): 64 x 512
+#: tets. Measured at 1M tets (float32, one thread): colors over the whole mesh 165 ms, super-blocks
+#: of 16 / 32 / 64 / 128 chunks 142 / 122 / 119 / 134 ms, one sequential chunk 113 ms.
+SUPER = 64
 
 _FIELDS = ("rot_index", "theta_index", "order", "chunk_start", "color_start")
 _I64 = ctypes.c_int64
@@ -64,13 +68,17 @@ _BWD = {dt: _native.declare("tet", f"tet_dd_bwd_{sfx}",
         for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 
 
-def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int):
-    """Race-free order of the C backward: ``(order (T,), chunk_start (K+1,), color_start (C+1,))``.
+def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int, sup: int = SUPER):
+    """Race-free order of the C backward: ``(order (T,), chunk_start (K+1,), group_start (G+1,))``.
 
     Tets sorted by their smallest edge index (a band order when the vertex numbering is
     coherent), cut into chunks of ``chunk`` consecutive tets; a greedy coloring gives chunks that
     share an edge different colors (a 63-bit mask per edge; a chunk that finds all 63 taken gets
-    a color of its own, i.e. runs alone). The chunks are listed color by color. One-time cost per
+    a color of its own, i.e. runs alone). The chunks are then listed by super-block (``sup``
+    consecutive chunks), and within one by color: a *group* is the chunks of one color in one
+    super-block, edge-disjoint, run in parallel; groups run one after the other. Sweeping the
+    colors per super-block instead of over the whole mesh keeps the edges that neighbouring
+    chunks share in cache (a color's chunks are spread over the whole band). One-time cost per
     mesh: a loop over the ``T / chunk`` chunks (numpy), not over tets."""
     te = tet_edges.detach().cpu().numpy().astype(np.int64, copy=False)
     T = te.shape[0]
@@ -89,14 +97,15 @@ def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int):
         else:
             c, own = own, own + 1
         color[k] = c
-    chunks = np.argsort(color, kind="stable")  # chunk ids, color by color
+    group = (np.arange(K) // sup) * (own + 1) + color  # (super-block, color), in execution order
+    chunks = np.argsort(group, kind="stable")  # chunk ids, group by group
     starts = np.minimum(np.arange(K + 1) * chunk, T)
     lens = starts[1:] - starts[:-1]
     new_order = np.concatenate([order[starts[c]:starts[c + 1]] for c in chunks]) if K else order
     chunk_start = np.concatenate(([0], np.cumsum(lens[chunks])))
-    counts = np.bincount(color, minlength=int(color.max()) + 1 if K else 0)
-    color_start = np.concatenate(([0], np.cumsum(counts)))
-    return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64)) for a in (new_order, chunk_start, color_start))
+    g = group[chunks]
+    group_start = np.concatenate(([0], np.flatnonzero(np.diff(g)) + 1, [K])) if K else np.zeros(1, np.int64)
+    return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64)) for a in (new_order, chunk_start, group_start))
 
 
 class TetKernel:
@@ -110,14 +119,15 @@ class TetKernel:
             seven directed edges the formula reads, ``ba, ca, da, cb, db, dc, cd`` (local labels
             ``a, b, c, d = 0..3``).
         order ``(T,)``, chunk_start ``(K+1,)``, color_start ``(C+1,)``: the race-free schedule of
-            the C backward (:func:`_schedule`; read only by the CPU kernel; on other devices a
-            trivial one-chunk schedule).
+            the C backward (:func:`_schedule`: ``color_start`` delimits the groups of
+            edge-disjoint chunks, one color of one super-block each; read only by the CPU kernel;
+            on other devices a trivial one-chunk schedule).
     """
 
     # local pairs 01 02 03 12 13 23 and the directed edges (x, y) read as θ̃_xy
     _DIRECTED = ((1, 0), (2, 0), (3, 0), (2, 1), (3, 1), (3, 2), (2, 3))
 
-    def __init__(self, mesh, chunk: int = CHUNK):
+    def __init__(self, mesh, chunk: int = CHUNK, sup: int = SUPER):
         te = mesh.tet_edges
         neg = (mesh.tet_edge_signs < 0).long()
         self.rot_index = (2 * te + neg).contiguous()
@@ -131,13 +141,13 @@ class TetKernel:
             cols.append(2 * te[:, p] + against)
         self.theta_index = torch.stack(cols, 1).contiguous()
         self.n_edges = int(mesh.edges.shape[0])
-        self.chunk = chunk
+        self.chunk, self.sup = chunk, sup
         self._set_schedule(te)
 
     def _set_schedule(self, te):
         dev = self.rot_index.device
         if dev.type == "cpu":
-            self.order, self.chunk_start, self.color_start = _schedule(te, self.n_edges, self.chunk)
+            self.order, self.chunk_start, self.color_start = _schedule(te, self.n_edges, self.chunk, self.sup)
         else:  # read only by the CPU kernel; no values needed (meta) and no device sync
             T = self.rot_index.shape[0]
             self.order = torch.arange(T, device=dev)
@@ -146,7 +156,7 @@ class TetKernel:
 
     @property
     def n_colors(self) -> int:
-        """Number of colors of the backward schedule."""
+        """Number of groups of edge-disjoint chunks (colors x super-blocks) of the backward schedule."""
         return self.color_start.shape[0] - 1
 
     def tables(self) -> tuple[torch.Tensor, ...]:
@@ -156,7 +166,7 @@ class TetKernel:
     def to(self, device) -> "TetKernel":
         """A copy with the tables on ``device`` (``self`` is left as it is)."""
         new = object.__new__(TetKernel)
-        new.n_edges, new.chunk = self.n_edges, self.chunk
+        new.n_edges, new.chunk, new.sup = self.n_edges, self.chunk, self.sup
         new.rot_index, new.theta_index = self.rot_index.to(device), self.theta_index.to(device)
         dev = torch.device(device)
         if dev.type == "cpu" and self.rot_index.device.type != "cpu":
@@ -315,10 +325,10 @@ _tet_dd_backward_op.register_vmap(leading_vmap(_tet_dd_backward_op, "tet_dd_back
 
 # ---- the same with θ̃ formed inside the kernel from √R and v_j - v_i (no θ̃ tensors at all)
 
-_SFWD = {dt: _native.declare("tet", f"tet_dds_fwd_{sfx}", [_P, _P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+_SFWD = {dt: _native.declare("tet", f"tet_dds_fwd_{sfx}", [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 _SBWD = {dt: _native.declare("tet", f"tet_dds_bwd_{sfx}",
-                             [_P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+                             [_P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 
 
@@ -353,8 +363,9 @@ def _(edge_rot, half_rot, edge_vec, rot_index, theta_index, order, chunk_start, 
     out = _native.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
     nb, E, T = _c_sizes(R, ri)
     if out.numel():
+        theta = _native.empty(nb.value, E.value, 2, 3, dtype=R.dtype)  # scratch: θ̃ of every edge
         _SFWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(ri), _native.ptr(ti),
-                       _native.ptr(out), nb, E, T, torch.get_num_threads())
+                       _native.ptr(out), _native.ptr(theta), nb, E, T, torch.get_num_threads())
     return out
 
 
@@ -381,15 +392,16 @@ def _(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index, order, chunk_s
     cs = color_start.contiguous()
     nb, E, T = _c_sizes(R, rot_index)
     g_rot, g_half = _native.empty(*R.shape, dtype=R.dtype), _native.empty(*H.shape, dtype=R.dtype)
-    g_vec = _native.empty(nb.value, *v.shape, dtype=R.dtype)
+    g_vec = _native.empty(*((nb.value,) if nb.value > 1 else ()), *v.shape, dtype=R.dtype)
     if g_rot.numel():  # the kernel zeroes its outputs
+        g_th = _native.empty(nb.value, E.value, 2, 3, dtype=R.dtype)  # scratch: ∂L/∂θ̃ of every edge
         _SBWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(g),
                        *(_native.ptr(t) for t in tabs), _native.ptr(cs), _I64(cs.shape[0] - 1),
-                       _native.ptr(g_rot), _native.ptr(g_half), _native.ptr(g_vec), nb, E, T,
+                       _native.ptr(g_rot), _native.ptr(g_half), _native.ptr(g_vec), _native.ptr(g_th), nb, E, T,
                        torch.get_num_threads())
     else:
         g_rot.zero_(), g_half.zero_(), g_vec.zero_()
-    return g_rot, g_half, (g_vec[0].clone() if nb.value == 1 else g_vec.sum(0))
+    return g_rot, g_half, (g_vec if nb.value <= 1 else g_vec.sum(0))
 
 
 @_tet_dd_sqrt_backward_op.register_fake
@@ -510,14 +522,13 @@ def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = 
         return None
     dev, dt = edge_rot.device, edge_rot.dtype
     k = tet_kernel(mesh, dev)
-    e = mesh.edges.to(dev)
-    verts = mesh.vertices.to(device=dev, dtype=dt)
-    vec = verts.index_select(0, e[:, 1]) - verts.index_select(0, e[:, 0])  # (E, 3) v_j - v_i
+    vec = _edge_vectors(mesh, dev, dt)  # (E, 3) v_j - v_i
     if frames is None:
         H = _sqrt(edge_rot) if half_rot is None else half_rot
         return tet_dd_sqrt(edge_rot, H, vec, k)
     else:
         Fv = frames.to(device=dev, dtype=dt)
+        e = mesh.edges.to(dev)
         Fi, Fj = Fv.index_select(-3, e[:, 0]), Fv.index_select(-3, e[:, 1])
         H = _sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2)) if half_rot is None \
             else Fi @ half_rot @ Fj.transpose(-1, -2)
