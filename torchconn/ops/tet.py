@@ -51,12 +51,13 @@ from .so3 import sqrt as _sqrt
 __all__ = ["TetKernel", "tet_kernel", "edge_solder_sqrt", "tet_dd", "tet_dd_sqrt", "tet_dd_from_rotations",
            "tet_dd_solder"]
 
-#: Tets per chunk of the race-free C backward (see :class:`TetKernel`).
-CHUNK = 512
-#: Consecutive chunks per super-block of the backward schedule (see :func:`_schedule`): 64 x 512
-#: tets. Measured at 1M tets (float32, one thread): colors over the whole mesh 165 ms, super-blocks
-#: of 16 / 32 / 64 / 128 chunks 142 / 122 / 119 / 134 ms, one sequential chunk 113 ms.
-SUPER = 64
+#: Tets per chunk of the race-free C backward (see :class:`TetKernel`). Measured at 1M tets
+#: (float32, C kernel alone): 512 (6 colors) 165 ms on one thread, since every color pass
+#: sweeps the whole mesh and reloads its edges; 4096 (4 colors) 112 ms, as fast as one
+#: sequential chunk, and 2 threads 60 ms. Few colors also mean few barriers: with 512-tet chunks
+#: in super-blocks (178 groups, the same speed on a quiet machine) the 2-thread backward took
+#: 1.4 s instead of 0.14 s while another process held one of the two cores.
+CHUNK = 4096
 
 _FIELDS = ("rot_index", "theta_index", "order", "chunk_start", "color_start")
 _I64 = ctypes.c_int64
@@ -68,17 +69,13 @@ _BWD = {dt: _native.declare("tet", f"tet_dd_bwd_{sfx}",
         for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 
 
-def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int, sup: int = SUPER):
-    """Race-free order of the C backward: ``(order (T,), chunk_start (K+1,), group_start (G+1,))``.
+def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int):
+    """Race-free order of the C backward: ``(order (T,), chunk_start (K+1,), color_start (C+1,))``.
 
     Tets sorted by their smallest edge index (a band order when the vertex numbering is
     coherent), cut into chunks of ``chunk`` consecutive tets; a greedy coloring gives chunks that
     share an edge different colors (a 63-bit mask per edge; a chunk that finds all 63 taken gets
-    a color of its own, i.e. runs alone). The chunks are then listed by super-block (``sup``
-    consecutive chunks), and within one by color: a *group* is the chunks of one color in one
-    super-block, edge-disjoint, run in parallel; groups run one after the other. Sweeping the
-    colors per super-block instead of over the whole mesh keeps the edges that neighbouring
-    chunks share in cache (a color's chunks are spread over the whole band). One-time cost per
+    a color of its own, i.e. runs alone). The chunks are listed color by color. One-time cost per
     mesh: a loop over the ``T / chunk`` chunks (numpy), not over tets."""
     te = tet_edges.detach().cpu().numpy().astype(np.int64, copy=False)
     T = te.shape[0]
@@ -97,15 +94,14 @@ def _schedule(tet_edges: torch.Tensor, n_edges: int, chunk: int, sup: int = SUPE
         else:
             c, own = own, own + 1
         color[k] = c
-    group = (np.arange(K) // sup) * (own + 1) + color  # (super-block, color), in execution order
-    chunks = np.argsort(group, kind="stable")  # chunk ids, group by group
+    chunks = np.argsort(color, kind="stable")  # chunk ids, color by color
     starts = np.minimum(np.arange(K + 1) * chunk, T)
     lens = starts[1:] - starts[:-1]
     new_order = np.concatenate([order[starts[c]:starts[c + 1]] for c in chunks]) if K else order
     chunk_start = np.concatenate(([0], np.cumsum(lens[chunks])))
-    g = group[chunks]
-    group_start = np.concatenate(([0], np.flatnonzero(np.diff(g)) + 1, [K])) if K else np.zeros(1, np.int64)
-    return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64)) for a in (new_order, chunk_start, group_start))
+    counts = np.bincount(color, minlength=int(color.max()) + 1 if K else 0)
+    color_start = np.concatenate(([0], np.cumsum(counts)))
+    return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64)) for a in (new_order, chunk_start, color_start))
 
 
 class TetKernel:
@@ -119,15 +115,14 @@ class TetKernel:
             seven directed edges the formula reads, ``ba, ca, da, cb, db, dc, cd`` (local labels
             ``a, b, c, d = 0..3``).
         order ``(T,)``, chunk_start ``(K+1,)``, color_start ``(C+1,)``: the race-free schedule of
-            the C backward (:func:`_schedule`: ``color_start`` delimits the groups of
-            edge-disjoint chunks, one color of one super-block each; read only by the CPU kernel;
-            on other devices a trivial one-chunk schedule).
+            the C backward (:func:`_schedule`; read only by the CPU kernel; on other devices a
+            trivial one-chunk schedule).
     """
 
     # local pairs 01 02 03 12 13 23 and the directed edges (x, y) read as θ̃_xy
     _DIRECTED = ((1, 0), (2, 0), (3, 0), (2, 1), (3, 1), (3, 2), (2, 3))
 
-    def __init__(self, mesh, chunk: int = CHUNK, sup: int = SUPER):
+    def __init__(self, mesh, chunk: int = CHUNK):
         te = mesh.tet_edges
         neg = (mesh.tet_edge_signs < 0).long()
         self.rot_index = (2 * te + neg).contiguous()
@@ -141,13 +136,13 @@ class TetKernel:
             cols.append(2 * te[:, p] + against)
         self.theta_index = torch.stack(cols, 1).contiguous()
         self.n_edges = int(mesh.edges.shape[0])
-        self.chunk, self.sup = chunk, sup
+        self.chunk = chunk
         self._set_schedule(te)
 
     def _set_schedule(self, te):
         dev = self.rot_index.device
         if dev.type == "cpu":
-            self.order, self.chunk_start, self.color_start = _schedule(te, self.n_edges, self.chunk, self.sup)
+            self.order, self.chunk_start, self.color_start = _schedule(te, self.n_edges, self.chunk)
         else:  # read only by the CPU kernel; no values needed (meta) and no device sync
             T = self.rot_index.shape[0]
             self.order = torch.arange(T, device=dev)
@@ -156,7 +151,7 @@ class TetKernel:
 
     @property
     def n_colors(self) -> int:
-        """Number of groups of edge-disjoint chunks (colors x super-blocks) of the backward schedule."""
+        """Number of colors of the backward schedule."""
         return self.color_start.shape[0] - 1
 
     def tables(self) -> tuple[torch.Tensor, ...]:
@@ -166,7 +161,7 @@ class TetKernel:
     def to(self, device) -> "TetKernel":
         """A copy with the tables on ``device`` (``self`` is left as it is)."""
         new = object.__new__(TetKernel)
-        new.n_edges, new.chunk, new.sup = self.n_edges, self.chunk, self.sup
+        new.n_edges, new.chunk = self.n_edges, self.chunk
         new.rot_index, new.theta_index = self.rot_index.to(device), self.theta_index.to(device)
         dev = torch.device(device)
         if dev.type == "cpu" and self.rot_index.device.type != "cpu":

@@ -16,12 +16,11 @@
  *
  * The forward writes its own row per tet (parallel over blocks). The backward scatters into
  * the edges race-free without atomics or per-thread copies: the tets are processed in chunks
- * (order[chunk_start[k] .. chunk_start[k+1]]), and chunks are grouped (chunks
- * color_start[c] .. color_start[c+1]) such that no two chunks of one group share an edge (one
- * color of one super-block of neighbouring chunks, built once per mesh by
- * torchconn.ops.tet._schedule); the chunks of one group run in parallel, each sequentially (its
- * blocks in order, the lanes of a block scattered in order: the sum at every edge is in a fixed
- * order, whatever the number of threads), and the groups one after the other.
+ * (order[chunk_start[k] .. chunk_start[k+1]]), and chunks are grouped in colors (chunks
+ * color_start[c] .. color_start[c+1]) such that no two chunks of one color share an edge (built
+ * once per mesh by torchconn.ops.tet._schedule); the chunks of one color run in parallel, each
+ * sequentially (its blocks in order, the lanes of a block scattered in order: the sum at every
+ * edge is in a fixed order, whatever the number of threads), and the colors one after the other.
  *
  * The √R variant (tet_dds_*) forms θ̃_ij = H_e v_e, θ̃_ji = -H_e^T v_e once per *edge* in a
  * first pass (OpenMP over edges) into a buffer of the caller, then runs the kernels above;
@@ -30,10 +29,10 @@
  *
  * Exported (T_ = float / double, SUF = f32 / f64):
  *   tet_dd_fwd_SUF(rot, theta, ridx, tidx, out, nb, E, T, threads)
- *   tet_dd_bwd_SUF(rot, theta, gin, ridx, tidx, order, chunk_start, color_start, n_groups,
+ *   tet_dd_bwd_SUF(rot, theta, gin, ridx, tidx, order, chunk_start, color_start, n_colors,
  *                  grot, gtheta, nb, E, T, threads)
  *   tet_dds_fwd_SUF(rot, half, vec, ridx, tidx, out, theta_buf, nb, E, T, threads)
- *   tet_dds_bwd_SUF(rot, half, vec, gin, ridx, tidx, order, chunk_start, color_start, n_groups,
+ *   tet_dds_bwd_SUF(rot, half, vec, gin, ridx, tidx, order, chunk_start, color_start, n_colors,
  *                   grot, ghalf, gvec, gtheta_buf, nb, E, T, threads)
  * theta_buf: scratch (nb, E, 2, 3); gtheta_buf: scratch (nb, E, 2, 3); in tet_dds_bwd the
  * θ̃ of pass 1 live in ghalf (its first 6E entries per item) until the last pass overwrites it.
@@ -276,14 +275,14 @@ __attribute__((always_inline)) static inline void FN(prefetch)(
     }
 }
 
-/* the chunks of one group, for every batch item: grot (nb, E, 9), gth (nb, E, 2, 3) accumulated
+/* the chunks of one color, for every batch item: grot (nb, E, 9), gth (nb, E, 2, 3) accumulated
  * (zeroed by the caller); item bi's θ̃ at tb + bi * th_stride */
 static void FN(bwd_item_chunks)(const T_ *rb, const T_ *tb, const T_ *gb, const int64_t *ridx,
                                 const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
                                 int64_t c0, int64_t nc, int64_t nb, int64_t E, int64_t T,
                                 int64_t th_stride, T_ *grot, T_ *gth, int threads)
 {
-    /* (batch item, chunk) pairs of one group: disjoint edges within an item, disjoint memory
+    /* (batch item, chunk) pairs of one color: disjoint edges within an item, disjoint memory
      * across items */
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
     for (int64_t w = 0; w < nb * nc; w++) {
@@ -312,12 +311,12 @@ static void FN(bwd_item_chunks)(const T_ *rb, const T_ *tb, const T_ *gb, const 
 
 void FN(tet_dd_bwd)(const T_ *rot, const T_ *th, const T_ *gin, const int64_t *ridx,
                     const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
-                    const int64_t *color_start, int64_t n_groups, T_ *grot, T_ *gth,
+                    const int64_t *color_start, int64_t n_colors, T_ *grot, T_ *gth,
                     int64_t nb, int64_t E, int64_t T, int threads)
 {
     FN(zero)(grot, 9 * E * nb, threads);
     FN(zero)(gth, 6 * E * nb, threads);
-    for (int64_t c = 0; c < n_groups; c++)
+    for (int64_t c = 0; c < n_colors; c++)
         FN(bwd_item_chunks)(rot, th, gin, ridx, tidx, order, chunk_start, color_start[c],
                             color_start[c + 1] - color_start[c], nb, E, T, 6 * E, grot, gth,
                             threads);
@@ -355,19 +354,19 @@ void FN(tet_dds_fwd)(const T_ *rot, const T_ *half, const T_ *vec, const int64_t
 
 void FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
                      const int64_t *ridx, const int64_t *tidx, const int64_t *order,
-                     const int64_t *chunk_start, const int64_t *color_start, int64_t n_groups,
+                     const int64_t *chunk_start, const int64_t *color_start, int64_t n_colors,
                      T_ *grot, T_ *ghalf, T_ *gvec, T_ *gth, int64_t nb, int64_t E, int64_t T,
                      int threads)
 {
     /* pass 0 (edges): θ̃ into ghalf's first 6E entries of each item (ghalf has 9E per item and
-     * is written only by pass 2); pass 1 (tets, groups of chunks): grot and the gradient of every
+     * is written only by pass 2); pass 1 (tets, colored chunks): grot and the gradient of every
      * directed θ̃, gth (nb, E, 2, 3), scattered as 3-vectors; pass 2 (edges): ghalf, gvec from
      * gth, once per edge instead of once per (tet, edge) incidence */
     for (int64_t bi = 0; bi < nb; bi++)
         FN(theta_sqrt)(half + bi * 9 * E, vec, ghalf + bi * 9 * E, 1, E, threads);
     FN(zero)(grot, 9 * E * nb, threads);
     FN(zero)(gth, 6 * E * nb, threads);
-    for (int64_t c = 0; c < n_groups; c++)
+    for (int64_t c = 0; c < n_colors; c++)
         FN(bwd_item_chunks)(rot, ghalf, gin, ridx, tidx, order, chunk_start, color_start[c],
                             color_start[c + 1] - color_start[c], nb, E, T, 9 * E, grot, gth,
                             threads);
