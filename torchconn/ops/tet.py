@@ -320,11 +320,19 @@ _tet_dd_backward_op.register_vmap(leading_vmap(_tet_dd_backward_op, "tet_dd_back
 
 # ---- the same with θ̃ formed inside the kernel from √R and v_j - v_i (no θ̃ tensors at all)
 
-_SFWD = {dt: _native.declare("tet", f"tet_dds_fwd_{sfx}", [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+_SFWD = {dt: _native.declare("tet", f"tet_dds_fwd_{sfx}", [_P, _P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int],
+                             ctypes.c_int)
          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 _SBWD = {dt: _native.declare("tet", f"tet_dds_bwd_{sfx}",
-                             [_P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
+                             [_P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int],
+                             ctypes.c_int)
          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+
+
+def _check_scratch(status: int) -> None:
+    """The √R kernels map their θ̃ scratch themselves (``csrc/tet.c``); -1: the mapping failed."""
+    if status != 0:
+        raise MemoryError("torchconn::tet_dd_sqrt: the C kernel could not map its scratch buffer (6 E values)")
 
 
 def _generic_sqrt_fwd(edge_rot, half_rot, edge_vec, rot_index, theta_index):
@@ -358,9 +366,8 @@ def _(edge_rot, half_rot, edge_vec, rot_index, theta_index, order, chunk_start, 
     out = _native.empty(*edge_rot.shape[:-3], rot_index.shape[0], 3, dtype=edge_rot.dtype)
     nb, E, T = _c_sizes(R, ri)
     if out.numel():
-        theta = _native.empty(nb.value, E.value, 2, 3, dtype=R.dtype)  # scratch: θ̃ of every edge
-        _SFWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(ri), _native.ptr(ti),
-                       _native.ptr(out), _native.ptr(theta), nb, E, T, torch.get_num_threads())
+        _check_scratch(_SFWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(ri),
+                                      _native.ptr(ti), _native.ptr(out), nb, E, T, torch.get_num_threads()))
     return out
 
 
@@ -389,11 +396,10 @@ def _(edge_rot, half_rot, edge_vec, grad, rot_index, theta_index, order, chunk_s
     g_rot, g_half = _native.empty(*R.shape, dtype=R.dtype), _native.empty(*H.shape, dtype=R.dtype)
     g_vec = _native.empty(*((nb.value,) if nb.value > 1 else ()), *v.shape, dtype=R.dtype)
     if g_rot.numel():  # the kernel zeroes its outputs
-        g_th = _native.empty(nb.value, E.value, 2, 3, dtype=R.dtype)  # scratch: ∂L/∂θ̃ of every edge
-        _SBWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(g),
-                       *(_native.ptr(t) for t in tabs), _native.ptr(cs), _I64(cs.shape[0] - 1),
-                       _native.ptr(g_rot), _native.ptr(g_half), _native.ptr(g_vec), _native.ptr(g_th), nb, E, T,
-                       torch.get_num_threads())
+        _check_scratch(_SBWD[R.dtype](_native.ptr(R), _native.ptr(H), _native.ptr(v), _native.ptr(g),
+                                      *(_native.ptr(t) for t in tabs), _native.ptr(cs), _I64(cs.shape[0] - 1),
+                                      _native.ptr(g_rot), _native.ptr(g_half), _native.ptr(g_vec), nb, E, T,
+                                      torch.get_num_threads()))
     else:
         g_rot.zero_(), g_half.zero_(), g_vec.zero_()
     return g_rot, g_half, (g_vec if nb.value <= 1 else g_vec.sum(0))
