@@ -27,6 +27,7 @@ import ctypes
 import hashlib
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -83,6 +84,26 @@ def _warn_once(name: str, msg: str) -> None:
                       stacklevel=3)
 
 
+_QUOTED_INCLUDE = re.compile(rb'^\s*#\s*include\s+"([^"]+)"', re.M)
+
+
+def _source_bytes(src: Path) -> bytes:
+    """``src`` and, recursively, every file it includes with ``#include "..."`` (next to it),
+    each once: the cache key then covers code one kernel file takes from another (``tet.c``
+    includes the element kernels of ``so3.c``)."""
+    seen: list[Path] = []
+
+    def visit(path: Path) -> None:
+        if path in seen or not path.exists():
+            return
+        seen.append(path)
+        for inc in _QUOTED_INCLUDE.findall(path.read_bytes()):
+            visit((path.parent / inc.decode()).resolve())
+
+    visit(src.resolve())
+    return b"".join(p.name.encode() + b"\0" + p.read_bytes() for p in seen)
+
+
 def _build(name: str) -> ctypes.CDLL | None:
     src = CSRC / f"{name}.c"
     cc = _compiler()
@@ -91,7 +112,7 @@ def _build(name: str) -> ctypes.CDLL | None:
         _warn_once(name, f"no C compiler found ($CC={cc_env!r} not found)" if cc_env
                    else "no C compiler found ($CC, cc, gcc, clang)")
         return None
-    code = src.read_bytes()
+    code = _source_bytes(src)
     key = hashlib.sha256(code + cc.encode() + " ".join(_FLAGS).encode() + _cpu_key().encode()).hexdigest()[:16]
     out_dir = _cache_dir()
     lib_path = out_dir / f"{name}-{key}.so"

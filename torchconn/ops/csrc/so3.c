@@ -41,8 +41,12 @@
  * block (OpenMP reductions give the count and the first index): +15-25% over so3_log_fwd on
  * 10^6 matrices; a separate torch check (more passes over memory) costs 10-20x the op.
  *
- * The two dtypes are instantiated by including this file into itself with T = float, double
- * (one file, so native.py's cache key, a hash of this source, covers all the code).
+ * The two dtypes are instantiated by including this file into itself with T = float, double.
+ *
+ * Included by another kernel file with SO3_KERNELS_ONLY defined (tet.c), this file gives that
+ * file its element kernels and the block helpers sqrt_{fwd,bwd}_block_{f32,f64} (static: one
+ * home for the formulas), without the exported loops; native.py's cache key hashes the
+ * including file and this one.
  */
 #ifndef SO3_T
 
@@ -51,7 +55,9 @@
 #if defined(__GNUC__) && !defined(__clang__)
 /* Keep every branch computed on every element: jump threading and sinking would move the
  * trigonometric calls into the branch that uses them (a conditional call stops the
- * vectorizer; the values are the same either way). */
+ * vectorizer; the values are the same either way). Restored at the end of this file (pop),
+ * so that a file including this one keeps its own options. */
+#pragma GCC push_options
 #pragma GCC optimize("no-thread-jumps", "no-tree-sink")
 #endif
 
@@ -206,6 +212,16 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
 #define SO3_SQRT sqrt
 #define SO3_ATAN2 atan2
 #include "so3.c" /* this file, again (quoted includes resolve next to it) */
+#undef SO3_T
+#undef SO3_SUF
+#undef SO3_SIN
+#undef SO3_COS
+#undef SO3_SQRT
+#undef SO3_ATAN2
+
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC pop_options
+#endif
 
 #else /* ------------------------------------------------------------- one dtype */
 
@@ -296,6 +312,7 @@ static inline void FN(exp_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
     O[0][j] = gw[0]; O[1][j] = gw[1]; O[2][j] = gw[2];
 }
 
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
 {
     SO3_LOOP(FN(exp_fwd_k), w, 3, w, 0, R, 9);
@@ -305,6 +322,7 @@ void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
 {
     SO3_LOOP(FN(exp_bwd_k), w, 3, gR, 9, gw, 3);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- log */
 
@@ -448,10 +466,12 @@ static inline void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
 #undef SO3_S
 }
 
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_log_fwd)(const T *R, T *w, long n, int nt, double eps)
 {
     SO3_LOOP(FN(log_fwd_k), R, 9, R, 0, w, 3);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* Whether r is not a rotation within tol (tol2 = tol^2): e2 = ||R^T R - I||_F^2 (entries of
  * R^T R are the dot products of the columns (r0 r3 r6), (r1 r4 r7), (r2 r5 r8)) is not <= tol2
@@ -487,6 +507,7 @@ static inline void FN(log_chk_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
 /* so3_log_fwd (same w, bitwise) that also validates: returns the number of matrices that are
  * not rotations within tol (Frobenius norm of R^T R - I, det < 0, NaN/inf) and writes the
  * smallest such index to *first (n if there is none). */
+#ifndef SO3_KERNELS_ONLY
 long FN(so3_log_fwd_checked)(const T *R, T *w, long n, int nt, double eps, double tol, long *first_out)
 {
     const T tol2 = (T)(tol * tol);
@@ -502,6 +523,7 @@ void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps)
 {
     SO3_LOOP(FN(log_bwd_k), R, 9, gw, 3, gR, 9);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- sqrt */
 
@@ -639,6 +661,7 @@ SO3_RUNNER(FN(sqrt_fwd_pos_run), FN(sqrt_fwd_pos_k))
 SO3_RUNNER(FN(sqrt_bwd_run), FN(sqrt_bwd_k))
 SO3_RUNNER(FN(sqrt_bwd_pos_run), FN(sqrt_bwd_pos_k))
 
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
 {
     SO3_LOOP_IF(FN(sqrt_fwd_run), FN(sqrt_fwd_pos_run), SO3_POS_TRACE, R, 9, R, 0, S, 9);
@@ -648,6 +671,28 @@ void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps
 {
     SO3_LOOP_IF(FN(sqrt_bwd_run), FN(sqrt_bwd_pos_run), SO3_POS_TRACE, R, 9, gS, 9, gR, 9);
 }
+#else
+/* For the including file: sqrt (and its backward for the gradient Bg) of the m <= SO3_B
+ * matrices of a component-major block A, into O; the same runners, chosen the same way, as
+ * so3_sqrt_fwd / so3_sqrt_bwd (so the same values, bitwise). */
+static inline int FN(sqrt_block_pos)(FN(blk_t) *A_, int m)
+{
+    int fast_ = 1;
+    for (int j = 0; j < m; ++j)
+        fast_ &= SO3_POS_TRACE(A_, j);
+    return fast_;
+}
+
+static inline void FN(sqrt_fwd_block)(FN(blk_t) *A, FN(blk_t) *O, int m, T eps2)
+{
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_fwd_pos_run) : FN(sqrt_fwd_run))(A, A, O, m, eps2);
+}
+
+static inline void FN(sqrt_bwd_block)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int m, T eps2)
+{
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_bwd_pos_run) : FN(sqrt_bwd_run))(A, Bg, O, m, eps2);
+}
+#endif /* SO3_KERNELS_ONLY */
 
 #undef SO3_POS_TRACE
 

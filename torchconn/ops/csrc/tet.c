@@ -34,6 +34,10 @@
  *   int tet_dds_fwd_SUF(rot, half, vec, ridx, tidx, out, nb, E, T, threads)
  *   int tet_dds_bwd_SUF(rot, half, vec, gin, ridx, tidx, order, chunk_start, color_start, n_colors,
  *                       grot, ghalf, gvec, nb, E, T, threads)
+ *   int tet_ddr_fwd_SUF(rot, vec, ridx, tidx, out, nb, E, T, threads, eps)
+ *   int tet_ddr_bwd_SUF(rot, vec, gin, ridx, tidx, order, chunk_start, color_start, n_colors,
+ *                       grot, gvec, nb, E, T, threads, eps)
+ * (tet_ddr_*: √R formed in the kernel as well, eps the so3 small-angle threshold)
  * (the √R variants return 0, or -1 when their scratch cannot be mapped; in tet_dds_bwd the θ̃
  * of pass 1 live in ghalf (its first 6E entries per item) until the last pass overwrites it).
  */
@@ -43,6 +47,12 @@
 #include <stdint.h>
 #include <string.h>
 #include <sys/mman.h>
+
+/* the SO(3) square root and its backward (element kernels and block helpers of so3.c, the one
+ * home of those formulas) for the fused tet_ddr_* kernels */
+#define SO3_KERNELS_ONLY
+#include "so3.c"
+#undef SO3_KERNELS_ONLY
 
 /* Zeroed scratch of `bytes`, mapped for the call and unmapped after it: a malloc'd block of this
  * size (tens of MB) would come from the heap once glibc has raised its mmap threshold to it,
@@ -413,6 +423,110 @@ int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
     munmap(gth, bytes ? bytes : 1);
     return 0;
 }
+
+/* ---- √R formed in the kernel too: θ̃_ij = √R_e v_e, θ̃_ji = -√R_e^T v_e with √R the SO(3)
+ * square root of so3.c (torchconn.ops.so3.sqrt), per edge; backward: ∂L/∂R_e = the tet term +
+ * the square root's backward of ∂L/∂√R_e, and ∂L/∂v (nb, E, 3) per item. No √R tensor is
+ * stored or returned: the roots are recomputed in the backward (blocks of SO3_B edges) */
+
+#define SO3FN(name) TET_CAT(name, TET_SUF)
+
+/* θ̃ of every edge from R (nb, E, 9): roots by blocks of SO3_B edges */
+static void FN(theta_rot)(const T_ *rot, const T_ *vec, T_ *theta, int64_t nb, int64_t E, int threads,
+                          T_ eps2)
+{
+    const int64_t nblk = (E + SO3_B - 1) / SO3_B;
+    for (int64_t bi = 0; bi < nb; bi++) {
+        const T_ *rb = rot + bi * 9 * E;
+        T_ *tb = theta + bi * 6 * E;
+#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
+        for (int64_t w = 0; w < nblk; w++) {
+            SO3FN(blk_t) A[9], O[9];
+            const int64_t e0 = w * SO3_B;
+            const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+            for (int j = 0; j < m; j++)
+                for (int q = 0; q < 9; q++)
+                    A[q][j] = rb[9 * (e0 + j) + q];
+            SO3FN(sqrt_fwd_block)(A, O, m, eps2);
+            for (int j = 0; j < m; j++) {
+                const T_ *v = vec + 3 * (e0 + j);
+                T_ *t = tb + 6 * (e0 + j);
+                for (int i = 0; i < 3; i++) {
+                    t[i] = O[3 * i][j] * v[0] + O[3 * i + 1][j] * v[1] + O[3 * i + 2][j] * v[2];
+                    t[3 + i] = -(O[i][j] * v[0] + O[3 + i][j] * v[1] + O[6 + i][j] * v[2]);
+                }
+            }
+        }
+    }
+}
+
+int FN(tet_ddr_fwd)(const T_ *rot, const T_ *vec, const int64_t *ridx, const int64_t *tidx, T_ *out,
+                    int64_t nb, int64_t E, int64_t T, int threads, double eps)
+{
+    const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
+    T_ *theta = tet_scratch(bytes);
+    if (!theta)
+        return -1;
+    FN(theta_rot)(rot, vec, theta, nb, E, threads, (T_)(eps * eps));
+    FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
+    munmap(theta, bytes ? bytes : 1);
+    return 0;
+}
+
+int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *ridx,
+                    const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
+                    const int64_t *color_start, int64_t n_colors, T_ *grot, T_ *gvec, int64_t nb,
+                    int64_t E, int64_t T, int threads, double eps)
+{
+    /* pass 0 (edges): θ̃ into a scratch; pass 1 (tets, colored chunks): grot and ∂L/∂θ̃ (gth,
+     * a second, zeroed scratch); pass 2 (edges, blocks of SO3_B): √R again, ∂L/∂√R and gvec
+     * from gth, and grot += the root's backward */
+    const T_ eps2 = (T_)(eps * eps);
+    const size_t bytes = sizeof(T_) * 12 * (size_t)(E * nb);
+    T_ *theta = tet_scratch(bytes);
+    if (!theta)
+        return -1;
+    T_ *gth = theta + 6 * E * nb;
+    FN(theta_rot)(rot, vec, theta, nb, E, threads, eps2);
+    FN(zero)(grot, 9 * E * nb, threads);
+    for (int64_t c = 0; c < n_colors; c++)
+        FN(bwd_item_chunks)(rot, theta, gin, ridx, tidx, order, chunk_start, color_start[c],
+                            color_start[c + 1] - color_start[c], nb, E, T, 6 * E, grot, gth,
+                            threads);
+    const int64_t nblk = (E + SO3_B - 1) / SO3_B;
+    for (int64_t bi = 0; bi < nb; bi++) {
+        const T_ *rb = rot + bi * 9 * E, *gtb = gth + bi * 6 * E;
+        T_ *grb = grot + bi * 9 * E, *gvb = gvec + bi * 3 * E;
+#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
+        for (int64_t w = 0; w < nblk; w++) {
+            SO3FN(blk_t) A[9], G[9], O[9];
+            const int64_t e0 = w * SO3_B;
+            const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+            for (int j = 0; j < m; j++)
+                for (int q = 0; q < 9; q++)
+                    A[q][j] = rb[9 * (e0 + j) + q];
+            SO3FN(sqrt_fwd_block)(A, O, m, eps2); /* H = √R */
+            for (int j = 0; j < m; j++) {
+                const T_ *v = vec + 3 * (e0 + j), *gp = gtb + 6 * (e0 + j), *gm = gp + 3;
+                /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
+                for (int i = 0; i < 3; i++)
+                    for (int k = 0; k < 3; k++)
+                        G[3 * i + k][j] = gp[i] * v[k] - v[i] * gm[k];
+                for (int i = 0; i < 3; i++)
+                    gvb[3 * (e0 + j) + i] = (O[i][j] * gp[0] + O[3 + i][j] * gp[1] + O[6 + i][j] * gp[2])
+                                          - (O[3 * i][j] * gm[0] + O[3 * i + 1][j] * gm[1] + O[3 * i + 2][j] * gm[2]);
+            }
+            SO3FN(sqrt_bwd_block)(A, G, O, m, eps2); /* ∂L/∂R through √R */
+            for (int j = 0; j < m; j++)
+                for (int q = 0; q < 9; q++)
+                    grb[9 * (e0 + j) + q] += O[q][j];
+        }
+    }
+    munmap(theta, bytes ? bytes : 1);
+    return 0;
+}
+
+#undef SO3FN
 
 #undef RL
 #undef MV_L
