@@ -6,9 +6,9 @@ SO(3) maps) are therefore also written as plain C loops over elements, OpenMP-pa
 computing values *and* their gradients in one sweep. They are compiled on first use with
 ``cc -O3 -fopenmp -march=native`` (no torch headers, no Python headers: the shared library
 takes raw pointers and is loaded with :mod:`ctypes`), cached under ``$TORCHCONN_CACHE``
-(default ``~/.cache/torchconn``) by a hash of the source (with the files it includes), the compiler command and the CPU, and
-written atomically (compiled to a temporary name, then renamed), so concurrent processes never
-load a half-written library.
+(default ``~/.cache/torchconn``) by a hash of the source (with the files it includes), the
+compiler command and the CPU, and written atomically (compiled to a temporary name, then
+renamed), so concurrent processes never load a half-written library.
 
 :func:`library` returns ``None`` (after one :class:`RuntimeWarning` naming the reason) when no
 C compiler is found (``$CC``, ``cc``, ``gcc``, ``clang``) or the build fails; whether an op
