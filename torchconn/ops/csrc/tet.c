@@ -26,9 +26,9 @@
  * edge is in a fixed order, whatever the number of threads), and the colors one after the other.
  *
  * The √R variant (tet_dds_*) forms θ̃_ij = H_e v_e, θ̃_ji = -H_e^T v_e once per *edge* in a
- * first pass (OpenMP over edges) into a buffer of the caller, then runs the kernels above;
- * its backward turns the gradient of every directed θ̃ into those of H and v in a last pass
- * over edges.
+ * first pass (OpenMP over edges) into a scratch it maps itself (tet_scratch), then runs the
+ * kernels above; its backward turns the gradient of every directed θ̃ into those of H and v in
+ * a last pass over edges. The fused variant (tet_ddr_*) also forms H = √R_e in those passes.
  *
  * Exported (T_ = float / double, SUF = f32 / f64):
  *   tet_dd_fwd_SUF(rot, theta, ridx, tidx, out, nb, E, T, threads)
