@@ -110,3 +110,27 @@ def test_declared_signature_rejects_wrong_calls():
     with pytest.raises(RuntimeError, match="not available"):
         native._LIBS["nothing"] = None
         native.function("nothing", "f", [])
+
+
+@pytest.mark.parametrize("shape", [(0, 3), (5, 3, 3), (native.HUGE_MIN_BYTES // 4 + 7,)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_empty_is_an_ordinary_writable_tensor(shape, dtype):
+    """Small, empty and huge-page-advised buffers: the shape and dtype asked, contiguous, on the
+    CPU, every element writable (the advice changes how pages are backed, never the contents)."""
+    t = native.empty(*shape, dtype=dtype)
+    assert t.shape == shape and t.dtype == dtype and t.device.type == "cpu" and t.is_contiguous()
+    t.fill_(3.0)
+    assert bool((t == 3.0).all())
+
+
+def test_cache_key_covers_included_sources(tmp_path):
+    """A kernel file's key hashes the files it takes code from (``#include "..."``), each once
+    (a self-include is not followed twice): editing so3.c rebuilds tet.c's library too."""
+    a, b = tmp_path / "a.c", tmp_path / "b.c"
+    a.write_text('#include "b.c"\n#include "a.c"\nint f(void) { return 1; }\n')
+    b.write_text("int g(void) { return 2; }\n")
+    before = native._source_bytes(a)
+    assert b"int g(void)" in before and before.count(b"int f(void)") == 1
+    b.write_text("int g(void) { return 3; }\n")
+    assert native._source_bytes(a) != before
+    assert b"so3_sqrt_fwd" in native._source_bytes(native.CSRC / "tet.c")

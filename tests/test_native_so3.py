@@ -358,3 +358,30 @@ def test_jacobian_vectorized_and_jacrev(kind):
         J = torch.autograd.functional.jacobian(fn, x, vectorize=vec)
         torch.testing.assert_close(J, ref, atol=1e-12, rtol=0)
     torch.testing.assert_close(torch.func.jacrev(fn)(x), ref, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_sqrt_fast_path_of_blocks_below_120_degrees(dtype):
+    """Blocks of the compiled sqrt whose every trace is positive (angles below 120°) run only the
+    half-angle branch: values and gradients against the torch path, and bitwise the values the
+    full kernel gives the same matrices inside a mixed block (so the path taken never shows)."""
+    small = so3.exp(_rotvecs(3000, torch.float64, seed=5, max_angle=2 * math.pi / 3 * 0.999)).to(dtype)
+    mixed = _inputs("sqrt", dtype, n=3000, seed=6)
+    for x in (small, torch.cat([small, mixed])):
+        fn = FN["sqrt"]
+        torch.testing.assert_close(fn(x), _with(fn, False)(x), atol=VAL_TOL[dtype], rtol=0)
+        G = torch.randn(x.shape, generator=torch.Generator().manual_seed(7), dtype=dtype)
+        _, g_n, out = _grad(fn, x, G)
+        _, g_t, _ = _grad(_with(fn, False), x, G)
+        assert _is_native(out)
+        torch.testing.assert_close(g_n, g_t, atol=VAL_TOL[dtype] * 10 * float(g_t.abs().max()), rtol=0)
+    # small matrices interleaved with a π rotation in every block of 128: all blocks take the full kernel
+    pi = _rotation_pi(AXES[:1]).to(dtype)
+    inter = torch.cat([torch.cat([pi, small[i:i + 127]]) for i in range(0, small.shape[0], 127)])
+    keep = torch.ones(inter.shape[0], dtype=torch.bool)
+    keep[::128] = False
+    G = torch.randn(inter.shape, generator=torch.Generator().manual_seed(8), dtype=dtype)
+    _, g_full, _ = _grad(FN["sqrt"], inter, G)
+    _, g_fast, _ = _grad(FN["sqrt"], inter[keep], G[keep])
+    assert torch.equal(FN["sqrt"](inter)[keep], FN["sqrt"](inter[keep]))
+    assert torch.equal(g_full[keep], g_fast)

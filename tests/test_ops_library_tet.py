@@ -309,3 +309,115 @@ def test_shape_errors_name_the_argument():
         ops_tet.tet_dd(torch.stack((R, R)), th, k)
     with pytest.raises(ValueError, match="tet_dd: edge_theta"):
         ops_tet.tet_dd(R, th.float(), k)
+
+
+def test_edge_vectors_cache_follows_the_vertices():
+    """The per-mesh edge vectors ``v_j - v_i`` (cached for the vertex tensor they come from):
+    recomputed after an in-place edit of the vertices, per dtype, and differentiable (never
+    cached) when the vertices require grad."""
+    from torchconn.nn import MeshBuffers
+    from torchconn.ops._cache import edge_vectors
+
+    mesh = io.box(2)
+    e = mesh.edges
+    direct = lambda v: v[e[:, 1]] - v[e[:, 0]]  # noqa: E731
+    a = edge_vectors(mesh, "cpu", DT)
+    assert torch.equal(a, direct(mesh.vertices)) and edge_vectors(mesh, "cpu", DT) is a
+    assert edge_vectors(mesh, "cpu", torch.float32).dtype == torch.float32
+    mesh.vertices.mul_(2.0)
+    b = edge_vectors(mesh, "cpu", DT)
+    assert torch.equal(b, direct(mesh.vertices)) and torch.equal(b, 2 * a)
+    mb = MeshBuffers(mesh)
+    mb.vertices.requires_grad_(True)
+    c = edge_vectors(mb, "cpu", DT)
+    assert c.requires_grad
+    c.sum().backward()
+    assert mb.vertices.grad is not None and torch.equal(mb.vertices.grad.sum(0), torch.zeros(3, dtype=DT))
+
+
+@pytest.mark.skipif(not _has_c, reason="no C compiler: csrc/tet.c cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_sqrt_backward_equals_generic_with_a_many_color_schedule(dtype):
+    """The √R variant (θ̃ formed per edge in the kernel) on chunks of 5 tets: many colors, and a
+    partial lane block at the end of every chunk; forward and backward against the generic
+    kernels."""
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=5)
+    assert k.n_colors > 4
+    T = mesh.tets.shape[0]
+    R, _ = _data(mesh, dtype, seed=7, batch=(2,))
+    H = so3.sqrt(R)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(8), dtype=dtype)
+    g = torch.randn(2, T, 3, generator=torch.Generator().manual_seed(9), dtype=dtype)
+    res = {}
+    for on in (True, False):
+        with compiled(on):
+            res[on] = (*ops_tet._tet_dd_sqrt_backward_op(R, H, vec, g, *k.tables()),
+                       ops_tet._tet_dd_sqrt_op(R, H, vec, *k.tables()))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol, rtol=0)
+
+
+# ---------------------------------------------------------------- tet_dd_rot (√R formed in the kernel)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tet_dd_rot_opcheck(on, dtype):
+    """Schema, autograd registration and fake tensors of ``torchconn::tet_dd_rot`` and its backward."""
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, _ = _data(mesh, dtype)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(2), dtype=dtype)
+    g = torch.randn(2, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        for Rb in (R, torch.stack((R, R.flip(0)))):
+            torch.library.opcheck(ops_tet._tet_dd_rot_op, (*rg(Rb, vec), *k.tables()), test_utils=_FAST_UTILS)
+        torch.library.opcheck(ops_tet._tet_dd_rot_backward_op, (*rg(torch.stack((R, R)), vec, g), *k.tables()),
+                              test_utils=_FAST_UTILS)
+
+
+@pytest.mark.skipif(not _has_c, reason="no C compiler: csrc/tet.c cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("scale", [0.3, 2.8])
+def test_tet_dd_rot_compiled_equals_generic_and_the_two_op_path(dtype, scale):
+    """The C kernels (roots per edge, colored chunks of 5 tets, a batch of 2) against the generic
+    kernels, and against ``tet_dd_sqrt`` on ``so3.sqrt(R)`` followed by the root's backward; scale
+    2.8: angles above 120° (the roots' log/exp branch) in most blocks."""
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=5)
+    g = torch.Generator().manual_seed(11)
+    E, T = mesh.edges.shape[0], mesh.tets.shape[0]
+    R = so3.exp(scale * torch.randn(2, E, 3, generator=g, dtype=torch.float64)).to(dtype)
+    vec = torch.randn(E, 3, generator=g, dtype=torch.float64).to(dtype)
+    G = torch.randn(2, T, 3, generator=g, dtype=torch.float64).to(dtype)
+    res = {}
+    for on in (True, False):
+        with compiled(on):
+            res[on] = (ops_tet._tet_dd_rot_op(R, vec, *k.tables()), *ops_tet._tet_dd_rot_backward_op(R, vec, G, *k.tables()))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol, rtol=0)
+    Rg = R.clone().requires_grad_()
+    vg = vec.clone().requires_grad_()
+    out = ops_tet.tet_dd_sqrt(Rg, so3.sqrt(Rg), vg, k)
+    g_rot, g_vec = torch.autograd.grad((out * G).sum(), (Rg, vg))
+    for a, b in zip(res[True], (out, g_rot, g_vec)):
+        torch.testing.assert_close(a, b, atol=tol, rtol=0)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_tet_dd_rot_gradcheck_and_gradgradcheck(on):
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, _ = _data(mesh, seed=5)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(6), dtype=DT)
+    fr = lambda A, v: ops_tet.tet_dd_rot(A, v, k)  # noqa: E731
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        assert gradcheck(fr, rg(R, vec))
+        assert gradgradcheck(fr, rg(R, vec), fast_mode=True)
+        # an incoming gradient that depends on the input (square): no path counted twice
+        assert gradgradcheck(lambda A: fr(A, vec).square(), rg(R), fast_mode=True)

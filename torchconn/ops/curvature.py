@@ -123,7 +123,7 @@ def _curvature_c(edge_rot, face_index, kind):
     E, F = edge_rot.shape[-3], face_index.shape[1]
     batch = edge_rot.shape[:-3]
     N = batch.numel()
-    out = torch.empty((*batch, F, 3, 3), dtype=edge_rot.dtype)
+    out = _native.empty(*batch, F, 3, 3, dtype=edge_rot.dtype)
     if N and F:
         src, idx = edge_rot.contiguous(), face_index.contiguous()  # kept alive until the call returns
         _C_FWD[edge_rot.dtype](_native.ptr(src), _native.ptr(idx), _native.ptr(out), N, E, F, kind,
@@ -134,7 +134,7 @@ def _curvature_c(edge_rot, face_index, kind):
 def _curvature_bwd_c(edge_rot, grad, face_index, inc_ptr, inc, kind):
     E, F = edge_rot.shape[-3], face_index.shape[1]
     N = edge_rot.shape[:-3].numel()
-    out = torch.empty(edge_rot.shape, dtype=edge_rot.dtype)
+    out = _native.empty(*edge_rot.shape, dtype=edge_rot.dtype)
     if N and E:
         ts = [t.contiguous() for t in (edge_rot, grad, face_index, inc_ptr, inc)]
         _C_BWD[edge_rot.dtype](*(_native.ptr(t) for t in ts), _native.ptr(out), N, E, F, kind,

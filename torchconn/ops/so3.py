@@ -62,7 +62,7 @@ _OUT = {"exp": 9, "log": 3, "sqrt": 9}  # ... and of the output
 def _c_run(name: str, n: int, width: int, *inputs: torch.Tensor) -> torch.Tensor:
     """``so3_<name>_<f32|f64>(*inputs, out (n, width), n, threads, eps)`` on contiguous inputs."""
     x = inputs[0]
-    out = torch.empty((n, width), dtype=x.dtype)
+    out = _native.empty(n, width, dtype=x.dtype)
     if n:
         ts = [t.contiguous() for t in inputs]  # kept alive until the call returns
         _C[name, x.dtype](*(_native.ptr(t) for t in ts), _native.ptr(out), n, torch.get_num_threads(),

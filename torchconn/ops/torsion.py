@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from . import _so3_formulas as _f
+from ._cache import edge_vectors as _edge_vectors
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
@@ -238,12 +239,6 @@ def edge_frames(edge_rot: torch.Tensor, mesh, frames: torch.Tensor
     return Fi, Fi @ edge_rot, Fj
 
 
-def _edge_vectors(mesh, dev, dt) -> torch.Tensor:
-    e = mesh.edges.to(dev)
-    verts = mesh.vertices.to(device=dev, dtype=dt)
-    return verts.index_select(0, e[:, 1]) - verts.index_select(0, e[:, 0])
-
-
 def edge_solder_frames(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
                        frames: torch.Tensor | None = None,
                        edge_frame_rot: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
@@ -259,7 +254,8 @@ def edge_solder_frames(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
     """
     vec = _edge_vectors(mesh, edge_rot.device, edge_rot.dtype)
     if frames is None and edge_frame_rot is None:
-        return _matvec(_sqrt(edge_rot), vec) if kind == "sqrt" else vec.expand(*edge_rot.shape[:-2], 3)
+        # the cached edge vectors are never handed out: a copy for the naive solder form
+        return _matvec(_sqrt(edge_rot), vec) if kind == "sqrt" else vec.expand(*edge_rot.shape[:-2], 3).clone()
     if edge_frame_rot is None:
         e = mesh.edges.to(edge_rot.device)
         Fi, Fj = frames.index_select(-3, e[:, 0]), frames.index_select(-3, e[:, 1])

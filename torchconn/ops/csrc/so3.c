@@ -41,8 +41,12 @@
  * block (OpenMP reductions give the count and the first index): +15-25% over so3_log_fwd on
  * 10^6 matrices; a separate torch check (more passes over memory) costs 10-20x the op.
  *
- * The two dtypes are instantiated by including this file into itself with T = float, double
- * (one file, so native.py's cache key, a hash of this source, covers all the code).
+ * The two dtypes are instantiated by including this file into itself with T = float, double.
+ *
+ * Included by another kernel file with SO3_KERNELS_ONLY defined (tet.c), this file gives that
+ * file its element kernels and the block helpers sqrt_{fwd,bwd}_block_{f32,f64} (static: one
+ * home for the formulas), without the exported loops; native.py's cache key hashes the
+ * including file and this one.
  */
 #ifndef SO3_T
 
@@ -51,7 +55,9 @@
 #if defined(__GNUC__) && !defined(__clang__)
 /* Keep every branch computed on every element: jump threading and sinking would move the
  * trigonometric calls into the branch that uses them (a conditional call stops the
- * vectorizer; the values are the same either way). */
+ * vectorizer; the values are the same either way). Restored at the end of this file (pop),
+ * so that a file including this one keeps its own options. */
+#pragma GCC push_options
 #pragma GCC optimize("no-thread-jumps", "no-tree-sink")
 #endif
 
@@ -92,8 +98,7 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
  * component-major buffers, KERN(A, Bg, O, j, eps2) runs on element j of the block
  * (vectorized), the nout components of O are copied back into the rows of `out`, and POST
  * (a statement, or nothing) runs on the finished block (it may read O_, i0 and m). */
-#define SO3_BLOCK(KERN, a, na, b, nb, out, nout, POST)                                        \
-    {                                                                                         \
+#define SO3_BLOCK_IN(a, na, b, nb)                                                            \
         T A_[9][SO3_B], B_[9][SO3_B], O_[9][SO3_B];                                           \
         const long i0 = blk * SO3_B;                                                          \
         const int m = (int)(n - i0 < SO3_B ? n - i0 : SO3_B);                                 \
@@ -102,13 +107,18 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
                 A_[k][j] = (a)[(i0 + j) * (na) + k];                                          \
         for (int j = 0; j < m; ++j)                                                           \
             for (int k = 0; k < (nb); ++k)                                                    \
-                B_[k][j] = (b)[(i0 + j) * (nb) + k];                                          \
+                B_[k][j] = (b)[(i0 + j) * (nb) + k];
+#define SO3_BLOCK_OUT(out, nout)                                                              \
+        for (int j = 0; j < m; ++j)                                                           \
+            for (int k = 0; k < (nout); ++k)                                                  \
+                (out)[(i0 + j) * (nout) + k] = O_[k][j];
+#define SO3_BLOCK(KERN, a, na, b, nb, out, nout, POST)                                        \
+    {                                                                                         \
+        SO3_BLOCK_IN(a, na, b, nb)                                                            \
         _Pragma("omp simd")                                                                   \
         for (int j = 0; j < m; ++j)                                                           \
             KERN(A_, B_, O_, j, eps2);                                                        \
-        for (int j = 0; j < m; ++j)                                                           \
-            for (int k = 0; k < (nout); ++k)                                                  \
-                (out)[(i0 + j) * (nout) + k] = O_[k][j];                                      \
+        SO3_BLOCK_OUT(out, nout)                                                              \
         POST                                                                                  \
     }
 
@@ -120,6 +130,38 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
         _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN)")    \
         for (long blk = 0; blk < nblk; ++blk)                                                 \
             SO3_BLOCK(KERN, a, na, b, nb, out, nout, )                                        \
+    } while (0)
+
+/* kernels run by SO3_RUNNER: inlined there whatever their size (a call stops the vectorizer) */
+#define SO3_INLINE __attribute__((always_inline)) static inline
+
+/* The vectorized element loop of KERN on the m elements of a block, as a function of its own
+ * (SO3_LOOP_IF: with two such loops in one function GCC 12 vectorizes only one of them) */
+#define SO3_RUNNER(NAME, KERN)                                                                \
+    __attribute__((noinline)) static void NAME(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O,   \
+                                               int m, T eps2)                                 \
+    {                                                                                         \
+        _Pragma("omp simd")                                                                   \
+        for (int j = 0; j < m; ++j)                                                           \
+            KERN(A, Bg, O, j, eps2);                                                          \
+    }
+
+/* SO3_LOOP with a fast path: the runner FAST instead of KERN on a block where FAST_IF(A_, j)
+ * holds for every element; FAST computes only the branch that KERN selects for such elements,
+ * with the same expressions (the same values, bitwise), without evaluating the others. */
+#define SO3_LOOP_IF(KERN, FAST, FAST_IF, a, na, b, nb, out, nout)                             \
+    do {                                                                                      \
+        const T eps2 = (T)(eps * eps);                                                        \
+        const long nblk = (n + SO3_B - 1) / SO3_B;                                            \
+        _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN)")    \
+        for (long blk = 0; blk < nblk; ++blk) {                                               \
+            SO3_BLOCK_IN(a, na, b, nb)                                                        \
+            int fast_ = 1;                                                                    \
+            for (int j = 0; j < m; ++j)                                                       \
+                fast_ &= FAST_IF(A_, j);                                                      \
+            (fast_ ? FAST : KERN)(A_, B_, O_, m, eps2);                                       \
+            SO3_BLOCK_OUT(out, nout)                                                          \
+        }                                                                                     \
     } while (0)
 
 /* The same loop where KERN also writes a flag (0 or 1, as T) into row `nout` of O: counts the
@@ -170,6 +212,16 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
 #define SO3_SQRT sqrt
 #define SO3_ATAN2 atan2
 #include "so3.c" /* this file, again (quoted includes resolve next to it) */
+#undef SO3_T
+#undef SO3_SUF
+#undef SO3_SIN
+#undef SO3_COS
+#undef SO3_SQRT
+#undef SO3_ATAN2
+
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC pop_options
+#endif
 
 #else /* ------------------------------------------------------------- one dtype */
 
@@ -260,6 +312,7 @@ static inline void FN(exp_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
     O[0][j] = gw[0]; O[1][j] = gw[1]; O[2][j] = gw[2];
 }
 
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
 {
     SO3_LOOP(FN(exp_fwd_k), w, 3, w, 0, R, 9);
@@ -269,6 +322,7 @@ void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
 {
     SO3_LOOP(FN(exp_bwd_k), w, 3, gR, 9, gw, 3);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- log */
 
@@ -412,10 +466,12 @@ static inline void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
 #undef SO3_S
 }
 
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_log_fwd)(const T *R, T *w, long n, int nt, double eps)
 {
     SO3_LOOP(FN(log_fwd_k), R, 9, R, 0, w, 3);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* Whether r is not a rotation within tol (tol2 = tol^2): e2 = ||R^T R - I||_F^2 (entries of
  * R^T R are the dot products of the columns (r0 r3 r6), (r1 r4 r7), (r2 r5 r8)) is not <= tol2
@@ -451,6 +507,7 @@ static inline void FN(log_chk_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
 /* so3_log_fwd (same w, bitwise) that also validates: returns the number of matrices that are
  * not rotations within tol (Frobenius norm of R^T R - I, det < 0, NaN/inf) and writes the
  * smallest such index to *first (n if there is none). */
+#ifndef SO3_KERNELS_ONLY
 long FN(so3_log_fwd_checked)(const T *R, T *w, long n, int nt, double eps, double tol, long *first_out)
 {
     const T tol2 = (T)(tol * tol);
@@ -466,12 +523,13 @@ void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps)
 {
     SO3_LOOP(FN(log_bwd_k), R, 9, gw, 3, gR, 9);
 }
+#endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- sqrt */
 
 /* _so3_formulas.sqrt: for tr R > 0 (angle below 120 degrees), with s = sqrt(1 + tr R),
  * sqrt(R) = ((1 + s) I + R + (R - R^T)/s) / (2 + s); otherwise exp(h), h = log(R)/2. */
-static inline void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
 {
     (void)Bg;
     T r[9], w[3], e[9];
@@ -495,7 +553,7 @@ static inline void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int
     O[8][j] = ok ? (diag + r[8]) * den : e[8];
 }
 
-static inline void FN(sqrt_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(sqrt_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
 {
     T r[9], G[9], w[3], gh[3], ge[9];
 #define SO3_S(k) r[k] = A[k][j]; G[k] = Bg[k][j];
@@ -536,15 +594,107 @@ static inline void FN(sqrt_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int
     O[7][j] = ok ? g[7] * a - g[5] * inv_s : ge[7];
 }
 
+/* Blocks whose every element has tr R > 0 (the usual case: angles below 120 degrees) run only
+ * the half-angle branch: sqrt_fwd_k / sqrt_bwd_k select it for every element there, and the
+ * kernels below are its expressions, unchanged (so the same values, bitwise), without the
+ * log / exp branch (its trigonometric calls are most of the cost). The test is the same sum
+ * in the same order as `ok` in the kernels (NaN traces fail it). */
+#define SO3_POS_TRACE(A_, j) ((A_)[0][j] + (A_)[4][j] + (A_)[8][j] > K(0.0))
+
+SO3_INLINE void FN(sqrt_fwd_pos_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    (void)Bg; (void)eps2;
+    T r[9];
+#define SO3_S(k) r[k] = A[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T tr = r[0] + r[4] + r[8];
+    T s = SO3_SQRT(K(1.0) + tr);
+    T inv_s = K(1.0) / s, den = K(1.0) / (K(2.0) + s), diag = K(1.0) + s;
+    O[0][j] = (diag + r[0]) * den;
+    O[1][j] = (r[1] + (r[1] - r[3]) * inv_s) * den;
+    O[2][j] = (r[2] + (r[2] - r[6]) * inv_s) * den;
+    O[3][j] = (r[3] + (r[3] - r[1]) * inv_s) * den;
+    O[4][j] = (diag + r[4]) * den;
+    O[5][j] = (r[5] + (r[5] - r[7]) * inv_s) * den;
+    O[6][j] = (r[6] + (r[6] - r[2]) * inv_s) * den;
+    O[7][j] = (r[7] + (r[7] - r[5]) * inv_s) * den;
+    O[8][j] = (diag + r[8]) * den;
+}
+
+SO3_INLINE void FN(sqrt_bwd_pos_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+{
+    (void)eps2;
+    T r[9], G[9];
+#define SO3_S(k) r[k] = A[k][j]; G[k] = Bg[k][j];
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T tr = r[0] + r[4] + r[8];
+    T s = SO3_SQRT(K(1.0) + tr);
+    T inv_s = K(1.0) / s, den = K(1.0) / (K(2.0) + s), diag = K(1.0) + s;
+    T p01 = r[1] - r[3], p02 = r[2] - r[6], p12 = r[5] - r[7];
+    T gden = G[0] * (diag + r[0]) + G[1] * (r[1] + p01 * inv_s) + G[2] * (r[2] + p02 * inv_s)
+           + G[3] * (r[3] - p01 * inv_s) + G[4] * (diag + r[4]) + G[5] * (r[5] + p12 * inv_s)
+           + G[6] * (r[6] - p02 * inv_s) + G[7] * (r[7] - p12 * inv_s) + G[8] * (diag + r[8]);
+    T g[9];
+#define SO3_S(k) g[k] = G[k] * den;
+    SO3_EACH9(SO3_S)
+#undef SO3_S
+    T gdiag = g[0] + g[4] + g[8];
+    T ginv = (g[1] - g[3]) * p01 + (g[2] - g[6]) * p02 + (g[5] - g[7]) * p12;
+    T a = K(1.0) + inv_s;
+    T gs = -gden * den * den + gdiag - ginv * inv_s * inv_s;
+    T gtr = gs / (K(2.0) * s);
+    O[0][j] = g[0] + gtr;
+    O[4][j] = g[4] + gtr;
+    O[8][j] = g[8] + gtr;
+    O[1][j] = g[1] * a - g[3] * inv_s;
+    O[3][j] = g[3] * a - g[1] * inv_s;
+    O[2][j] = g[2] * a - g[6] * inv_s;
+    O[6][j] = g[6] * a - g[2] * inv_s;
+    O[5][j] = g[5] * a - g[7] * inv_s;
+    O[7][j] = g[7] * a - g[5] * inv_s;
+}
+
+SO3_RUNNER(FN(sqrt_fwd_run), FN(sqrt_fwd_k))
+SO3_RUNNER(FN(sqrt_fwd_pos_run), FN(sqrt_fwd_pos_k))
+SO3_RUNNER(FN(sqrt_bwd_run), FN(sqrt_bwd_k))
+SO3_RUNNER(FN(sqrt_bwd_pos_run), FN(sqrt_bwd_pos_k))
+
+#ifndef SO3_KERNELS_ONLY
 void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(sqrt_fwd_k), R, 9, R, 0, S, 9);
+    SO3_LOOP_IF(FN(sqrt_fwd_run), FN(sqrt_fwd_pos_run), SO3_POS_TRACE, R, 9, R, 0, S, 9);
 }
 
 void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(sqrt_bwd_k), R, 9, gS, 9, gR, 9);
+    SO3_LOOP_IF(FN(sqrt_bwd_run), FN(sqrt_bwd_pos_run), SO3_POS_TRACE, R, 9, gS, 9, gR, 9);
 }
+#else
+/* For the including file: sqrt (and its backward for the gradient Bg) of the m <= SO3_B
+ * matrices of a component-major block A, into O; the same runners, chosen the same way, as
+ * so3_sqrt_fwd / so3_sqrt_bwd (so the same values, bitwise). */
+static inline int FN(sqrt_block_pos)(FN(blk_t) *A_, int m)
+{
+    int fast_ = 1;
+    for (int j = 0; j < m; ++j)
+        fast_ &= SO3_POS_TRACE(A_, j);
+    return fast_;
+}
+
+static inline void FN(sqrt_fwd_block)(FN(blk_t) *A, FN(blk_t) *O, int m, T eps2)
+{
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_fwd_pos_run) : FN(sqrt_fwd_run))(A, A, O, m, eps2);
+}
+
+static inline void FN(sqrt_bwd_block)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int m, T eps2)
+{
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_bwd_pos_run) : FN(sqrt_bwd_run))(A, Bg, O, m, eps2);
+}
+#endif /* SO3_KERNELS_ONLY */
+
+#undef SO3_POS_TRACE
 
 #undef T
 #undef FN
