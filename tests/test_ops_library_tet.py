@@ -263,6 +263,29 @@ def test_vmap_matches_loop(on):
         torch.vmap(lambda ri: ops_tet._tet_dd_op(R[0], th[0], ri, *k.tables()[1:]))(k.rot_index[None])
 
 
+@pytest.mark.parametrize("on", SWITCH)
+def test_vmap_of_the_backward_ops_matches_loop(on):
+    """The backward ops sum ∂L/∂edge_vec over their leading batch: vmapped, every item keeps its own."""
+    mesh = io.box(2)
+    k = ops_tet.tet_kernel(mesh)
+    R, _ = _data(mesh, seed=21, batch=(3,))
+    gen = torch.Generator().manual_seed(22)
+    vec = torch.randn(mesh.edges.shape[0], 3, generator=gen, dtype=DT)
+    grad = torch.randn(3, mesh.n_tets, 3, generator=gen, dtype=DT)
+    tabs = k.tables()
+    H = so3.sqrt(R)
+    with _switch(on):
+        sq = lambda A, B, g: ops_tet._tet_dd_sqrt_backward_op(A, B, vec, g, *tabs)  # noqa: E731
+        ro = lambda A, g: ops_tet._tet_dd_rot_backward_op(A, vec, g, *tabs)  # noqa: E731
+        out_sq, out_ro = torch.vmap(sq)(R, H, grad), torch.vmap(ro)(R, grad)
+        for i in range(3):
+            for a, b in zip(out_sq, sq(R[i], H[i], grad[i])):
+                torch.testing.assert_close(a[i], b, atol=1e-12, rtol=0)
+            for a, b in zip(out_ro, ro(R[i], grad[i])):
+                torch.testing.assert_close(a[i], b, atol=1e-12, rtol=0)
+        assert out_sq[2].shape == (3, *vec.shape) and out_ro[1].shape == (3, *vec.shape)
+
+
 # ---------------------------------------------------------------- meta, compile, errors
 
 

@@ -29,13 +29,18 @@ def qualname(name: str) -> str:
     return f"{NAMESPACE}::{name}"
 
 
-def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1):
+def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1, summed: bool = False):
     """A vmap rule for an op whose arguments ``batched`` take native leading batch dimensions.
 
     The vmapped dimension of each of those arguments is moved to the front (an argument that is
     not vmapped is expanded to the batch size); the op then runs once on the whole batch and
     every output carries the batch at dimension 0. Any other argument (index tables, scalars)
     must not be vmapped: that raises ``ValueError`` naming the op and the argument.
+
+    ``summed=True``: some output of the op is summed over the leading batch dimensions (the
+    gradient of a mesh-level input such as the edge vectors); under vmap every item needs its
+    own, so the op runs once per vmapped item (a loop over the vmap batch, not over mesh
+    elements) and the outputs are stacked.
     """
     batched = tuple(batched)
 
@@ -51,7 +56,11 @@ def leading_vmap(op: Callable, name: str, batched: Sequence[int], n_out: int = 1
                 raise ValueError(
                     f"torchconn::{name}: vmap over argument {i} is not supported "
                     f"(only arguments {list(batched)} take leading batch dimensions)")
-        out = op(*args)
+        if summed:
+            items = [op(*[a[b] if i in batched else a for i, a in enumerate(args)]) for b in range(info.batch_size)]
+            out = torch.stack(items) if n_out == 1 else tuple(torch.stack(o) for o in zip(*items))
+        else:
+            out = op(*args)
         return out, (0 if n_out == 1 else (0,) * n_out)
 
     return rule

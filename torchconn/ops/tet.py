@@ -438,7 +438,7 @@ _tet_dd_sqrt_op.register_autograd(_backward_sqrt_fwd, setup_context=_setup_fwd)
 _tet_dd_sqrt_backward_op.register_autograd(_backward_sqrt_bwd, setup_context=_setup_bwd)
 _tet_dd_sqrt_op.register_vmap(leading_vmap(_tet_dd_sqrt_op, "tet_dd_sqrt", batched=(0, 1)))
 _tet_dd_sqrt_backward_op.register_vmap(
-    leading_vmap(_tet_dd_sqrt_backward_op, "tet_dd_sqrt_backward", batched=(0, 1, 3), n_out=3))
+    leading_vmap(_tet_dd_sqrt_backward_op, "tet_dd_sqrt_backward", batched=(0, 1, 3), n_out=3, summed=True))
 
 
 # ---- and with √R formed inside too: torchconn::tet_dd_rot (no √R tensor, no ∂L/∂√R tensor)
@@ -548,7 +548,7 @@ _tet_dd_rot_op.register_autograd(_backward_rot_fwd, setup_context=_setup_fwd)
 _tet_dd_rot_backward_op.register_autograd(_backward_rot_bwd, setup_context=_setup_bwd)
 _tet_dd_rot_op.register_vmap(leading_vmap(_tet_dd_rot_op, "tet_dd_rot", batched=(0,)))
 _tet_dd_rot_backward_op.register_vmap(
-    leading_vmap(_tet_dd_rot_backward_op, "tet_dd_rot_backward", batched=(0, 2), n_out=2))
+    leading_vmap(_tet_dd_rot_backward_op, "tet_dd_rot_backward", batched=(0, 2), n_out=2, summed=True))
 
 
 def tet_dd(edge_rot: torch.Tensor, edge_theta: torch.Tensor, kernel: TetKernel) -> torch.Tensor:
