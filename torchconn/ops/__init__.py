@@ -11,7 +11,7 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
   ``csrc/so3.c``; generic formulas in ``_so3_formulas``);
 * :mod:`.curvature`: ``face_curvature`` of sorted-triangle meshes (``csrc/curvature.c``);
 * :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
-* :mod:`.tet`: ``tet_dd`` / ``tet_dd_sqrt``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet
+* :mod:`.tet`: ``tet_dd`` / ``tet_dd_sqrt`` / ``tet_dd_rot``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet
   (``csrc/tet.c``; generic SoA kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
 * :mod:`.frame_loss`: ``frame_loss``, the frame-field loss sweep (``csrc/frame_loss.c``;
   generic terms in ``_frame_loss_torch``).
