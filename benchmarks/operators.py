@@ -21,7 +21,7 @@ Rows (loss = sum of squares, backward to the skew parameters of a ``ConnectionFi
   ``pair``: both on one connection (the design card's modules);
 * ``tet_op``: the op ``torchconn::tet_dd`` alone on given ``R (E,3,3)`` and ``θ̃ (E,2,3)``
   (both requiring grad): the tet kernel's own figure;
-* ``tet_b8`` / ``tet_loop8``: ``ops.tet.tet_dd_solder`` on a batch of 8 connections ``(8, E, 3, 3)``
+* ``tet_b8`` / ``tet_loop8``: ``ops.tet_solder.tet_dd_solder`` on a batch of 8 connections ``(8, E, 3, 3)``
   against a Python loop over the 8 (use a smaller ``--box``);
 * ``tet_hvp`` / ``tet_grad``: a Hessian-vector product of the averaged-d∇ loss
   (``torch.autograd.functional.hvp``) against its first-order gradient.
@@ -79,7 +79,7 @@ def _make(row: str, mesh, dtype: torch.dtype):
     from torchconn.dec.connection import Connection
     from torchconn.lie import so3
     from torchconn.nn import AveragedCovariantD, ConnectionField, Curvature
-    from torchconn.ops import tet
+    from torchconn.ops import tet, tet_solder
 
     gen = torch.Generator().manual_seed(0)
     field = ConnectionField.from_connection(Connection.random_on_mesh(mesh, generator=gen, scale=0.3))
@@ -111,16 +111,16 @@ def _make(row: str, mesh, dtype: torch.dtype):
         if row == "tet_b8":
             def fn():
                 w.grad = None
-                tet.tet_dd_solder(so3.exp(w), mesh).square().sum().backward()
+                tet_solder.tet_dd_solder(so3.exp(w), mesh).square().sum().backward()
         else:
             def fn():
                 w.grad = None
                 for i in range(8):
-                    tet.tet_dd_solder(so3.exp(w[i]), mesh).square().sum().backward()
+                    tet_solder.tet_dd_solder(so3.exp(w[i]), mesh).square().sum().backward()
     elif row in ("tet_hvp", "tet_grad"):
         w0 = 0.3 * torch.randn(E, 3, generator=gen, dtype=dtype)
         v = torch.randn(E, 3, generator=gen, dtype=dtype)
-        loss = lambda p: tet.tet_dd_solder(so3.exp(p), mesh).square().sum()  # noqa: E731
+        loss = lambda p: tet_solder.tet_dd_solder(so3.exp(p), mesh).square().sum()  # noqa: E731
         if row == "tet_hvp":
             def fn():
                 torch.autograd.functional.hvp(loss, w0, v)

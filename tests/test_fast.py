@@ -14,6 +14,7 @@ import torchconn.ops
 from torchconn.ops import curvature as ops_curvature
 from torchconn.ops import so3 as ops_so3
 from torchconn.ops import tet as ops_tet
+from torchconn.ops import tet_solder as ops_tet_solder
 from torchconn.ops import torsion as ops_torsion
 from torchconn.dec.connection import Connection
 from torchconn.dec.transport import orient
@@ -166,7 +167,7 @@ def test_tet_dd_matches_generic(dtype, with_frames):
     frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(7),
                                  dtype=dtype) if with_frames else None
     ref = _generic_dd(R, mesh, frames)
-    out = ops_tet.tet_dd_solder(R, mesh, frames=frames)
+    out = ops_tet_solder.tet_dd_solder(R, mesh, frames=frames)
     torch.testing.assert_close(out, ref, atol=20 * TOL[dtype], rtol=0)
     # the explicit printed formula on the dense tables agrees too
     wedge = dnabla.wedge_curvature_solder_tet(dnabla.tet_transports(R, mesh),
@@ -180,7 +181,7 @@ def test_tet_dd_with_half_rot_from_params():
     mesh = io.box(3)
     w = 0.4 * torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     R = so3.exp(w)
-    out = ops_tet.tet_dd_solder(R, mesh, half_rot=ops_so3.half_exp(w))
+    out = ops_tet_solder.tet_dd_solder(R, mesh, half_rot=ops_so3.half_exp(w))
     torch.testing.assert_close(out, _generic_dd(R, mesh), atol=1e-13, rtol=0)
 
 
@@ -192,7 +193,7 @@ def test_tet_dd_fused_backward_matches_autograd(with_frames):
                                  dtype=dtype) if with_frames else None
     w = so3.log(R).requires_grad_()
     Gout = torch.randn(mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(9), dtype=dtype)
-    (g_fast,) = torch.autograd.grad((ops_tet.tet_dd_solder(so3.exp(w), mesh, frames=frames) * Gout).sum(), w)
+    (g_fast,) = torch.autograd.grad((ops_tet_solder.tet_dd_solder(so3.exp(w), mesh, frames=frames) * Gout).sum(), w)
     (g_ref,) = torch.autograd.grad((_generic_dd(so3.exp(w), mesh, frames) * Gout).sum(), w)
     torch.testing.assert_close(g_fast, g_ref, atol=1e-12, rtol=0)
 

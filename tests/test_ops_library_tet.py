@@ -17,6 +17,7 @@ from torchconn import dnabla, io, so3
 from torchconn.mesh import TetMesh
 from torchconn.ops import compiled, native
 from torchconn.ops import tet as ops_tet
+from torchconn.ops import tet_solder as ops_tet_solder
 
 DT = torch.float64
 SWITCH = [pytest.param(True, id="compiled"), pytest.param(False, id="generic")]
@@ -77,9 +78,9 @@ def test_opcheck(on, dtype, utils):
             torch.library.opcheck(ops_tet._tet_dd_op, (*rg(*args), *k.tables()), test_utils=utils)
         torch.library.opcheck(ops_tet._tet_dd_backward_op,
                               (*rg(torch.stack((R, R)), torch.stack((th, th)), g), *k.tables()), test_utils=utils)
-        torch.library.opcheck(ops_tet._tet_dd_sqrt_op, (*rg(torch.stack((R, R.flip(0))), torch.stack((H, H)), vec),
+        torch.library.opcheck(ops_tet_solder._tet_dd_sqrt_op, (*rg(torch.stack((R, R.flip(0))), torch.stack((H, H)), vec),
                                                         *k.tables()), test_utils=utils)
-        torch.library.opcheck(ops_tet._tet_dd_sqrt_backward_op,
+        torch.library.opcheck(ops_tet_solder._tet_dd_sqrt_backward_op,
                               (*rg(torch.stack((R, R)), torch.stack((H, H)), vec, g), *k.tables()), test_utils=utils)
 
 
@@ -97,7 +98,7 @@ def test_values_match_per_tet_reference_and_generic_operators(on, dtype):
         out = ops_tet.tet_dd(R, th, k)
         torch.testing.assert_close(out, _per_tet_reference(R, th, k), atol=tol, rtol=0)
         # the mesh-level function against the dense generic operators (𝔡∇ Alt 𝔡∇ Alt θ̃)
-        dd = ops_tet.tet_dd_solder(R, mesh)
+        dd = ops_tet_solder.tet_dd_solder(R, mesh)
     ref = dnabla.averaged_dd_tet(dnabla.tet_transports(R, mesh), dnabla.tet_solder_sqrt(R, mesh))
     torch.testing.assert_close(dd, ref, atol=10 * tol, rtol=0)
 
@@ -140,7 +141,7 @@ def test_gradcheck_and_gradgradcheck(on):
     vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(6), dtype=DT)
     H = so3.sqrt(R)
     f = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
-    fs = lambda A, B, v: ops_tet.tet_dd_sqrt(A, B, v, k)  # noqa: E731
+    fs = lambda A, B, v: ops_tet_solder.tet_dd_sqrt(A, B, v, k)  # noqa: E731
     rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
     with _switch(on):
         assert gradcheck(f, rg(R, th))
@@ -163,7 +164,7 @@ def test_gradgradcheck_through_skew_parameters(on, with_frames):
     g = torch.Generator().manual_seed(6)
     w = 0.6 * torch.randn(2, mesh.edges.shape[0], 3, generator=g, dtype=DT)
     frames = so3.random_rotation(mesh.vertices.shape[0], generator=g, dtype=DT) if with_frames else None
-    f = lambda p: ops_tet.tet_dd_solder(so3.exp(p), mesh, frames=frames)  # noqa: E731
+    f = lambda p: ops_tet_solder.tet_dd_solder(so3.exp(p), mesh, frames=frames)  # noqa: E731
     with _switch(on):
         assert gradcheck(f, (w.clone().requires_grad_(),))
         assert gradgradcheck(f, (w.clone().requires_grad_(),))
@@ -175,7 +176,7 @@ def test_hvp_matches_central_differences(on):
     g = torch.Generator().manual_seed(7)
     w = 0.6 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=DT)
     v = torch.randn(w.shape, generator=g, dtype=DT)
-    loss = lambda p: ops_tet.tet_dd_solder(so3.exp(p), mesh).square().sum()  # noqa: E731
+    loss = lambda p: ops_tet_solder.tet_dd_solder(so3.exp(p), mesh).square().sum()  # noqa: E731
 
     def grad(p):
         p = p.clone().requires_grad_()
@@ -198,7 +199,7 @@ def test_switch_on_off_same_values_and_gradients():
     for on in (True, False):
         with compiled(on):
             p = w.clone().requires_grad_()
-            out = ops_tet.tet_dd_solder(so3.exp(p), mesh)
+            out = ops_tet_solder.tet_dd_solder(so3.exp(p), mesh)
             (gp,) = torch.autograd.grad(out.square().sum(), p)
             res.append((out.detach(), gp))
     for a, b in zip(*res):
@@ -228,9 +229,9 @@ def test_batched_matches_loop(on):
                 torch.testing.assert_close(gth[i, j], gi[1], atol=1e-13, rtol=0)
         # the mesh-level function broadcasts (B, E, 3, 3) against shared frames
         frames = so3.random_rotation(mesh.vertices.shape[0], generator=torch.Generator().manual_seed(11), dtype=DT)
-        batched = ops_tet.tet_dd_solder(R[0], mesh, frames=frames)
+        batched = ops_tet_solder.tet_dd_solder(R[0], mesh, frames=frames)
         for j in range(3):
-            torch.testing.assert_close(batched[j], ops_tet.tet_dd_solder(R[0, j], mesh, frames=frames),
+            torch.testing.assert_close(batched[j], ops_tet_solder.tet_dd_solder(R[0, j], mesh, frames=frames),
                                        atol=1e-13, rtol=0)
 
 
@@ -256,9 +257,9 @@ def test_vmap_matches_loop(on):
         # the sqrt op, vmapped over R and √R (v shared)
         vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(14), dtype=DT)
         H = so3.sqrt(R)
-        outs = torch.vmap(lambda A, B: ops_tet.tet_dd_sqrt(A, B, vec, k))(R, H)
+        outs = torch.vmap(lambda A, B: ops_tet_solder.tet_dd_sqrt(A, B, vec, k))(R, H)
         for i in range(3):
-            torch.testing.assert_close(outs[i], ops_tet.tet_dd_sqrt(R[i], H[i], vec, k), atol=1e-13, rtol=0)
+            torch.testing.assert_close(outs[i], ops_tet_solder.tet_dd_sqrt(R[i], H[i], vec, k), atol=1e-13, rtol=0)
     with pytest.raises(ValueError, match="tet_dd"):
         torch.vmap(lambda ri: ops_tet._tet_dd_op(R[0], th[0], ri, *k.tables()[1:]))(k.rot_index[None])
 
@@ -275,8 +276,8 @@ def test_vmap_of_the_backward_ops_matches_loop(on):
     tabs = k.tables()
     H = so3.sqrt(R)
     with _switch(on):
-        sq = lambda A, B, g: ops_tet._tet_dd_sqrt_backward_op(A, B, vec, g, *tabs)  # noqa: E731
-        ro = lambda A, g: ops_tet._tet_dd_rot_backward_op(A, vec, g, *tabs)  # noqa: E731
+        sq = lambda A, B, g: ops_tet_solder._tet_dd_sqrt_backward_op(A, B, vec, g, *tabs)  # noqa: E731
+        ro = lambda A, g: ops_tet_solder._tet_dd_rot_backward_op(A, vec, g, *tabs)  # noqa: E731
         out_sq, out_ro = torch.vmap(sq)(R, H, grad), torch.vmap(ro)(R, grad)
         for i in range(3):
             for a, b in zip(out_sq, sq(R[i], H[i], grad[i])):
@@ -375,8 +376,8 @@ def test_compiled_sqrt_backward_equals_generic_with_a_many_color_schedule(dtype)
     res = {}
     for on in (True, False):
         with compiled(on):
-            res[on] = (*ops_tet._tet_dd_sqrt_backward_op(R, H, vec, g, *k.tables()),
-                       ops_tet._tet_dd_sqrt_op(R, H, vec, *k.tables()))
+            res[on] = (*ops_tet_solder._tet_dd_sqrt_backward_op(R, H, vec, g, *k.tables()),
+                       ops_tet_solder._tet_dd_sqrt_op(R, H, vec, *k.tables()))
     tol = 2e-5 if dtype == torch.float32 else 1e-12
     for a, b in zip(res[True], res[False]):
         torch.testing.assert_close(a, b, atol=tol, rtol=0)
@@ -397,8 +398,8 @@ def test_tet_dd_rot_opcheck(on, dtype):
     rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
     with _switch(on):
         for Rb in (R, torch.stack((R, R.flip(0)))):
-            torch.library.opcheck(ops_tet._tet_dd_rot_op, (*rg(Rb, vec), *k.tables()), test_utils=_FAST_UTILS)
-        torch.library.opcheck(ops_tet._tet_dd_rot_backward_op, (*rg(torch.stack((R, R)), vec, g), *k.tables()),
+            torch.library.opcheck(ops_tet_solder._tet_dd_rot_op, (*rg(Rb, vec), *k.tables()), test_utils=_FAST_UTILS)
+        torch.library.opcheck(ops_tet_solder._tet_dd_rot_backward_op, (*rg(torch.stack((R, R)), vec, g), *k.tables()),
                               test_utils=_FAST_UTILS)
 
 
@@ -419,13 +420,13 @@ def test_tet_dd_rot_compiled_equals_generic_and_the_two_op_path(dtype, scale):
     res = {}
     for on in (True, False):
         with compiled(on):
-            res[on] = (ops_tet._tet_dd_rot_op(R, vec, *k.tables()), *ops_tet._tet_dd_rot_backward_op(R, vec, G, *k.tables()))
+            res[on] = (ops_tet_solder._tet_dd_rot_op(R, vec, *k.tables()), *ops_tet_solder._tet_dd_rot_backward_op(R, vec, G, *k.tables()))
     tol = 2e-5 if dtype == torch.float32 else 1e-12
     for a, b in zip(res[True], res[False]):
         torch.testing.assert_close(a, b, atol=tol, rtol=0)
     Rg = R.clone().requires_grad_()
     vg = vec.clone().requires_grad_()
-    out = ops_tet.tet_dd_sqrt(Rg, so3.sqrt(Rg), vg, k)
+    out = ops_tet_solder.tet_dd_sqrt(Rg, so3.sqrt(Rg), vg, k)
     g_rot, g_vec = torch.autograd.grad((out * G).sum(), (Rg, vg))
     for a, b in zip(res[True], (out, g_rot, g_vec)):
         torch.testing.assert_close(a, b, atol=tol, rtol=0)
@@ -437,7 +438,7 @@ def test_tet_dd_rot_gradcheck_and_gradgradcheck(on):
     k = ops_tet.tet_kernel(mesh)
     R, _ = _data(mesh, seed=5)
     vec = torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(6), dtype=DT)
-    fr = lambda A, v: ops_tet.tet_dd_rot(A, v, k)  # noqa: E731
+    fr = lambda A, v: ops_tet_solder.tet_dd_rot(A, v, k)  # noqa: E731
     rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
     with _switch(on):
         assert gradcheck(fr, rg(R, vec))

@@ -11,8 +11,10 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
   ``csrc/so3.c``; generic formulas in ``_so3_formulas``);
 * :mod:`.curvature`: ``face_curvature`` of sorted-triangle meshes (``csrc/curvature.c``);
 * :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
-* :mod:`.tet`: ``tet_dd`` / ``tet_dd_sqrt`` / ``tet_dd_rot``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet
-  (``csrc/tet.c``; generic SoA kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
+* :mod:`.tet`: ``tet_dd``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (``csrc/tet.c``; generic SoA
+  kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
+* :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot``, the same with ``θ̃`` (and ``√R``) formed
+  inside the kernel, and ``tet_dd_solder``, the mesh-level entry point;
 * :mod:`.frame_loss`: ``frame_loss``, the frame-field loss sweep (``csrc/frame_loss.c``;
   generic terms in ``_frame_loss_torch``).
 
@@ -26,7 +28,7 @@ module keep mesh objects out of the ops (index tables built once per mesh are op
 some return ``None`` where they do not apply, and their caller evaluates its generic formula.
 This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
 """
-from . import backend, curvature, frame_loss, native, so3, tet, torsion
+from . import backend, curvature, frame_loss, native, so3, tet, tet_solder, torsion
 from .backend import can_use_compiled, compiled, compiled_enabled, set_compiled
 
 __all__ = [
@@ -36,6 +38,7 @@ __all__ = [
     "curvature",
     "torsion",
     "tet",
+    "tet_solder",
     "frame_loss",
     "compiled_enabled",
     "set_compiled",

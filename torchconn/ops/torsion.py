@@ -58,7 +58,7 @@ def _torsion_bwd_generic(R, vec, face_index, grad, root=_f.sqrt, root_bwd=_f.sqr
     (``index_add`` onto the edges); then ``θ̃ = S e``: ``∂L/∂S = g_θ eᵀ``, ``∂L/∂e = Sᵀ g_θ``
     (per batch element: the caller sums over the batch) and ``∂L/∂R += sqrt_bwd(R, ∂L/∂S)``.
     """
-    E, F = R.shape[-3], face_index.shape[1]
+    E = R.shape[-3]
     S = root(R)
     theta = _matvec(S, vec)
     fi = face_index

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from ...ops import tet as _ops_tet
+from ...ops import tet_solder as _ops_tet_solder
 from .._batch import ask_op, check_frames, edge_batch, expand_to, on_device
 from ..transport import dense_simplex_transports, orient
 from .simplex import (
@@ -216,7 +216,7 @@ def averaged_dd_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None)
 
     Report Def. 5.2 twice (docs/conventions.md §1); arguments as in :func:`tet_solder_sqrt`. Divide by
     the tet volume to compare with the smooth ``Ω∧θ``. For ``n = 3`` this is evaluated by the
-    fused closed form :func:`torchconn.ops.tet.tet_dd_solder` (the Ch. 5 tet formula, equal to
+    fused closed form :func:`torchconn.ops.tet_solder.tet_dd_solder` (the Ch. 5 tet formula, equal to
     the generic ``averaged_dd_tet`` on the dense tables to round-off); other ranks use the
     generic operators. ``edge_rot (*batch, E, n, n)`` may carry leading batch dims (the op is
     asked with them; see :mod:`torchconn.dec._batch` for when the generic operators run instead).
@@ -233,7 +233,7 @@ def _dd_solder(edge_rot, mesh, frames, half_rot, fn, generic) -> torch.Tensor:
         raise ValueError(f"{fn}: half_rot shape {tuple(half_rot.shape)} must equal edge_rot shape {tuple(edge_rot.shape)}")
     if frames is not None:
         _check_frames(frames, mesh, edge_rot, fn)
-    fused = ask_op(lambda: _ops_tet.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames),
+    fused = ask_op(lambda: _ops_tet_solder.tet_dd_solder(edge_rot, mesh, half_rot=half_rot, frames=frames),
                    edge_rot, half_rot, frames)
     if fused is not None:
         return fused
@@ -251,6 +251,6 @@ def wedge_solder(edge_rot: torch.Tensor, mesh, frames=None, half_rot=None) -> to
     """Explicit Ch. 5 ``Ω∧θ`` (:func:`wedge_curvature_solder_tet`) on every tet: ``(*batch, T, n)`` at ``tets[t,0]``.
 
     For ``n = 3`` evaluated by the fused regrouping of the same formula
-    (:func:`torchconn.ops.tet.tet_dd_solder`); other ranks use the dense tables.
+    (:func:`torchconn.ops.tet_solder.tet_dd_solder`); other ranks use the dense tables.
     """
     return _dd_solder(edge_rot, mesh, frames, half_rot, "wedge_solder", wedge_curvature_solder_tet)
