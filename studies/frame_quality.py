@@ -31,7 +31,8 @@ HEXME = DATA / "hexme" / "meta"
 
 #: Variants of the connection method: the options that differ from ``design``'s defaults.
 VARIANTS: dict[str, dict] = {
-    # the default: connection optimization + guarded quality stage (soft and tangent L-BFGS paths)
+    # the default: connection optimization + guarded quality stage (soft and tangent L-BFGS paths
+    # from the SH and the MBO field, complex faces in the choice)
     "default": {},
     # the default before issue 13: connection optimization + the angle-only guarded polish
     "old_default": {"polish": {"steps": 600}, "quality": {"enabled": False}},
@@ -51,7 +52,12 @@ VARIANTS: dict[str, dict] = {
     "lambda_4": {"quality": {"dirichlet_weights": [8.0, 2.0, 1.0, 0.5]}},
     "iters_40": {"quality": {"iters": 40}},
     # the paths from the optimized field instead of the SH field
-    "paths_from_frames": {"quality": {"path_start": "frames"}},
+    "paths_from_frames": {"quality": {"path_starts": ["frames"]}},
+    # the paths from the SH field only (the default until 2026-11-25), without the complex-face term
+    "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0}},
+    "sh_start_only_c01": {"quality": {"path_starts": ["reference"]}},
+    "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
+    "no_complex_score": {"quality": {"score_complex": 0.0}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},
     # no feature-normal term in the paths

@@ -63,6 +63,11 @@ def test_quality_score():
     m = {**ref, "smoothness_mean_deg": 9.0, "dirichlet_energy_mean": 0.11}
     assert quality_score(m, ref) == pytest.approx(math.log(0.9) + math.log(1.1))
     assert quality_score(m, ref, 0.5) == pytest.approx(math.log(0.9) + 0.5 * math.log(1.1))
+    # the complex-face term: c log((n + 1) / (n_ref + 1)), 0 when c = 0
+    mc = {**m, "n_singular_faces_complex": ref["n_singular_faces_complex"] + 3}
+    assert quality_score(mc, ref, 1.0, 0.0) == pytest.approx(quality_score(m, ref))
+    n0 = ref["n_singular_faces_complex"]
+    assert quality_score(mc, ref, 1.0, 0.1) == pytest.approx(quality_score(m, ref) + 0.1 * math.log((n0 + 4) / (n0 + 1)))
 
 
 def test_choose_candidate_puts_the_curve_bound_first():
@@ -207,13 +212,14 @@ def test_quality_path_constraints(cyl):
 def test_quality_polish_never_worse_than_the_reference(cyl):
     m, F0 = cyl
     ref = frame_metrics(F0, m)
-    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15}
+    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15, "path_starts": ("reference",)}
     F, info = quality_polish(m, F0, F0, **kw)
     so3.check_rotation(F)
     after = frame_metrics(F, m)
     assert guard_violations(after, ref, slack=0.01) == []
     assert info["accepted"] in ("reference", "start", "soft", "tangent")
     assert len(info["checks"]) == 1 + 2 * 2  # the start + one checkpoint per (path, weight)
+    assert {c[5] for c in info["checks"][1:]} == {"reference"} and info["mbo_seconds"] == 0.0
     # the returned field is the best-scored admissible candidate within the curve bound
     ok = [c for c in info["checks"] if c[3]]
     assert info["score"] == pytest.approx(min([0.0] + [c[2] for c in ok]), abs=1e-12)
@@ -233,30 +239,53 @@ def test_quality_polish_paths_start_at_the_reference(cyl):
     m, F0 = cyl
     gen = torch.Generator().manual_seed(2)
     noisy = so3.exp(0.3 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
-    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
+    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10, "path_starts": ("reference",)}
     # the paths start at the reference whatever the candidate; the candidate is scored as "start"
     a, ia = quality_polish(m, noisy, F0, **kw)
     b, ib = quality_polish(m, F0, F0, **kw)
     assert [c[2] for c in ia["checks"][1:]] == pytest.approx([c[2] for c in ib["checks"][1:]], abs=1e-12)
     assert ia["checks"][0][0] == "start" and ia["checks"][0][3] is False  # the noisy candidate fails the guard
     assert torch.allclose(a, b)
-    _, ic = quality_polish(m, noisy, F0, path_start="frames", **kw)
+    _, ic = quality_polish(m, noisy, F0, **{**kw, "path_starts": ("frames",)})
     assert ic["checks"][1][2] != pytest.approx(ib["checks"][1][2], abs=1e-6)  # a path from the noisy field
+
+
+def test_quality_polish_paths_from_the_mbo_field(cyl):
+    m, F0 = cyl
+    from torchconn.frames.mbo import mbo_frames
+    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
+    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), **kw)
+    ref = frame_metrics(F0, m)
+    # the start, the MBO field (a candidate of its own), then one path per start
+    assert [(c[0], c[5]) for c in info["checks"]] == [("start", None), ("mbo", None), ("soft", "reference"),
+                                                      ("soft", "mbo")]
+    assert info["mbo_seconds"] > 0
+    assert guard_violations(frame_metrics(F, m), ref, slack=0.01) == []
+    # the MBO candidate is the MBO method's field (warm-started projections), scored against the reference
+    mm = frame_metrics(mbo_frames(m, warm_start=True), m)
+    assert info["checks"][1][2] == pytest.approx(quality_score(mm, ref, 1.0, 0.1), abs=1e-9)
+    # the path from the MBO field is a different field from the path from the reference
+    assert info["checks"][3][2] != pytest.approx(info["checks"][2][2], abs=1e-6)
+    # mbo_options reach mbo_frames
+    _, i2 = quality_polish(m, F0, F0, path_starts=("mbo",), paths=(), mbo_options={"n_taus": 0})
+    mm0 = frame_metrics(mbo_frames(m, n_taus=0), m)
+    assert i2["checks"][1][2] == pytest.approx(quality_score(mm0, ref, 1.0, 0.1), abs=1e-9)
 
 
 def test_quality_polish_falls_back_to_the_reference(cyl):
     m, F0 = cyl
     gen = torch.Generator().manual_seed(1)
     noisy = so3.exp(torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0  # a bad start
-    F, info = quality_polish(m, noisy, F0, paths=())
+    F, info = quality_polish(m, noisy, F0, paths=(), path_starts=("reference",))
     assert info["accepted"] == "reference" and info["dirichlet_weight"] is None and torch.equal(F, F0)
     assert info["checks"][0][3] is False and info["checks"][0][4]  # the start fails, naming metrics
-    F, info = quality_polish(m, F0, F0, paths=())
+    F, info = quality_polish(m, F0, F0, paths=(), path_starts=("reference",))
     assert torch.equal(F, F0)  # the start equals the reference: score 0, the reference is kept
     for kw, msg in [({"paths": ("hard",)}, "path kind"), ({"slack": -0.1}, "slack"),
                     ({"feature_curve_bound": -1.0}, "feature_curve_bound"),
                     ({"dirichlet_weights": (1.0, float("nan"))}, "dirichlet_weights"),
-                    ({"iters": 0}, "iters"), ({"path_start": "middle"}, "path_start")]:
+                    ({"iters": 0}, "iters"), ({"path_starts": ("middle",)}, "path_starts"),
+                    ({"path_starts": ("mbo", "mbo")}, "path_starts"), ({"score_complex": -1.0}, "score_complex")]:
         with pytest.raises(ValueError, match=msg):
             quality_polish(m, F0, F0, **kw)
     with pytest.raises(ValueError, match="reference_frames"):

@@ -147,3 +147,16 @@ def test_bad_arguments(ball):
         mbo.mbo_frames(ball, steps_per_tau=0)
     with pytest.raises(TypeError, match="TetMesh"):
         mbo.mbo_frames(object())
+
+
+def test_warm_start_reaches_the_same_field(ball, ball_run):
+    # warm-started projections (one start: the previous round's frames) against the 8 restarts
+    F, info = ball_run
+    Fw, iw = mbo.mbo_frames(ball, warm_start=True, return_info=True)
+    assert _is_rotation(Fw, 1e-10)
+    assert len(iw["energy"]) == len(info["energy"])
+    assert iw["energy"][0] == pytest.approx(info["energy"][0], rel=1e-12)  # the initialization keeps its restarts
+    assert min(iw["energy"]) == pytest.approx(min(info["energy"]), rel=1e-2)  # measured: 79.12 vs 79.22
+    mw, m = frame_metrics(Fw, ball), frame_metrics(F, ball)
+    assert mw["alignment_max_deg"] < 1e-6
+    assert mw["dirichlet_energy_mean"] == pytest.approx(m["dirichlet_energy_mean"], rel=1e-2)

@@ -114,6 +114,25 @@ def test_sh_to_frame_recovers_frames_up_to_O(gen, dtype, tol):
     assert torch.allclose(Fr.transpose(-1, -2) @ Fr, torch.eye(3, dtype=dtype).expand_as(Fr), atol=10 * tol)
 
 
+def test_sh_to_frame_warm_start(gen):
+    F = so3.random_rotation(500, generator=gen, dtype=torch.float64)
+    q = sh.frame_to_sh(F)
+    # a start near the answer (0.2 rad off) converges from it alone; the result is F up to O
+    near = so3.exp(0.2 * torch.nn.functional.normalize(torch.randn(500, 3, generator=gen, dtype=torch.float64),
+                                                        dim=-1)) @ F
+    Fw = sh.sh_to_frame(q, n_restarts=1, init=near)
+    _, g = octahedral.match(Fw, F)
+    assert float(so3.geodesic_distance(Fw @ g, F).max()) < 1e-6
+    # with the exact frames as init the answer is the init itself (no element of O is chosen)
+    assert torch.allclose(sh.sh_to_frame(q, n_restarts=1, init=F), F, atol=1e-8)
+    # init is one more start: with the fixed restarts the residual is never worse than without
+    res = lambda X: (sh.frame_to_sh(X) - q).norm(dim=-1)  # noqa: E731
+    far = so3.random_rotation(500, generator=gen, dtype=torch.float64)
+    assert bool((res(sh.sh_to_frame(q, n_restarts=8, init=far)) <= res(sh.sh_to_frame(q, n_restarts=1, init=far)) + 1e-12).all())
+    with pytest.raises(ValueError, match="init must have shape"):
+        sh.sh_to_frame(q, init=F[:3])
+
+
 def test_sh_to_frame_bad_input():
     with pytest.raises(ValueError, match=r"\(\.\.\., 9\)"):
         sh.sh_to_frame(torch.zeros(4, 8))

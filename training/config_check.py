@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn.frames.loss import ALIGN_KINDS
 from torchconn.frames.model import FORMULATIONS
+from torchconn.frames.polish import PATH_STARTS
 from torchconn.frames.refine import PATH_KINDS
 from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS
 
@@ -141,9 +142,10 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.feature_weight": _float(0),
     "quality.tangent_weight": _float(0),
     "quality.complex_weight": _float(0),
-    "quality.path_start": _choice("reference", "frames"),
+    "quality.path_starts": _list(_choice(*PATH_STARTS)),
     "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
+    "quality.score_complex": _float(0),
     "quality.feature_curve_bound": _float(0),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),

@@ -28,6 +28,7 @@ alignment. The reference itself is always a candidate, so the result is never wo
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 
 import torch
@@ -36,12 +37,13 @@ from ..lie import so3
 from . import octahedral
 from .constraints import BoundaryConstraint
 from .loss import axis_angle_loss
+from .mbo import mbo_frames
 from .metrics import frame_metrics
 from .param import constrained_frames
 from .refine import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
 from .solver import cosine_factor
 
-__all__ = ["polish_frames", "quality_polish", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
+__all__ = ["polish_frames", "quality_polish", "PATH_STARTS", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
            "GUARD_COUNTS", "GUARD_STRICT", "GUARD_BOUNDS"]
 
 
@@ -152,13 +154,18 @@ def guard_violations(metrics: dict, reference: dict, slack: float = 0.0, bounds:
     return bad
 
 
-def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0) -> float:
-    """``log(mean angle / reference's) + b log(Dirichlet energy / reference's)`` with ``b = dirichlet_weight``
+def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0, complex_weight: float = 0.0) -> float:
+    """``log(mean angle / reference's) + b log(Dirichlet energy / reference's) + c log((n_c + 1) / (n_c_ref + 1))``
+    with ``b = dirichlet_weight``, ``c = complex_weight`` and ``n_c`` the complex-type singular faces
     (lower is better; 0 at the reference)."""
     tiny = 1e-300
-    return (math.log(max(metrics["smoothness_mean_deg"], tiny) / max(reference["smoothness_mean_deg"], tiny))
-            + dirichlet_weight
-            * math.log(max(metrics["dirichlet_energy_mean"], tiny) / max(reference["dirichlet_energy_mean"], tiny)))
+    score = (math.log(max(metrics["smoothness_mean_deg"], tiny) / max(reference["smoothness_mean_deg"], tiny))
+             + dirichlet_weight
+             * math.log(max(metrics["dirichlet_energy_mean"], tiny) / max(reference["dirichlet_energy_mean"], tiny)))
+    if complex_weight:
+        score += complex_weight * math.log((metrics["n_singular_faces_complex"] + 1.0)
+                                           / (reference["n_singular_faces_complex"] + 1.0))
+    return score
 
 
 def choose_candidate(scored: Sequence[tuple[float, dict]], feature_curve_bound: float = 2.0) -> int:
@@ -175,64 +182,85 @@ def choose_candidate(scored: Sequence[tuple[float, dict]], feature_curve_bound: 
     return min(pool, key=lambda i: scored[i][0])
 
 
+#: Start fields of the quality paths (:func:`quality_polish`'s ``path_starts``).
+PATH_STARTS = ("reference", "frames", "mbo")
+
+
 def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *,
                    paths: Sequence[str] = PATH_KINDS, dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS,
-                   rounds: int = 2, iters: int = 20, feature_weight: float = 1.0, tangent_weight: float = 0.25,
-                   complex_weight: float = 0.0, path_start: str = "reference", slack: float = 0.01, score_dirichlet: float = 1.0, feature_curve_bound: float = 2.0,
-                   eps: float = 1e-3, angle_deg: float = 30.0, align_eps: float = 1e-3,
+                   rounds: int = 2, iters: int = 10, feature_weight: float = 1.0, tangent_weight: float = 0.25,
+                   complex_weight: float = 0.0, path_starts: Sequence[str] = ("reference", "mbo"),
+                   mbo_options: dict | None = None, slack: float = 0.01, score_dirichlet: float = 1.0,
+                   score_complex: float = 0.1, feature_curve_bound: float = 2.0, eps: float = 1e-3,
+                   angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded quality stage: the checkpoints of quality paths, the best one no worse than a reference.
 
-    The candidates are ``frames``, ``reference_frames`` and every path checkpoint.
+    The candidates are ``frames``, ``reference_frames``, the MBO field when ``"mbo"`` is among
+    ``path_starts``, and every path checkpoint.
 
-    Runs :func:`~torchconn.frames.refine.quality_path` from ``reference_frames`` (``path_start``)
-    for every kind in ``paths``
-    (``"soft"``, ``"tangent"``; L-BFGS on the frames along ``mean angle / a_ref + lambda Dirichlet /
-    D_ref`` with ``lambda`` over ``dirichlet_weights``, ``a_ref`` and ``D_ref`` the reference's)
-    and scores every checkpoint, ``frames`` itself and ``reference_frames`` with
-    :func:`frame_metrics`. A candidate is *admissible* when :func:`guard_violations` against the
-    reference is empty: mean and RMS angle, Dirichlet energy, singular and complex-type singular
-    faces at most ``1 + slack`` times the reference's (the issue's "no more than 1% worse" with
-    ``slack = 0.01``), no more singular curves ending inside or tets with one singular face, the
-    boundary alignment within ``max(reference, 0.5 deg)`` and the feature-curve alignment within
-    ``max(reference, feature_curve_bound)``. Among the admissible candidates those whose
-    feature-curve alignment is within ``feature_curve_bound`` come first (the bound is a target
-    of its own), and the one with the lowest :func:`quality_score` (``score_dirichlet``) is
-    returned. The reference is always admissible, so the result is never worse than it beyond
-    ``slack`` on any guarded metric (at worst it *is* the reference field).
+    Runs :func:`~torchconn.frames.refine.quality_path` for every kind in ``paths`` (``"soft"``,
+    ``"tangent"``; L-BFGS on the frames along ``mean angle / a_ref + lambda Dirichlet / D_ref`` with
+    ``lambda`` over ``dirichlet_weights``, ``a_ref`` and ``D_ref`` the reference's) from every
+    start of ``path_starts``: ``"reference"`` (``reference_frames``), ``"frames"`` (``frames``) and
+    ``"mbo"`` (:func:`~torchconn.frames.mbo.mbo_frames` of ``mesh``, the diffusion-projection field
+    of Palmer, Bommes & Solomon 2020, computed here with ``mbo_options``). It scores every
+    checkpoint and every start field with :func:`frame_metrics`. A candidate is *admissible* when
+    :func:`guard_violations` against the reference is empty: mean and RMS angle, Dirichlet energy,
+    singular and complex-type singular faces at most ``1 + slack`` times the reference's (the
+    issue's "no more than 1% worse" with ``slack = 0.01``), no more singular curves ending inside
+    or tets with one singular face, the boundary alignment within ``max(reference, 0.5 deg)`` and
+    the feature-curve alignment within ``max(reference, feature_curve_bound)``. Among the
+    admissible candidates those whose feature-curve alignment is within ``feature_curve_bound``
+    come first (the bound is a target of its own), and the one with the lowest
+    :func:`quality_score` (``score_dirichlet``, ``score_complex``) is returned. The reference is
+    always admissible, so the result is never worse than it beyond ``slack`` on any guarded
+    metric (at worst it *is* the reference field).
+
+    Measured on the 35 HexMe ``c`` meshes (docs/results/hexme.md): the paths from the MBO field
+    reach other singular structures than those from the SH field (fewer complex-type singular
+    faces on the coarse polyhedra, e.g. n14c 18 -> 4); with both starts and ``score_complex=0.1``
+    the set's complex faces go 126 -> 65 at the same mean angle, RMS and Dirichlet energy as the
+    SH start alone. Measured: the paths from the connection-optimized field (``"frames"``) inherit
+    its extra singular faces and fail the guard there (HexMe i02u).
 
     Args:
         mesh: ``TetMesh``.
         frames: ``(V, 3, 3)`` a candidate field (the connection method's optimized field;
             non-feature boundary frames aligned).
         reference_frames: ``(V, 3, 3)`` the field to beat (the SH baseline).
-        path_start: ``"reference"`` (the paths start at ``reference_frames``; default) or
-            ``"frames"``. Measured: from the SH field the paths keep its singular structure
-            (e.g. HexMe i02u: complex faces 6 -> 4 along the soft path), from the optimized field
-            they inherit its extra singular faces and fail the guard there.
-        paths: path kinds to run (``()``: only ``frames`` and the reference are scored).
+        paths: path kinds to run (``()``: only the start fields are scored).
+        path_starts: start fields of the paths, each of :data:`PATH_STARTS` at most once.
+        mbo_options: keyword arguments of :func:`~torchconn.frames.mbo.mbo_frames`
+            (``feature_angle_deg`` defaults to ``angle_deg``, ``warm_start`` to ``True``).
         dirichlet_weights, rounds, iters, feature_weight, tangent_weight, complex_weight, eps: of
             :func:`~torchconn.frames.refine.quality_path`.
         slack: relative tolerance of the guard on the continuous metrics and the face counts.
-        score_dirichlet: weight ``b`` of the Dirichlet ratio in :func:`quality_score`.
+        score_dirichlet, score_complex: weights ``b`` and ``c`` of :func:`quality_score`.
         feature_curve_bound: the feature-curve alignment bound in degrees (above).
         reference_metrics: :func:`frame_metrics` of ``reference_frames`` if already computed.
 
     Returns:
-        ``(frames, info)``; ``info`` has ``"accepted"`` (``"reference"``, ``"start"`` or the path
-        kind), ``"dirichlet_weight"`` of the accepted checkpoint (``None`` for the two fields),
-        ``"score"``, ``"checks"`` (a list of ``(kind, dirichlet_weight, score, admissible,
-        violations)``), ``"reference"`` (the reference's metrics) and ``"final"`` (the returned
-        field's metrics).
+        ``(frames, info)``; ``info`` has ``"accepted"`` (``"reference"``, ``"start"``, ``"mbo"``
+        or the path kind), ``"accepted_start"`` (the start of the accepted path, ``None`` for a
+        start field), ``"dirichlet_weight"`` of the accepted checkpoint (``None`` for a start
+        field), ``"score"``, ``"checks"`` (a list of ``(kind, dirichlet_weight, score,
+        admissible, violations, start)``), ``"mbo_seconds"``, ``"reference"`` (the reference's
+        metrics) and ``"final"`` (the returned field's metrics).
     """
-    if path_start not in ("reference", "frames"):
-        raise ValueError(f"quality_polish: path_start must be 'reference' or 'frames', got {path_start!r}")
+    starts = list(path_starts)
+    bad_starts = [s for s in starts if s not in PATH_STARTS]
+    if bad_starts or len(set(starts)) != len(starts):
+        raise ValueError(f"quality_polish: path_starts must name each of {list(PATH_STARTS)} at most once, "
+                         f"got {starts}")
     bad_paths = [k for k in paths if k not in PATH_KINDS]
     if bad_paths:
         raise ValueError(f"quality_polish: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
     if not (slack >= 0 and math.isfinite(slack)) or not feature_curve_bound >= 0:
         raise ValueError(f"quality_polish: need slack >= 0 and feature_curve_bound >= 0, got {slack}, "
                          f"{feature_curve_bound}")
+    if not (score_complex >= 0 and math.isfinite(score_complex)):
+        raise ValueError(f"quality_polish: need score_complex >= 0, got {score_complex}")
     dtype = mesh.vertices.dtype
     V = mesh.vertices.shape[0]
     for name, x in (("frames", frames), ("reference_frames", reference_frames)):
@@ -244,25 +272,34 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     ref = reference_metrics if reference_metrics is not None else frame_metrics(Fr, mesh, angle_deg)
     bounds = {**GUARD_BOUNDS, "feature_curve_alignment_mean_deg": float(feature_curve_bound)}
     checks = []
-    cands = [(0.0, ref, Fr, "reference", None)]  # admissible candidates: (score, metrics, F, kind, lambda)
+    cands = [(0.0, ref, Fr, "reference", None, None)]  # admissible: (score, metrics, F, kind, lambda, start)
 
-    def consider(F, kind, lam):
+    def consider(F, kind, lam, start):
         m = frame_metrics(F, mesh, angle_deg, curl=False)
         bad = guard_violations(m, ref, slack, bounds)
-        sc = quality_score(m, ref, score_dirichlet)
-        checks.append((kind, lam, sc, not bad, bad))
+        sc = quality_score(m, ref, score_dirichlet, score_complex)
+        checks.append((kind, lam, sc, not bad, bad, start))
         if not bad:
-            cands.append((sc, m, F, kind, lam))
+            cands.append((sc, m, F, kind, lam, start))
 
-    consider(F0, "start", None)
+    consider(F0, "start", None, None)
+    start_fields = {"reference": Fr, "frames": F0}
+    mbo_seconds = 0.0
+    if "mbo" in starts:
+        t0 = time.perf_counter()
+        mbo_kw = {"feature_angle_deg": angle_deg, "warm_start": True, **(mbo_options or {})}
+        start_fields["mbo"] = mbo_frames(mesh, **mbo_kw).to(dtype)
+        mbo_seconds = time.perf_counter() - t0
+        consider(start_fields["mbo"], "mbo", None, None)
     a_ref = math.radians(ref["smoothness_mean_deg"])
-    for kind in dict.fromkeys(paths):  # each kind once, in the given order
-        for cp in quality_path(mesh, Fr if path_start == "reference" else F0, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
-                               dirichlet_weights=dirichlet_weights, rounds=rounds, iters=iters,
-                               feature_weight=feature_weight, tangent_weight=tangent_weight,
-                               complex_weight=complex_weight, eps=eps,
-                               align_eps=align_eps, angle_deg=angle_deg):
-            consider(cp.frames, kind, cp.dirichlet_weight)
-    score, m, F, kind, lam = cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
-    return F, {"accepted": kind, "dirichlet_weight": lam, "score": score, "checks": checks, "reference": ref,
-               "final": m}
+    for start in starts:
+        for kind in dict.fromkeys(paths):  # each kind once, in the given order
+            for cp in quality_path(mesh, start_fields[start], kind=kind, a_ref=a_ref,
+                                   d_ref=ref["dirichlet_energy_mean"], dirichlet_weights=dirichlet_weights,
+                                   rounds=rounds, iters=iters, feature_weight=feature_weight,
+                                   tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
+                                   align_eps=align_eps, angle_deg=angle_deg):
+                consider(cp.frames, kind, cp.dirichlet_weight, start)
+    score, m, F, kind, lam, start = cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
+    return F, {"accepted": kind, "accepted_start": start, "dirichlet_weight": lam, "score": score,
+               "checks": checks, "mbo_seconds": mbo_seconds, "reference": ref, "final": m}

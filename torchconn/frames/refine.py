@@ -139,7 +139,7 @@ class _EdgeTerms(torch.autograd.Function):
 
 
 def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float, d_ref: float,
-                 dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
+                 dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 10,
                  feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
                  eps: float = 1e-3, align_eps: float = 1e-3, angle_deg: float = 30.0) -> list[Checkpoint]:
     """One quality path from ``start`` (module docstring): a :class:`Checkpoint` per Dirichlet weight.

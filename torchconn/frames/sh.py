@@ -182,14 +182,18 @@ def _restarts64(n: int) -> torch.Tensor:
     return torch.cat([torch.eye(3, dtype=torch.float64)[None], R])
 
 
-def sh_to_frame(q: torch.Tensor, n_restarts: int = 8, n_iters: int = 12) -> torch.Tensor:
+def sh_to_frame(q: torch.Tensor, n_restarts: int = 8, n_iters: int = 12,
+                init: torch.Tensor | None = None) -> torch.Tensor:
     """Nearest frame to SH vectors: ``q (..., 9) -> F (..., 3, 3)`` minimizing ``||q/|q| - D(F) q_0||``.
 
     Batched Gauss–Newton on SO(3) with left updates ``F <- exp(hat(w)) F``: with
     ``p = D(F) q_0`` and ``J = [L_x p, L_y p, L_z p] (9, 3)``, ``w = (J^T J)^{-1} J^T (q - p)``
     (steps clamped to 0.5 rad). ``n_restarts`` starts (identity plus fixed, seeded rotations)
-    run together; the best final residual wins. The result is defined up to the octahedral
-    group (any ``F g`` is equally good). ``q = 0`` has no nearest frame: its result is arbitrary.
+    run together; the best final residual wins. With ``init (..., 3, 3)`` (rotations, e.g. the
+    previous projection of a nearby field) the starts are ``init`` followed by the first
+    ``n_restarts - 1`` fixed ones (``n_restarts = 1``: a warm start only). The result is defined
+    up to the octahedral group (any ``F g`` is equally good). ``q = 0`` has no nearest frame: its
+    result is arbitrary.
     """
     if not torch.is_tensor(q) or q.shape[-1:] != (9,):
         shape = tuple(q.shape) if torch.is_tensor(q) else type(q).__name__
@@ -204,7 +208,14 @@ def sh_to_frame(q: torch.Tensor, n_restarts: int = 8, n_iters: int = 12) -> torc
     B = qn.shape[0]
     L = sh_generators(q.dtype, q.device)
     R0 = _restarts64(n_restarts).to(dtype=q.dtype, device=q.device)
-    F = R0[None].expand(B, n_restarts, 3, 3).reshape(-1, 3, 3)
+    F = R0[None].expand(B, n_restarts, 3, 3)
+    if init is not None:
+        if not torch.is_tensor(init) or init.shape != (*batch, 3, 3):
+            shape = tuple(init.shape) if torch.is_tensor(init) else type(init).__name__
+            raise ValueError(f"sh_to_frame: init must have shape {(*batch, 3, 3)} (that of q with (3, 3) for the "
+                             f"last dim), got {shape}")
+        F = torch.cat((init.reshape(B, 1, 3, 3).to(F), F[:, : n_restarts - 1]), 1)
+    F = F.reshape(-1, 3, 3)
     target = qn[:, None, :].expand(B, n_restarts, 9).reshape(-1, 9)
     max_step = 0.5
     for _ in range(n_iters):
