@@ -158,6 +158,19 @@ def test_edge_terms_gradients_and_reference():
         assert torch.autograd.gradgradcheck(fused, (w,))
 
 
+def test_signed_permutation_tables_of_the_group():
+    # quality_path gathers the gather/sign pairs of the matchings from the 24 elements' tables
+    from torchconn.frames.refine import _signed_permutation
+    G = octahedral.group(torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    idx = torch.randint(0, 24, (50,), generator=gen)
+    X = torch.randn(50, 3, 3, generator=gen, dtype=torch.float64)
+    gi, gs = _signed_permutation(G)
+    a, b = _signed_permutation(G[idx])
+    assert torch.equal(gi[idx], a) and torch.equal(gs[idx], b)
+    assert torch.equal(X.gather(-1, gi[idx]) * gs[idx], X @ G[idx])
+
+
 def test_snap_axes_puts_the_closest_axis_on_the_direction():
     from torchconn.frames.metrics import axis_alignment_angle
     from torchconn.frames.refine import snap_axes
@@ -254,7 +267,7 @@ def test_quality_polish_paths_from_the_mbo_field(cyl):
     m, F0 = cyl
     from torchconn.frames.mbo import mbo_frames
     kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
-    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), **kw)
+    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1, **kw)
     ref = frame_metrics(F0, m)
     # the start, the MBO field (a candidate of its own), then one path per start
     assert [(c[0], c[5]) for c in info["checks"]] == [("start", None), ("mbo", None), ("soft", "reference"),
@@ -267,7 +280,7 @@ def test_quality_polish_paths_from_the_mbo_field(cyl):
     # the path from the MBO field is a different field from the path from the reference
     assert info["checks"][3][2] != pytest.approx(info["checks"][2][2], abs=1e-6)
     # mbo_options reach mbo_frames
-    _, i2 = quality_polish(m, F0, F0, path_starts=("mbo",), paths=(), mbo_options={"n_taus": 0})
+    _, i2 = quality_polish(m, F0, F0, path_starts=("mbo",), paths=(), mbo_options={"n_taus": 0}, score_complex=0.1)
     mm0 = frame_metrics(mbo_frames(m, n_taus=0), m)
     assert i2["checks"][1][2] == pytest.approx(quality_score(mm0, ref, 1.0, 0.1), abs=1e-9)
 
