@@ -279,6 +279,23 @@ def test_quality_polish_paths_from_the_mbo_field(cyl):
     assert info["checks"][1][2] == pytest.approx(quality_score(mm, ref, 1.0, 0.1), abs=1e-9)
     # the path from the MBO field is a different field from the path from the reference
     assert info["checks"][3][2] != pytest.approx(info["checks"][2][2], abs=1e-6)
+    # conditional starts: the MBO paths run only where the MBO field has fewer complex faces
+    _, ic = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1,
+                           conditional_starts=True, **kw)
+    fewer = mm["n_singular_faces_complex"] < ref["n_singular_faces_complex"]
+    assert ic["starts_run"] == (["reference", "mbo"] if fewer else ["reference"])
+    assert [c[5] for c in ic["checks"][2:]] == ic["starts_run"]
+    assert info["starts_run"] == ["reference", "mbo"]
+    # both branches: against a noisy reference (many complex faces) the MBO field has fewer
+    gen = torch.Generator().manual_seed(5)
+    noisy = so3.exp(0.8 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
+    assert frame_metrics(noisy, m)["n_singular_faces_complex"] > mm["n_singular_faces_complex"]
+    _, inoisy = quality_polish(m, F0, noisy, path_starts=("reference", "mbo"), score_complex=0.1,
+                               conditional_starts=True, paths=())
+    assert inoisy["starts_run"] == [] and inoisy["accepted"] in ("start", "mbo")
+    _, inoisy = quality_polish(m, F0, noisy, path_starts=("reference", "mbo"), score_complex=0.1,
+                               conditional_starts=True, **{**kw, "dirichlet_weights": (8.0,), "iters": 2})
+    assert inoisy["starts_run"] == ["reference", "mbo"]
     # mbo_options reach mbo_frames
     _, i2 = quality_polish(m, F0, F0, path_starts=("mbo",), paths=(), mbo_options={"n_taus": 0}, score_complex=0.1)
     mm0 = frame_metrics(mbo_frames(m, n_taus=0), m)

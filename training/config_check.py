@@ -143,6 +143,7 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.tangent_weight": _float(0),
     "quality.complex_weight": _float(0),
     "quality.path_starts": _list(_choice(*PATH_STARTS)),
+    "quality.conditional_starts": _bool(),
     "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
     "quality.score_complex": _float(0),

@@ -190,7 +190,8 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                    paths: Sequence[str] = PATH_KINDS, dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS,
                    rounds: int = 2, iters: int = 20, feature_weight: float = 1.0, tangent_weight: float = 0.25,
                    complex_weight: float = 0.0, path_starts: Sequence[str] = ("reference",),
-                   mbo_options: dict | None = None, slack: float = 0.01, score_dirichlet: float = 1.0,
+                   mbo_options: dict | None = None, conditional_starts: bool = False,
+                   slack: float = 0.01, score_dirichlet: float = 1.0,
                    score_complex: float = 0.0, feature_curve_bound: float = 2.0, eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
@@ -236,6 +237,10 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         path_starts: start fields of the paths, each of :data:`PATH_STARTS` at most once.
         mbo_options: keyword arguments of :func:`~torchconn.frames.mbo.mbo_frames`
             (``feature_angle_deg`` defaults to ``angle_deg``, ``warm_start`` to ``True``).
+        conditional_starts: the paths from a start other than ``"reference"`` run only when that
+            start field has fewer complex-type singular faces than the reference (the reason to
+            start elsewhere: the paths keep the singular structure they start from); the start
+            field is a candidate either way.
         dirichlet_weights, rounds, iters, feature_weight, tangent_weight, complex_weight, eps: of
             :func:`~torchconn.frames.refine.quality_path`.
         slack: relative tolerance of the guard on the continuous metrics and the face counts.
@@ -248,8 +253,9 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         or the path kind), ``"accepted_start"`` (the start of the accepted path, ``None`` for a
         start field), ``"dirichlet_weight"`` of the accepted checkpoint (``None`` for a start
         field), ``"score"``, ``"checks"`` (a list of ``(kind, dirichlet_weight, score,
-        admissible, violations, start)``), ``"mbo_seconds"``, ``"reference"`` (the reference's
-        metrics) and ``"final"`` (the returned field's metrics).
+        admissible, violations, start, complex-type singular faces)``), ``"starts_run"`` (the
+        starts whose paths ran), ``"mbo_seconds"``, ``"reference"`` (the reference's metrics) and
+        ``"final"`` (the returned field's metrics).
     """
     starts = list(path_starts)
     bad_starts = [s for s in starts if s not in PATH_STARTS]
@@ -281,12 +287,13 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         m = frame_metrics(F, mesh, angle_deg, curl=False)
         bad = guard_violations(m, ref, slack, bounds)
         sc = quality_score(m, ref, score_dirichlet, score_complex)
-        checks.append((kind, lam, sc, not bad, bad, start))
+        checks.append((kind, lam, sc, not bad, bad, start, m["n_singular_faces_complex"]))
         if not bad:
             cands.append((sc, m, F, kind, lam, start))
 
     consider(F0, "start", None, None)
     start_fields = {"reference": Fr, "frames": F0}
+    complex_of = {"reference": ref["n_singular_faces_complex"]}
     mbo_seconds = 0.0
     if "mbo" in starts:
         t0 = time.perf_counter()
@@ -294,6 +301,11 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         start_fields["mbo"] = mbo_frames(mesh, **mbo_kw).to(dtype)
         mbo_seconds = time.perf_counter() - t0
         consider(start_fields["mbo"], "mbo", None, None)
+        complex_of["mbo"] = checks[-1][6]
+    if "frames" in starts and conditional_starts:
+        complex_of["frames"] = checks[0][6]
+    if conditional_starts:
+        starts = [s for s in starts if s == "reference" or complex_of[s] < complex_of["reference"]]
     a_ref = math.radians(ref["smoothness_mean_deg"])
     for start in starts:
         for kind in dict.fromkeys(paths):  # each kind once, in the given order
@@ -305,4 +317,5 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                 consider(cp.frames, kind, cp.dirichlet_weight, start)
     score, m, F, kind, lam, start = cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
     return F, {"accepted": kind, "accepted_start": start, "dirichlet_weight": lam, "score": score,
-               "checks": checks, "mbo_seconds": mbo_seconds, "reference": ref, "final": m}
+               "checks": checks, "starts_run": starts if paths else [], "mbo_seconds": mbo_seconds,
+               "reference": ref, "final": m}
