@@ -54,8 +54,9 @@ VARIANTS: dict[str, dict] = {
     "paths_from_frames": {"quality": {"path_starts": ["frames"]}},
     # paths from the SH and the MBO field, complex-type faces in the choice (fewer complex faces,
     # ~1.3x the time at 1M tets)
-    "mbo_starts": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1, "iters": 10}},
-    "mbo_starts_iters_20": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1}},
+    "mbo_starts": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1}},
+    "mbo_starts_always": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1,
+                                      "conditional_starts": False, "iters": 10}},
     "mbo_start_only": {"quality": {"path_starts": ["mbo"], "score_complex": 0.1}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},

@@ -221,12 +221,14 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     Measured on the 35 HexMe ``c`` meshes (docs/results/hexme.md, the quality stage alone from the
     SH field, one thread): the paths from the MBO field reach other singular structures than
     those from the SH field (fewer complex-type singular faces on the coarse polyhedra, e.g. n14c
-    18 -> 4); with ``path_starts=("reference", "mbo")``, ``score_complex=0.1`` and ``iters=10``
-    the set's complex faces go 126 -> 65 (103 with the SH start alone) at the same mean angle
-    (0.937 against 0.942), RMS angle and Dirichlet energy, but the 1M-tet HexMe mesh then takes
-    691 s end to end instead of 515 s, over the issue's 10 minutes, so the default keeps the SH
-    start alone. The paths from the connection-optimized field (``"frames"``) inherit its extra
-    singular faces and fail the guard there (HexMe i02u).
+    18 -> 4). With ``path_starts=("reference", "mbo")`` and ``score_complex=0.1`` the set's
+    complex faces go 126 -> 73 with ``conditional_starts`` (MBO paths on 6 of the 35 models) and
+    126 -> 65 without it (103 with the SH start alone), at the same mean angle, RMS angle and
+    Dirichlet energy; the 1M-tet HexMe mesh took 605 s end to end with it and 691 s without it
+    (10 iterations) instead of 515 s, over the issue's 10 minutes, so ``design``'s default keeps
+    the SH start alone. The paths from the
+    connection-optimized field (``"frames"``) inherit its extra singular faces and fail the guard
+    there (HexMe i02u).
 
     Args:
         mesh: ``TetMesh``.
