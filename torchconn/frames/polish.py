@@ -292,20 +292,17 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
         checks.append((kind, lam, sc, not bad, bad, start, m["n_singular_faces_complex"]))
         if not bad:
             cands.append((sc, m, F, kind, lam, start))
+        return m["n_singular_faces_complex"]
 
-    consider(F0, "start", None, None)
     start_fields = {"reference": Fr, "frames": F0}
-    complex_of = {"reference": ref["n_singular_faces_complex"]}
+    complex_of = {"reference": ref["n_singular_faces_complex"], "frames": consider(F0, "start", None, None)}
     mbo_seconds = 0.0
     if "mbo" in starts:
         t0 = time.perf_counter()
         mbo_kw = {"feature_angle_deg": angle_deg, "warm_start": True, **(mbo_options or {})}
         start_fields["mbo"] = mbo_frames(mesh, **mbo_kw).to(dtype)
         mbo_seconds = time.perf_counter() - t0
-        consider(start_fields["mbo"], "mbo", None, None)
-        complex_of["mbo"] = checks[-1][6]
-    if "frames" in starts and conditional_starts:
-        complex_of["frames"] = checks[0][6]
+        complex_of["mbo"] = consider(start_fields["mbo"], "mbo", None, None)
     if conditional_starts:
         starts = [s for s in starts if s == "reference" or complex_of[s] < complex_of["reference"]]
     a_ref = math.radians(ref["smoothness_mean_deg"])
