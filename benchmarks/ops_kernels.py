@@ -8,6 +8,8 @@ Prints a markdown table. Rows (forward + backward of ``Σ out²``, float32 by de
   tets, 2.0M faces, 1.19M edges), compiled ``csrc/curvature.c`` against the generic torch
   kernel (``torchconn.ops.compiled(False)``);
 * ``face_torsion`` √R (``torchconn::face_torsion_sqrt``) on the same mesh;
+* ``edge_terms``: ``torchconn::matched_edge_terms`` (the quality paths' angle + Dirichlet
+  objective, ``csrc/edge_terms.c``) of a smooth vertex field on the same mesh's edges;
 * ``so3.exp`` / ``log`` / ``sqrt`` on 10⁶ elements, compiled and generic, and
   ``torch.linalg.matrix_exp(hat(ω))`` (the ratio the issue asks to keep ≥ 5×);
 * batched (B = 8) against a loop over the 8 (face curvature on ``io.box(n // 3)``);
@@ -41,7 +43,7 @@ import time
 
 import torch
 
-ROWS = ["curv_cut_c", "curv_holonomy", "torsion_sqrt", "so3_exp", "so3_log", "so3_sqrt", "matrix_exp",
+ROWS = ["curv_cut_c", "curv_holonomy", "torsion_sqrt", "edge_terms", "so3_exp", "so3_log", "so3_sqrt", "matrix_exp",
         "curv_batched8", "curv_loop8", "curv_first_order", "curv_hvp"]
 
 
@@ -99,6 +101,21 @@ def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torc
         def run():
             fn(x).square().sum().backward()
             x.grad = None
+    elif name == "edge_terms":
+        from torchconn.frames import octahedral
+        from torchconn.ops import edge_terms
+
+        mesh = _Mesh(torch.load(mesh_path))
+        V = mesh.vertices.shape[0]
+        F0 = so3.exp(torch.randn(3, generator=g, dtype=torch.float64))
+        F = (so3.exp(0.3 * torch.randn(V, 3, generator=g, dtype=torch.float64)) @ F0).to(dtype)
+        idx, _ = octahedral.match_edges(F, mesh.edges)
+        G = octahedral.group(dtype)
+        F = F.requires_grad_()
+
+        def run():
+            edge_terms.matched_edge_terms(F, mesh.edges, idx, G, s_a=1e-6, s_d=1e-6).backward()
+            F.grad = None
     elif name in ("curv_cut_c", "curv_holonomy", "torsion_sqrt"):
         mesh = _Mesh(torch.load(mesh_path))
         E = mesh.edges.shape[0]
@@ -140,7 +157,7 @@ def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torc
     with torchconn.ops.compiled(compiled):
         if memory:  # one run, peak RSS around it (every block >= 64 KB mmapped: see _run_row)
             if compiled:
-                native.library("curvature"), native.library("so3")  # built/loaded outside the run
+                native.library("curvature"), native.library("so3"), native.library("edge_terms")  # outside the run
             rss0 = _status_mb("VmRSS")
             reset = _reset_peak()
             run()
@@ -195,7 +212,7 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path, small_path = os.path.join(tmp, "mesh.pt"), os.path.join(tmp, "small.pt")
         big = small = None
-        if any(r.startswith(("curv_cut", "curv_hol", "torsion")) for r in rows):
+        if any(r.startswith(("curv_cut", "curv_hol", "torsion", "edge_terms")) for r in rows):
             t = time.perf_counter()
             big = _save_mesh(args.n, mesh_path)
             print(f"io.box({args.n}): {big['tets']} tets, {big['faces']} faces, {big['edges']} edges "

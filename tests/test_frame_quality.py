@@ -119,58 +119,6 @@ def test_loss_dirichlet_term(cyl):
     assert "dirichlet" not in FrameFieldLoss(m, {"align": 1.0})(R, F0)
 
 
-def test_edge_terms_gradients_and_reference():
-    """The fused edge term equals the autograd formula; gradcheck and gradgradcheck in float64."""
-    from torchconn.frames.refine import _EdgeTerms, _signed_permutation
-
-    gen = torch.Generator().manual_seed(0)
-    V = 7
-    e = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4], [5, 6], [2, 6]])
-    F0 = so3.exp(torch.randn(V, 3, generator=gen, dtype=torch.float64))
-    w = (0.4 * torch.randn(V, 3, generator=gen, dtype=torch.float64)).requires_grad_()
-    _, g = octahedral.match_edges(so3.exp(w.detach()) @ F0, e)
-    eps, s_a, s_d = 1e-3, 0.7, 1.3
-    gp, gpt = _signed_permutation(g), _signed_permutation(g.transpose(-1, -2))
-    X = torch.randn(e.shape[0], 3, 3, generator=gen, dtype=torch.float64)
-    assert torch.equal(X.gather(-1, gp[0]) * gp[1], X @ g)  # exact: a signed permutation
-    assert torch.equal(X.gather(-1, gpt[0]) * gpt[1], X @ g.transpose(-1, -2))
-
-    for weight in (None, 1.0 + torch.rand(e.shape[0], generator=gen, dtype=torch.float64)):
-
-        def fused(w):
-            return _EdgeTerms.apply(so3.exp(w) @ F0, e[:, 0], e[:, 1], *gp, *gpt, s_a, s_d, eps, weight)
-
-        def reference(w):  # the plain autograd graph of the same sum, edge by edge
-            F = so3.exp(w) @ F0
-            terms = []
-            for k, (i, j) in enumerate(e.tolist()):
-                d2 = ((F[i] @ g[k] - F[j]) ** 2).sum()
-                t = s_a * 2 * torch.asin(torch.sqrt(d2 + eps * eps) / (2 * math.sqrt(2))) + s_d * d2
-                terms.append(t if weight is None else weight[k] * t)
-            return torch.stack(terms).sum()
-
-        with torch.no_grad():
-            assert float(fused(w)) == pytest.approx(float(reference(w)), rel=1e-12)
-        ga, = torch.autograd.grad(fused(w), w)
-        gb, = torch.autograd.grad(reference(w), w)
-        assert torch.allclose(ga, gb, rtol=1e-10, atol=1e-12)
-        assert torch.autograd.gradcheck(fused, (w,))
-        assert torch.autograd.gradgradcheck(fused, (w,))
-
-
-def test_signed_permutation_tables_of_the_group():
-    # quality_path gathers the gather/sign pairs of the matchings from the 24 elements' tables
-    from torchconn.frames.refine import _signed_permutation
-    G = octahedral.group(torch.float64)
-    gen = torch.Generator().manual_seed(3)
-    idx = torch.randint(0, 24, (50,), generator=gen)
-    X = torch.randn(50, 3, 3, generator=gen, dtype=torch.float64)
-    gi, gs = _signed_permutation(G)
-    a, b = _signed_permutation(G[idx])
-    assert torch.equal(gi[idx], a) and torch.equal(gs[idx], b)
-    assert torch.equal(X.gather(-1, gi[idx]) * gs[idx], X @ G[idx])
-
-
 def test_snap_axes_puts_the_closest_axis_on_the_direction():
     from torchconn.frames.metrics import axis_alignment_angle
     from torchconn.frames.refine import snap_axes

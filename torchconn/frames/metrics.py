@@ -138,7 +138,7 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0, *, curl: 
 
     The singular-graph chaining loops over the singular faces in Python (one-time work per call).
     """
-    _require(mesh, "vertices", "edges", "faces", "tet_faces", "boundary_faces",
+    _require(mesh, "vertices", "edges", "faces", "face_edges", "tet_faces", "boundary_faces",
              "boundary_vertices", "boundary_vertex_normals")
     V = mesh.vertices.shape[0]
     if not torch.is_tensor(frames) or frames.shape != (V, 3, 3):
@@ -160,7 +160,10 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0, *, curl: 
     # alignment at feature vertices against each incident boundary face normal
     fal = axis_alignment_angle(frames[bc.pair_vertices], bc.pair_normals.to(frames.dtype)) * deg
 
-    mask, _ = octahedral.singular_faces(frames, mesh)
+    # the faces' matched holonomy from the edge matchings above (the same exact signed
+    # permutations as octahedral.singular_faces, without matching every face edge again)
+    H = face_holonomy_from_matchings(g, mesh)[2]
+    mask = ((H - torch.eye(3, dtype=H.dtype, device=H.device)).abs() > 0.5).flatten(-2).any(-1)
     one = octahedral.tets_with_one_singular_face(mask, mesh)
     sg = singular_graph(frames, mesh, g).counts()
     if curl:

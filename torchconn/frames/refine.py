@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import torch
 
 from ..lie import so3
+from ..ops.edge_terms import matched_edge_terms
 from . import octahedral
 from .constraints import BoundaryConstraint
 from .loss import axis_angle_loss
@@ -85,57 +86,6 @@ def snap_axes(frames: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     # I + K + K^2 / (1 + cos): a . t >= 1/sqrt(3) here, so the denominator is >= 1.5
     R = torch.eye(3, dtype=frames.dtype, device=frames.device) + K + (K @ K) / (1.0 + cos)[:, None, None]
     return so3.project_to_rotation(R @ frames)
-
-
-def _signed_permutation(g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(index (E, 3, 3), sign (E, 1, 3))`` of signed permutations ``g (E, 3, 3)`` (elements of O):
-    ``X @ g == X.gather(-1, index) * sign`` for any ``X (E, 3, 3)``, a gather instead of a matmul."""
-    k = g.abs().argmax(-2)  # (E, 3): the row of the nonzero entry of each column
-    sign = torch.gather(g, -2, k[:, None, :])  # (E, 1, 3)
-    return k[:, None, :].expand(-1, 3, -1).contiguous(), sign
-
-
-class _EdgeTerms(torch.autograd.Function):
-    """``sum_e w_e (s_a a_e + s_d d_e^2)`` of the frames ``F (V, 3, 3)`` with fixed matchings ``g``
-    (``w (E,)``, ``None``: all 1).
-
-    ``g`` is given as the :func:`_signed_permutation` pairs of ``g`` and of ``g^T``.
-    ``d_e^2 = ||F_i g - F_j||^2 = 6 - 2 <F_i g, F_j>`` (rotations), ``a_e = 2 asin(sqrt(d_e^2 + eps^2)
-    / (2 sqrt 2))``. One fused pass instead of an autograd graph over the ``E`` edges: the gradient
-    is ``k_e (-2 F_j g^T)`` at ``i`` and ``k_e (-2 F_i g)`` at ``j`` with ``k_e = d(term)/d(d_e^2)``,
-    scattered with ``index_add``. Under ``create_graph`` the backward recomputes its parts from
-    ``F`` with differentiable torch operations, so second derivatives are exact.
-    """
-
-    @staticmethod
-    def _parts(F, e0, e1, gi, gs, eps):
-        B = F.index_select(0, e1)
-        Ag = F.index_select(0, e0).gather(-1, gi) * gs
-        d2 = (6.0 - 2.0 * (Ag * B).sum((-2, -1))).clamp_min(0.0)
-        r = torch.sqrt(d2 + eps * eps)
-        h = (r / (2.0 * math.sqrt(2.0))).clamp(max=1.0 - 1e-12)
-        return Ag, B, d2, r, h
-
-    @staticmethod
-    def forward(ctx, F, e0, e1, gi, gs, gti, gts, s_a, s_d, eps, weight):
-        Ag, B, d2, r, h = _EdgeTerms._parts(F, e0, e1, gi, gs, eps)
-        ctx.save_for_backward(F, e0, e1, gi, gs, gti, gts, Ag, B, r, h, weight)
-        ctx.s_a, ctx.s_d, ctx.eps = s_a, s_d, eps
-        terms = s_a * (2.0 * torch.asin(h)) + s_d * d2
-        return (terms * weight).sum() if weight is not None else terms.sum()
-
-    @staticmethod
-    def backward(ctx, grad):
-        F, e0, e1, gi, gs, gti, gts, Ag, B, r, h, weight = ctx.saved_tensors
-        if torch.is_grad_enabled():  # create_graph: rebuild the parts from F so the gradient is differentiable
-            Ag, B, _, r, h = _EdgeTerms._parts(F, e0, e1, gi, gs, ctx.eps)
-        # d a / d d2 = 2 / sqrt(1 - h^2) * 1 / (2 sqrt 2) * 1 / (2 r)
-        k = (-2.0 * grad) * (ctx.s_a / (2.0 * math.sqrt(2.0) * r * torch.sqrt(1.0 - h * h)) + ctx.s_d)
-        if weight is not None:
-            k = k * weight
-        k = k[:, None, None]
-        gF = torch.zeros_like(F).index_add_(0, e0, k * (B.gather(-1, gti) * gts)).index_add_(0, e1, k * Ag)
-        return gF, None, None, None, None, None, None, None, None, None, None
 
 
 def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float, d_ref: float,
@@ -176,10 +126,9 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
     dtype = mesh.vertices.dtype
     F = start.detach().to(dtype)
     bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
-    e0, e1 = mesh.edges[:, 0], mesh.edges[:, 1]
     a_ref = max(float(a_ref), 1e-4)
     d_ref = max(float(d_ref), 1e-8)
-    n_edges = max(int(e0.numel()), 1)
+    n_edges = max(int(mesh.edges.shape[0]), 1)
     cons0, axis0 = bc.constrained, bc.normals.to(dtype)
     has_curves = bc.tangent_vertices is not None and bool((~bc.tangent_at_corner).any())
     if kind == "tangent" and has_curves:
@@ -192,15 +141,11 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
         fn = fn.to(dtype)
 
     G = octahedral.group(dtype, F.device)
-    perm_tables = (*_signed_permutation(G), *_signed_permutation(G.transpose(-1, -2)))
     out = []
     for lam in lams:
         for _ in range(rounds):
             with torch.no_grad():
                 idx, g = octahedral.match_edges(F, mesh.edges)
-                # gathers from the 24 elements' tables (an argmax over (E, 3, 3) per round costs
-                # ~12% of a path on HexMe i02u)
-                gi, gs, gti, gts = (t[idx] for t in perm_tables)
                 typ = None
                 if complex_weight or tv is not None:  # holonomy types of the round's matchings
                     typ = classify_holonomy(face_holonomy_from_matchings(g, mesh)[2])[0]
@@ -208,7 +153,7 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
                 if complex_weight:
                     bad = mesh.face_edges[typ == 3].reshape(-1)
                     if bad.numel():
-                        ew = torch.ones(e0.shape[0], dtype=dtype, device=F.device)
+                        ew = torch.ones(mesh.edges.shape[0], dtype=dtype, device=F.device)
                         ew[bad] = 1.0 + float(complex_weight)
                 cons, axis, free_v, free_d = cons0, axis0, None, None
                 if tv is not None:
@@ -230,8 +175,8 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
             def closure():
                 opt.zero_grad(set_to_none=True)
                 Fc = constrained_frames(w, Fb, cons, axis)
-                loss = _EdgeTerms.apply(Fc, e0, e1, gi, gs, gti, gts, 1.0 / (n_edges * a_ref), lam / (n_edges * d_ref),
-                                        eps, ew)
+                loss = matched_edge_terms(Fc, mesh.edges, idx, G, ew, s_a=1.0 / (n_edges * a_ref),
+                                          s_d=lam / (n_edges * d_ref), eps=eps)
                 if feature_weight and fv.numel():
                     loss = loss + feature_weight * axis_angle_loss(Fc[fv], fn, align_eps) / a_ref
                 if free_v is not None:
