@@ -52,12 +52,12 @@ VARIANTS: dict[str, dict] = {
     "iters_40": {"quality": {"iters": 40}},
     # the paths from the optimized field instead of the SH field
     "paths_from_frames": {"quality": {"path_starts": ["frames"]}},
-    # paths from the SH and the MBO field, complex-type faces in the choice (fewer complex faces,
-    # ~1.3x the time at 1M tets)
-    "mbo_starts": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1}},
-    "mbo_starts_always": {"quality": {"path_starts": ["reference", "mbo"], "score_complex": 0.1,
-                                      "conditional_starts": False, "iters": 10}},
-    "mbo_start_only": {"quality": {"path_starts": ["mbo"], "score_complex": 0.1}},
+    # the quality stage's starts (default: paths from the SH and the MBO field, 10 iterations):
+    # the SH field alone with 20 iterations (the default until 2026-11-25: more complex faces)
+    "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0, "iters": 20}},
+    # the MBO paths only where the MBO field has fewer complex-type faces than the SH field
+    "mbo_conditional": {"quality": {"conditional_starts": True}},
+    "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},
     # no feature-normal term in the paths

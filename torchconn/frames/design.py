@@ -9,11 +9,11 @@ design() -> writers``); nothing is written to disk. Methods:
   :class:`~torchconn.frames.loss.FrameFieldLoss` (:func:`~torchconn.frames.solver.optimize`), then
   the guarded frames-only polish (:func:`~torchconn.frames.polish.polish_frames`, ``polish``; off by
   default), then the guarded quality stage (:func:`~torchconn.frames.polish.quality_polish`,
-  ``quality``): L-BFGS quality paths from the SH field (:mod:`~torchconn.frames.refine`: feature
-  curves soft, and held exactly away from singular faces; ``quality.path_starts=[reference,
-  mbo]`` adds the MBO field as a candidate and as a start where it has fewer complex-type
-  singular faces) lower the mean angle and the matched Dirichlet energy, and the best of their
-  checkpoints and the optimized field that is no more
+  ``quality``): L-BFGS quality paths from the SH field and from the MBO field
+  (:mod:`~torchconn.frames.refine`: feature curves soft, and held exactly away from singular
+  faces; ``quality.path_starts``; the two start fields reach different singular structures)
+  lower the mean angle and the matched Dirichlet energy, and the best of their checkpoints, the
+  MBO field and the optimized field that is no more
   than ``quality.slack`` (1%) worse than the initialization (the SH field) on any guarded metric
   is returned — at worst that field;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
@@ -85,9 +85,9 @@ DEFAULTS: dict[str, Any] = {
     "lbfgs": {"history_size": 20, "max_iter": 5},
     "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
-                "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
-                "path_starts": ["reference"], "conditional_starts": True, "slack": 0.01,
-                "score_dirichlet": 1.0, "score_complex": 0.0, "feature_curve_bound": 2.0},
+                "rounds": 2, "iters": 10, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
+                "path_starts": ["reference", "mbo"], "conditional_starts": False, "slack": 0.01,
+                "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,
