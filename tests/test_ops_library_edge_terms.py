@@ -211,3 +211,23 @@ def test_errors_name_the_problem(mesh):
             ops_et.matched_edge_terms(F, E, torch.full_like(idx, 24), G)
         with pytest.raises(ValueError, match="signed permutation"):
             ops_et.matched_edge_terms(F, E, idx, G * 0.1)
+
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                reason="no CUDA device: the generic kernel on CUDA is not tested"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_generic_kernel_on_every_device(mesh, device):
+    F, idx = _field(mesh, (2,), seed=17)
+    G = octahedral.group(torch.float64)
+    outs = []
+    for dev in ("cpu", device):
+        x = F.to(dev).requires_grad_()
+        with torchconn.ops.compiled(dev != "cpu"):
+            v = ops_et.matched_edge_terms(x, mesh.edges.to(dev), idx.to(dev), G.to(dev), s_a=0.7, s_d=1.3)
+            (g,) = torch.autograd.grad(v.sum(), x)
+        assert v.device.type == dev
+        outs.append((v.detach().cpu(), g.cpu()))
+    torch.testing.assert_close(outs[0][0], outs[1][0], atol=1e-12, rtol=0)
+    torch.testing.assert_close(outs[0][1], outs[1][1], atol=1e-10, rtol=0)
