@@ -52,9 +52,10 @@ VARIANTS: dict[str, dict] = {
     "iters_40": {"quality": {"iters": 40}},
     # the paths from the optimized field instead of the SH field
     "paths_from_frames": {"quality": {"path_starts": ["frames"]}},
-    # the quality stage's starts (default: paths from the SH and the MBO field, 10 iterations):
-    # the SH field alone with 20 iterations (the default until 2026-11-25: more complex faces)
-    "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0, "iters": 20}},
+    # the quality stage's starts (default: paths from the SH and the MBO field):
+    # the SH field alone (the default until 2026-11-25: more complex faces)
+    "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0}},
+    "iters_10": {"quality": {"iters": 10}},
     # the MBO paths only where the MBO field has fewer complex-type faces than the SH field
     "mbo_conditional": {"quality": {"conditional_starts": True}},
     "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
