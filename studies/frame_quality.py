@@ -56,8 +56,9 @@ VARIANTS: dict[str, dict] = {
     # the SH field alone (the default until 2026-11-25: more complex faces)
     "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0}},
     "iters_10": {"quality": {"iters": 10}},
-    # the MBO paths only where the MBO field has fewer complex-type faces than the SH field
-    "mbo_conditional": {"quality": {"conditional_starts": True}},
+    # the MBO paths on every model (default: only where the MBO field has fewer complex-type
+    # faces than the SH field)
+    "mbo_paths_always": {"quality": {"conditional_starts": False}},
     "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},

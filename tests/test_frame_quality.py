@@ -207,7 +207,7 @@ def test_quality_polish_paths_start_at_the_reference(cyl):
     assert [c[2] for c in ia["checks"][1:]] == pytest.approx([c[2] for c in ib["checks"][1:]], abs=1e-12)
     assert ia["checks"][0][0] == "start" and ia["checks"][0][3] is False  # the noisy candidate fails the guard
     assert torch.allclose(a, b)
-    _, ic = quality_polish(m, noisy, F0, **{**kw, "path_starts": ("frames",)})
+    _, ic = quality_polish(m, noisy, F0, **{**kw, "path_starts": ("frames",), "conditional_starts": False})
     assert ic["checks"][1][2] != pytest.approx(ib["checks"][1][2], abs=1e-6)  # a path from the noisy field
 
 
@@ -215,7 +215,8 @@ def test_quality_polish_paths_from_the_mbo_field(cyl):
     m, F0 = cyl
     from torchconn.frames.mbo import mbo_frames
     kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
-    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1, **kw)
+    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1,
+                             conditional_starts=False, **kw)
     ref = frame_metrics(F0, m)
     # the start, the MBO field (a candidate of its own), then one path per start
     assert [(c[0], c[5]) for c in info["checks"]] == [("start", None), ("mbo", None), ("soft", "reference"),

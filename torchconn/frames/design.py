@@ -86,7 +86,7 @@ DEFAULTS: dict[str, Any] = {
     "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
-                "path_starts": ["reference", "mbo"], "conditional_starts": False, "slack": 0.01,
+                "path_starts": ["reference", "mbo"], "conditional_starts": True, "slack": 0.01,
                 "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},

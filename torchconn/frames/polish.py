@@ -190,7 +190,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                    paths: Sequence[str] = PATH_KINDS, dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS,
                    rounds: int = 2, iters: int = 20, feature_weight: float = 1.0, tangent_weight: float = 0.25,
                    complex_weight: float = 0.0, path_starts: Sequence[str] = ("reference", "mbo"),
-                   mbo_options: dict | None = None, conditional_starts: bool = False,
+                   mbo_options: dict | None = None, conditional_starts: bool = True,
                    slack: float = 0.01, score_dirichlet: float = 1.0,
                    score_complex: float = 0.1, feature_curve_bound: float = 2.0, eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
@@ -221,12 +221,14 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     Measured on the 35 HexMe ``c`` meshes (docs/results/hexme.md, the quality stage alone from the
     SH field, one thread): the paths from the MBO field reach other singular structures than
     those from the SH field (fewer complex-type singular faces on the coarse polyhedra, e.g. n14c
-    18 -> 4). With the defaults (``path_starts=("reference", "mbo")``, ``score_complex=0.1``)
-    the set's complex faces go 126 -> 67, against 103 with the SH start alone
-    (``path_starts=("reference",)``), at the same mean angle, RMS angle and Dirichlet energy
-    (geometric-mean ratios 0.937 / 0.969 / 0.941; 10 iterations per round instead of 20: the
-    same there, but on the 1M-tet HexMe mesh a mean-angle ratio of 0.991 instead of 0.984); ``conditional_starts`` (MBO
-    paths only where the MBO field has fewer complex faces than the SH field) gave 73. The
+    18 -> 4). With ``path_starts=("reference", "mbo")`` and ``score_complex=0.1`` the set's
+    complex faces go 126 -> 73 with ``conditional_starts`` (the default: MBO paths only where
+    the MBO field has fewer complex faces than the SH field) and 126 -> 67 without it, against
+    103 with the SH start alone (``path_starts=("reference",)``), at the same mean angle, RMS
+    angle and Dirichlet energy (geometric-mean ratios 0.937 / 0.969 / 0.941). Without
+    ``conditional_starts`` the whole method takes HexMe i02u_m2 (159k tets) 65.6 s on 2 cores,
+    over the issue's 60 s; 10 iterations per round instead of 20 give the same ``c``-set figures
+    but a worse 1M-tet field (mean-angle ratio 0.991 instead of 0.984). The
     ``score_complex`` weight changes no choice there (0.1, 0.3 and 1.0 pick the same
     candidates): the guard decides. The paths from the connection-optimized field
     (``"frames"``) inherit its extra singular faces and fail the guard there (HexMe i02u).
