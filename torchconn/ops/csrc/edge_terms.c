@@ -28,8 +28,10 @@
 #define TC_BODY
 
 /* group table -> (perm, sign): g[perm[c]][c] = sign[c]; -1 when an entry is not a signed
- * permutation matrix */
-static int et_group_perm(const double* g, int perm[24][3], double sign[24][3]) {
+ * permutation matrix. Also clamps the thread count to [1, 64]. */
+static int et_setup(const double* g, int perm[24][3], double sign[24][3], int* nt) {
+    if (*nt < 1) *nt = 1;
+    if (*nt > 64) *nt = 64;
     for (int k = 0; k < 24; ++k)
         for (int c = 0; c < 3; ++c) {
             int n = 0;
@@ -84,9 +86,7 @@ int SFX(edge_terms_fwd)(long B, long E, long V, int nt, const T* F, const int64_
                         const double* group, const T* w, double s_a, double s_d, double eps, double h_max, double* out) {
     int perm[24][3];
     double sign[24][3];
-    if (et_group_perm(group, perm, sign)) return -1;
-    if (nt < 1) nt = 1;
-    if (nt > 64) nt = 64;
+    if (et_setup(group, perm, sign, &nt)) return -1;
     int bad = 0;
     for (long b = 0; b < B; ++b) {
         const T* Fb = F + 9 * V * b;
@@ -112,9 +112,7 @@ int SFX(edge_terms_bwd)(long B, long E, long V, int nt, const T* F, const int64_
                         T* gF, T* work) {
     int perm[24][3];
     double sign[24][3];
-    if (et_group_perm(group, perm, sign)) return -1;
-    if (nt < 1) nt = 1;
-    if (nt > 64) nt = 64;
+    if (et_setup(group, perm, sign, &nt)) return -1;
     int bad = 0;
     const double c0 = 1.0 / (2.0 * sqrt(2.0));
     for (long b = 0; b < B; ++b) {
