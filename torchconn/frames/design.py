@@ -12,8 +12,10 @@ design() -> writers``); nothing is written to disk. Methods:
   ``quality``): L-BFGS quality paths from the SH field and from the MBO field
   (:mod:`~torchconn.frames.refine`: feature curves soft, and held exactly away from singular
   faces; ``quality.path_starts``; the two start fields reach different singular structures)
-  lower the mean angle and the matched Dirichlet energy, and the best of their checkpoints, the
-  MBO field and the optimized field that is no more
+  lower the mean angle and the matched Dirichlet energy; where the best field has complex-type
+  singular faces, the singular-structure repair (:mod:`~torchconn.frames.structure`, ``quality.repair_*``)
+  searches its edge matchings, relaxes the frames onto them and runs the paths again from there;
+  the best of all checkpoints, the MBO field and the optimized field that is no more
   than ``quality.slack`` (1%) worse than the initialization (the SH field) on any guarded metric
   is returned — at worst that field;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
@@ -87,7 +89,8 @@ DEFAULTS: dict[str, Any] = {
     "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
                 "path_starts": ["reference", "mbo"], "conditional_starts": True, "slack": 0.01,
-                "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0},
+                "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
+                "repair_residual_weight": 0.5, "repair_relax_iters": 100, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,
@@ -464,7 +467,11 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                 path_starts=tuple(str(x) for x in q["path_starts"]),
                 conditional_starts=bool(q["conditional_starts"]), slack=float(q["slack"]),
                 score_dirichlet=float(q["score_dirichlet"]), score_complex=float(q["score_complex"]),
-                feature_curve_bound=float(q["feature_curve_bound"]),
+                feature_curve_bound=float(q["feature_curve_bound"]), repair_rounds=int(q["repair_rounds"]),
+                repair_residual_weight=float(q["repair_residual_weight"]),
+                repair_relax_iters=int(q["repair_relax_iters"]),
+                repair_dirichlet_weights=(None if q["repair_dirichlet_weights"] is None
+                                          else tuple(float(x) for x in q["repair_dirichlet_weights"])),
                 angle_deg=angle, align_eps=float(opts["align_eps"]), reference_metrics=init_metrics)
             if quality_info["accepted"] != "start":  # the connection that transports the returned frames
                 R = matched_connection(F, mesh.edges)

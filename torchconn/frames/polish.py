@@ -42,6 +42,7 @@ from .metrics import frame_metrics
 from .param import constrained_frames
 from .refine import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
 from .solver import cosine_factor
+from .structure import repair_structure
 
 __all__ = ["polish_frames", "quality_polish", "PATH_STARTS", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
            "GUARD_COUNTS", "GUARD_STRICT", "GUARD_BOUNDS"]
@@ -192,7 +193,9 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                    complex_weight: float = 0.0, path_starts: Sequence[str] = ("reference", "mbo"),
                    mbo_options: dict | None = None, conditional_starts: bool = True,
                    slack: float = 0.01, score_dirichlet: float = 1.0,
-                   score_complex: float = 0.1, feature_curve_bound: float = 2.0, eps: float = 1e-3,
+                   score_complex: float = 0.1, feature_curve_bound: float = 2.0, repair_rounds: int = 1,
+                   repair_residual_weight: float = 0.5, repair_relax_iters: int = 100,
+                   repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Guarded quality stage: the checkpoints of quality paths, the best one no worse than a reference.
@@ -273,6 +276,16 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     if not (slack >= 0 and math.isfinite(slack)) or not feature_curve_bound >= 0:
         raise ValueError(f"quality_polish: need slack >= 0 and feature_curve_bound >= 0, got {slack}, "
                          f"{feature_curve_bound}")
+    if not (isinstance(repair_rounds, int) and repair_rounds >= 0 and repair_relax_iters >= 1
+            and math.isfinite(repair_residual_weight) and repair_residual_weight >= 0):
+        raise ValueError(f"quality_polish: need an integer repair_rounds >= 0, repair_relax_iters >= 1 and "
+                         f"repair_residual_weight >= 0, got {repair_rounds!r}, {repair_relax_iters!r}, "
+                         f"{repair_residual_weight!r}")
+    if repair_dirichlet_weights is not None:
+        rw = [float(x) for x in repair_dirichlet_weights]
+        if not rw or not all(math.isfinite(x) and x >= 0 for x in rw):
+            raise ValueError(f"quality_polish: repair_dirichlet_weights must be finite numbers >= 0 (or None), got "
+                             f"{repair_dirichlet_weights}")
     if not (score_complex >= 0 and math.isfinite(score_complex)):
         raise ValueError(f"quality_polish: need score_complex >= 0, got {score_complex}")
     dtype = mesh.vertices.dtype
@@ -317,7 +330,40 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                                    tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
                                    align_eps=align_eps, angle_deg=angle_deg):
                 consider(cp.frames, kind, cp.dirichlet_weight, start)
-    score, m, F, kind, lam, start = cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
+    def best():
+        return cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
+
+    # singular-structure repair (torchconn.frames.structure): the best candidate's matchings searched
+    # for fewer complex faces, the frames relaxed onto them, and the quality paths from there
+    repairs = []
+    last = None
+    rep_weights = dirichlet_weights if repair_dirichlet_weights is None else repair_dirichlet_weights
+    for r in range(repair_rounds):
+        cur = best()
+        if cur[1]["n_singular_faces_complex"] == 0 or cur[2] is last:
+            break
+        last = cur[2]
+        t0 = time.perf_counter()
+        Fs, sinfo = repair_structure(cur[2], mesh, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
+                                     residual_weight=repair_residual_weight, relax_iters=repair_relax_iters,
+                                     dirichlet_weight=max(dirichlet_weights, default=8.0),
+                                     feature_weight=feature_weight, eps=eps, align_eps=align_eps, angle_deg=angle_deg)
+        entry = {"round": r, "from": cur[3], "from_start": cur[5], "complex_before": sinfo["complex_before"],
+                 "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
+        repairs.append(entry)
+        if sinfo["complex_after"] < sinfo["complex_before"]:  # the paths keep the structure they start from
+            label = f"repair{r}" if r else "repair"
+            consider(Fs, "repaired", None, label)
+            entry["paths_run"] = bool(paths)
+            for kind in dict.fromkeys(paths):
+                for cp in quality_path(mesh, Fs, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
+                                       dirichlet_weights=rep_weights, rounds=rounds, iters=iters,
+                                       feature_weight=feature_weight, tangent_weight=tangent_weight,
+                                       complex_weight=complex_weight, eps=eps, align_eps=align_eps,
+                                       angle_deg=angle_deg):
+                    consider(cp.frames, kind, cp.dirichlet_weight, label)
+        entry["seconds"] = time.perf_counter() - t0
+    score, m, F, kind, lam, start = best()
     return F, {"accepted": kind, "accepted_start": start, "dirichlet_weight": lam, "score": score,
                "checks": checks, "starts_run": starts if paths else [], "mbo_seconds": mbo_seconds,
-               "reference": ref, "final": m}
+               "repairs": repairs, "reference": ref, "final": m}

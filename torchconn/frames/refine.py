@@ -56,7 +56,7 @@ from .loss import axis_angle_loss
 from .param import constrained_frames
 from .singular import classify_holonomy, face_holonomy_from_matchings
 
-__all__ = ["PATH_KINDS", "DIRICHLET_WEIGHTS", "Checkpoint", "quality_path", "snap_axes"]
+__all__ = ["PATH_KINDS", "DIRICHLET_WEIGHTS", "Checkpoint", "quality_path", "relax_to_matchings", "snap_axes"]
 
 #: Kinds of :func:`quality_path` (module docstring).
 PATH_KINDS = ("soft", "tangent")
@@ -167,26 +167,90 @@ def quality_path(mesh, start: torch.Tensor, *, kind: str = "soft", a_ref: float,
                     axis[tv[lock]] = td[lock]
                     if tangent_weight and not bool(lock.all()):
                         free_v, free_d = tv[~lock], td[~lock]
-            Fb = F
-            w = torch.zeros_like(Fb[:, :, 0], requires_grad=True)
-            opt = torch.optim.LBFGS([w], lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe",
-                                    tolerance_grad=1e-10, tolerance_change=1e-13)
-
-            def closure():
-                opt.zero_grad(set_to_none=True)
-                Fc = constrained_frames(w, Fb, cons, axis)
-                loss = matched_edge_terms(Fc, mesh.edges, idx, G, ew, s_a=1.0 / (n_edges * a_ref),
-                                          s_d=lam / (n_edges * d_ref), eps=eps)
-                if feature_weight and fv.numel():
-                    loss = loss + feature_weight * axis_angle_loss(Fc[fv], fn, align_eps) / a_ref
-                if free_v is not None:
-                    loss = loss + tangent_weight * axis_angle_loss(Fc[free_v], free_d, align_eps) / a_ref
-                loss.backward()
-                return loss
-
-            with torch.enable_grad():
-                opt.step(closure)
-            with torch.no_grad():
-                F = so3.project_to_rotation(constrained_frames(w, Fb, cons, axis))
+            F = _lbfgs_round(mesh, F, idx, G, ew, cons, axis, fv, fn, free_v, free_d, iters=iters,
+                             s_a=1.0 / (n_edges * a_ref), s_d=lam / (n_edges * d_ref), a_ref=a_ref,
+                             feature_weight=feature_weight, tangent_weight=tangent_weight, eps=eps,
+                             align_eps=align_eps)
         out.append(Checkpoint(kind, lam, F))
     return out
+
+
+def _lbfgs_round(mesh, Fb, idx, G, ew, cons, axis, fv, fn, free_v, free_d, *, iters, s_a, s_d, a_ref,
+                 feature_weight, tangent_weight, eps, align_eps) -> torch.Tensor:
+    """One round of a path: ``iters`` L-BFGS iterations on ``w (V, 3)`` with the matchings ``idx (E,)``
+    fixed, from ``Fb (V, 3, 3)``; returns the rotations ``F = exp(hat(w')) Fb`` (detached)."""
+    w = torch.zeros_like(Fb[:, :, 0], requires_grad=True)
+    opt = torch.optim.LBFGS([w], lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-10, tolerance_change=1e-13)
+
+    def closure():
+        opt.zero_grad(set_to_none=True)
+        Fc = constrained_frames(w, Fb, cons, axis)
+        loss = matched_edge_terms(Fc, mesh.edges, idx, G, ew, s_a=s_a, s_d=s_d, eps=eps)
+        if feature_weight and fv.numel():
+            loss = loss + feature_weight * axis_angle_loss(Fc[fv], fn, align_eps) / a_ref
+        if free_v is not None:
+            loss = loss + tangent_weight * axis_angle_loss(Fc[free_v], free_d, align_eps) / a_ref
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+    with torch.no_grad():
+        return so3.project_to_rotation(constrained_frames(w, Fb, cons, axis))
+
+
+def relax_to_matchings(mesh, frames: torch.Tensor, matchings: torch.Tensor, *, a_ref: float, d_ref: float,
+                       dirichlet_weight: float = 8.0, iters: int = 100, feature_weight: float = 1.0,
+                       edge_weights: torch.Tensor | None = None, eps: float = 1e-3, align_eps: float = 1e-3,
+                       angle_deg: float = 30.0) -> torch.Tensor:
+    """The frames moved towards prescribed edge matchings: one ``"soft"`` round of a path with
+    ``matchings`` held.
+
+    Minimizes ``mean_e a_e / a_ref + lambda mean_e ||F_i g_ij - F_j||^2 / D_ref + feature term``
+    (module docstring, ``lambda = dirichlet_weight``) with ``g_ij = group()[matchings]`` fixed
+    instead of re-matched, by ``iters`` L-BFGS iterations from ``frames``; aligned boundary
+    vertices rotate about their normal only. The singular structure of the result's own
+    (re-computed) matchings is the prescribed one where the frames moved far enough; it is the
+    start of the repair paths of :func:`~torchconn.frames.polish.quality_polish`
+    (:mod:`torchconn.frames.structure`).
+
+    Args:
+        mesh: ``TetMesh``.
+        frames: ``(V, 3, 3)`` start field.
+        matchings: ``(E,)`` long indices into :func:`~torchconn.frames.octahedral.group`, one
+            per edge of ``mesh.edges`` (``frames[i] @ g ~ frames[j]`` for the edge ``(i, j)``).
+        a_ref, d_ref: normalizations as in :func:`quality_path` (floored the same way).
+        edge_weights: ``(E,)`` positive weights of the edges in both edge terms (``None``: 1), e.g.
+            heavier on the edges whose matching was changed, so that the frames follow them.
+
+    Returns:
+        ``(V, 3, 3)`` rotations, detached.
+    """
+    E = mesh.edges.shape[0]
+    if not torch.is_tensor(matchings) or matchings.shape != (E,) or matchings.is_floating_point():
+        raise ValueError(f"relax_to_matchings: matchings must be an ({E},) integer tensor of group indices, got "
+                         f"{tuple(matchings.shape) if torch.is_tensor(matchings) else type(matchings).__name__}")
+    if matchings.numel() and (int(matchings.min()) < 0 or int(matchings.max()) >= 24):
+        raise ValueError("relax_to_matchings: matchings must index the 24 elements of the octahedral group")
+    if iters < 1 or not (math.isfinite(dirichlet_weight) and dirichlet_weight >= 0):
+        raise ValueError(f"relax_to_matchings: need iters >= 1 and a finite dirichlet_weight >= 0, got "
+                         f"{iters}, {dirichlet_weight}")
+    dtype = mesh.vertices.dtype
+    if edge_weights is not None:
+        if not torch.is_tensor(edge_weights) or edge_weights.shape != (E,):
+            raise ValueError(f"relax_to_matchings: edge_weights must be an ({E},) tensor")
+        if not bool((edge_weights > 0).all()) or not bool(torch.isfinite(edge_weights).all()):
+            raise ValueError("relax_to_matchings: edge_weights must be finite and > 0")
+        edge_weights = edge_weights.to(dtype=dtype, device=frames.device)
+    F = frames.detach().to(dtype)
+    bc = BoundaryConstraint.from_mesh(mesh, angle_deg)
+    fv, fn = bc.feature_targets()
+    a_ref = max(float(a_ref), 1e-4)
+    d_ref = max(float(d_ref), 1e-8)
+    n_edges = max(int(E), 1)
+    G = octahedral.group(dtype, F.device)
+    return _lbfgs_round(mesh, F, matchings.to(F.device), G, edge_weights, bc.constrained, bc.normals.to(dtype), fv,
+                        fn.to(dtype), None, None, iters=iters, s_a=1.0 / (n_edges * a_ref),
+                        s_d=float(dirichlet_weight) / (n_edges * d_ref), a_ref=a_ref, feature_weight=feature_weight,
+                        tangent_weight=0.0, eps=eps, align_eps=align_eps)
