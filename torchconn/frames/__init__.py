@@ -4,7 +4,8 @@ Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-h
 Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
-:mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.polish`
+:mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.structure`
+(the singular-structure search over edge matchings), :mod:`.polish`
 (the guarded polishes), :mod:`.metrics`, :mod:`.singular` (the
 singular graph), :mod:`.export` (VTU), :mod:`.formats` (``.fra``, mouette's ``.frame``),
 :mod:`.design` (the whole method in one call: :func:`design` -> :class:`FrameFieldResult`).

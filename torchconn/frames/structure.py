@@ -37,7 +37,8 @@ import torch
 from . import octahedral
 from .singular import classify_holonomy, face_holonomy_from_matchings
 
-__all__ = ["FACE_COSTS", "MOVED_EDGE_WEIGHTS", "repair_matchings", "repair_structure", "edge_face_incidence"]
+__all__ = ["FACE_COSTS", "MOVED_EDGE_WEIGHTS", "complex_face_count", "edge_face_incidence", "repair_matchings",
+           "repair_structure"]
 
 #: Default costs of the face types ``(regular, quarter, half, complex)`` of :func:`repair_matchings`.
 FACE_COSTS = (0.0, 1.0, 1.0, 6.0)
