@@ -60,6 +60,12 @@ VARIANTS: dict[str, dict] = {
     # faces than the SH field)
     "mbo_paths_always": {"quality": {"conditional_starts": False}},
     "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
+    # the singular-structure repair (torchconn.frames.structure; default: one round, the repair
+    # paths with the Dirichlet weights 8, 2, 0.5): off (the default until 2026-11-25 evening), the
+    # repair paths with every Dirichlet weight, two rounds
+    "no_repair": {"quality": {"repair_rounds": 0}},
+    "repair_full_weights": {"quality": {"repair_dirichlet_weights": None}},
+    "repair_2": {"quality": {"repair_rounds": 2}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},
     # no feature-normal term in the paths

@@ -80,12 +80,21 @@ def test_steps_fraction_is_not_rounded():
     ("feature_angle_deg", 200.0, "<= 180"),
     ("smooth_power", 3.0, "<= 2"),
     ("seed", -1, ">= 0"),
+    ("quality.repair_rounds", -1, ">= 0"),
+    ("quality.repair_relax_iters", 0, ">= 1"),
 ])
 def test_out_of_range_values_name_the_key(key, value, allowed):
     section, _, leaf = key.rpartition(".")
     user = {section: {leaf: value}} if section else {key: value}
     with pytest.raises(ConfigError, match=rf"'{key}' = {value!r}.*out of range.*{allowed}"):
         _validate({**user, "output_dir": "x"})
+
+
+def test_repair_weights_may_be_null_or_a_list():
+    _validate({"quality": {"repair_dirichlet_weights": None}, "output_dir": "x"})
+    _validate({"quality": {"repair_dirichlet_weights": [8.0, 1]}, "output_dir": "x"})
+    with pytest.raises(ConfigError, match="quality.repair_dirichlet_weights"):
+        _validate({"quality": {"repair_dirichlet_weights": [8.0, -1.0]}, "output_dir": "x"})
 
 
 @pytest.mark.parametrize("value", [0, -1, float("nan"), float("inf")])

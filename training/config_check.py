@@ -105,8 +105,8 @@ def _choice(*values) -> Spec:
     return Spec("choice", choices=tuple(values))
 
 
-def _list(item: Spec) -> Spec:
-    return Spec("list", item=item)
+def _list(item: Spec, nullable=False) -> Spec:
+    return Spec("list", item=item, nullable=nullable)
 
 
 def _positive() -> Spec:
@@ -148,6 +148,10 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.score_dirichlet": _float(0),
     "quality.score_complex": _float(0),
     "quality.feature_curve_bound": _float(0),
+    "quality.repair_rounds": _int(0),
+    "quality.repair_residual_weight": _float(0),
+    "quality.repair_relax_iters": _int(1),
+    "quality.repair_dirichlet_weights": _list(_float(0), nullable=True),
     "sh.boundary_weight": _positive(),
     "sh.n_smooth_iters": _int(0),
     "sh.mbo_steps": _int(0),
