@@ -90,7 +90,7 @@ DEFAULTS: dict[str, Any] = {
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
                 "path_starts": ["reference", "mbo"], "conditional_starts": True, "slack": 0.01,
                 "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
-                "repair_residual_weight": 0.5, "repair_relax_iters": 100, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
+                "repair_residual_weight": 0.5, "repair_relax_iters": 40, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
            "mbo_tau_end": 0.05},
     "init_frames": None,

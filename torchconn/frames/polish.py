@@ -197,7 +197,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
                    mbo_options: dict | None = None, conditional_starts: bool = True,
                    slack: float = 0.01, score_dirichlet: float = 1.0,
                    score_complex: float = 0.1, feature_curve_bound: float = 2.0, repair_rounds: int = 1,
-                   repair_residual_weight: float = 0.5, repair_relax_iters: int = 100,
+                   repair_residual_weight: float = 0.5, repair_relax_iters: int = 40,
                    repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
                    angle_deg: float = 30.0, align_eps: float = 1e-3,
                    reference_metrics: dict | None = None) -> tuple[torch.Tensor, dict]:

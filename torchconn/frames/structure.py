@@ -164,7 +164,7 @@ def complex_face_count(frames: torch.Tensor, mesh) -> int:
 
 def repair_structure(frames: torch.Tensor, mesh, *, a_ref: float, d_ref: float, passes: int = 2,
                      residual_weight: float = 0.5, face_costs: Sequence[float] = FACE_COSTS,
-                     moved_edge_weights: Sequence[float] = MOVED_EDGE_WEIGHTS, relax_iters: int = 100,
+                     moved_edge_weights: Sequence[float] = MOVED_EDGE_WEIGHTS, relax_iters: int = 40,
                      dirichlet_weight: float = 8.0, feature_weight: float = 1.0, eps: float = 1e-3,
                      align_eps: float = 1e-3, angle_deg: float = 30.0) -> tuple[torch.Tensor, dict]:
     """A field with fewer complex-type singular faces: matchings searched, frames relaxed onto them.
