@@ -239,3 +239,15 @@ def test_repair_removes_complex_faces_on_a_hexme_model():
     assert ref["n_singular_faces_complex"] >= 8
     assert info["accepted_start"] == "repair" and after["n_singular_faces_complex"] <= 2
     assert info["repairs"][0]["complex_before"] == 10
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_repair_on_cuda_matches_cpu(small):
+    m, noisy, _ = small
+    idx, info = repair_matchings(noisy, m)
+    mc = m.to(device="cuda")
+    idx_c, info_c = repair_matchings(noisy.cuda(), mc)
+    assert idx_c.device.type == "cuda" and torch.equal(idx_c.cpu(), idx)
+    assert [mv[:3] for mv in info_c["moves"]] == [mv[:3] for mv in info["moves"]]
+    F, s = repair_structure(noisy.cuda(), mc, a_ref=0.2, d_ref=0.1, relax_iters=10)
+    assert F.device.type == "cuda" and s["complex_after"] <= s["complex_before"]
