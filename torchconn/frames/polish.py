@@ -350,14 +350,19 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     if conditional_starts:
         starts = [s for s in starts if s == "reference" or complex_of[s] < complex_of["reference"]]
     a_ref = math.radians(ref["smoothness_mean_deg"])
-    for start in starts:
+
+    def run_paths(start_field, label, weights):
         for kind in dict.fromkeys(paths):  # each kind once, in the given order
-            for cp in quality_path(mesh, start_fields[start], kind=kind, a_ref=a_ref,
-                                   d_ref=ref["dirichlet_energy_mean"], dirichlet_weights=dirichlet_weights,
-                                   rounds=rounds, iters=iters, feature_weight=feature_weight,
-                                   tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
-                                   align_eps=align_eps, angle_deg=angle_deg):
-                consider(cp.frames, kind, cp.dirichlet_weight, start)
+            for cp in quality_path(mesh, start_field, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
+                                   dirichlet_weights=weights, rounds=rounds, iters=iters,
+                                   feature_weight=feature_weight, tangent_weight=tangent_weight,
+                                   complex_weight=complex_weight, eps=eps, align_eps=align_eps,
+                                   angle_deg=angle_deg):
+                consider(cp.frames, kind, cp.dirichlet_weight, label)
+
+    for start in starts:
+        run_paths(start_fields[start], start, dirichlet_weights)
+
     def best():
         return cands[choose_candidate([(c[0], c[1]) for c in cands], feature_curve_bound)]
 
@@ -383,13 +388,7 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
             label = f"repair{r}" if r else "repair"
             consider(Fs, "repaired", None, label)
             entry["paths_run"] = bool(paths)
-            for kind in dict.fromkeys(paths):
-                for cp in quality_path(mesh, Fs, kind=kind, a_ref=a_ref, d_ref=ref["dirichlet_energy_mean"],
-                                       dirichlet_weights=rep_weights, rounds=rounds, iters=iters,
-                                       feature_weight=feature_weight, tangent_weight=tangent_weight,
-                                       complex_weight=complex_weight, eps=eps, align_eps=align_eps,
-                                       angle_deg=angle_deg):
-                    consider(cp.frames, kind, cp.dirichlet_weight, label)
+            run_paths(Fs, label, rep_weights)
         entry["seconds"] = time.perf_counter() - t0
     score, m, F, kind, lam, start = best()
     return F, {"accepted": kind, "accepted_start": start, "dirichlet_weight": lam, "score": score,

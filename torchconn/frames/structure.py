@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import torch
 
 from . import octahedral
-from .singular import classify_holonomy, face_holonomy_from_matchings
+from .singular import classify_holonomy
 
 __all__ = ["FACE_COSTS", "MOVED_EDGE_WEIGHTS", "complex_face_count", "edge_face_incidence", "repair_matchings",
            "repair_structure"]
@@ -64,10 +64,15 @@ def edge_face_incidence(mesh) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
     return offsets, pf, pp
 
 
+def _types_of(g: torch.Tensor) -> torch.Tensor:
+    """Face types of the matchings ``g (..., 3, 3, 3)`` of the face edges ``bc, ac, ab`` (dim -3):
+    the holonomy ``g_ab g_bc g_ac^T`` of :func:`~torchconn.frames.singular.face_holonomy_from_matchings`."""
+    return classify_holonomy(g[..., 2, :, :] @ g[..., 0, :, :] @ g[..., 1, :, :].transpose(-1, -2))[0]
+
+
 def _face_types(idx: torch.Tensor, G: torch.Tensor, mesh, faces: torch.Tensor | None = None) -> torch.Tensor:
     fe = mesh.face_edges if faces is None else mesh.face_edges[faces]
-    g = G[idx[fe]]  # (n, 3, 3, 3): bc, ac, ab
-    return classify_holonomy(g[:, 2] @ g[:, 0] @ g[:, 1].transpose(-1, -2))[0]
+    return _types_of(G[idx[fe]])
 
 
 def repair_matchings(frames: torch.Tensor, mesh, *, matchings: torch.Tensor | None = None,
@@ -135,8 +140,7 @@ def repair_matchings(frames: torch.Tensor, mesh, *, matchings: torch.Tensor | No
             gg = g3[:, None].expand(-1, 24, -1, -1, -1).clone()  # (m, 24, 3, 3, 3)
             m_ = torch.arange(f.numel(), device=dev)
             gg[m_, :, slot] = G[None].expand(f.numel(), -1, -1, -1)
-            H = gg[:, :, 2] @ gg[:, :, 0] @ gg[:, :, 1].transpose(-1, -2)
-            dcost = cost[classify_holonomy(H)[0]] - cost[typ[f]][:, None]  # (m, 24)
+            dcost = cost[_types_of(gg)] - cost[typ[f]][:, None]  # (m, 24)
             dc = torch.zeros(ce.numel(), 24, dtype=frames.dtype, device=dev).index_add_(0, owner, dcost)
             M = frames[edges[ce, 1]].transpose(-1, -2) @ frames[edges[ce, 0]]  # F_j^T F_i
             res = 6.0 - 2.0 * torch.einsum("nab,kba->nk", M, G)
