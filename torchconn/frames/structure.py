@@ -35,6 +35,7 @@ from collections.abc import Sequence
 import torch
 
 from . import octahedral
+from .refine import relax_to_matchings
 from .singular import classify_holonomy
 
 __all__ = ["FACE_COSTS", "MOVED_EDGE_WEIGHTS", "complex_face_count", "edge_face_incidence", "repair_matchings",
@@ -197,8 +198,6 @@ def repair_structure(frames: torch.Tensor, mesh, *, a_ref: float, d_ref: float, 
         ``"complex_matchings"`` (of the searched matchings) and ``"complex_relaxed"`` (one per
         weight). ``frames`` is the input when no pass lowered the count.
     """
-    from .refine import relax_to_matchings
-
     ws = [float(w) for w in moved_edge_weights]
     if not ws or not all(math.isfinite(w) and w > 0 for w in ws):
         raise ValueError(f"repair_structure: moved_edge_weights must be finite and > 0, got {moved_edge_weights}")
