@@ -17,9 +17,10 @@ by ``residual_weight``: a move the frames cannot follow cheaply is charged). A *
 matching of one edge of a complex face to another element of O; among the moves that lower the
 total face cost, the one with the lowest ``face-cost change + residual_weight x residual change`` is
 taken, the types of the faces around its edge are updated, and the search repeats until no move
-lowers the face cost (it terminates: the integer-valued face cost falls at every move). Every
-candidate move of every edge of every complex face is scored in one batched evaluation (the 24
-elements of O at once); the loop runs over moves, not mesh elements.
+lowers the face cost (it terminates: the integer-valued face cost falls at every move). The best
+move of every edge of a complex face is scored once, in one batched evaluation (the 24 elements
+of O at once), and after each move only the edges of the faces around the moved edge are
+rescored (the only ones whose moves changed); the loop runs over moves, not mesh elements.
 
 The frames then follow the prescribed matchings by :func:`~torchconn.frames.refine.relax_to_matchings`
 (L-BFGS with the matchings held), and :func:`~torchconn.frames.polish.quality_polish` runs its quality
@@ -126,36 +127,52 @@ def repair_matchings(frames: torch.Tensor, mesh, *, matchings: torch.Tensor | No
     if n_complex0:
         offsets, pf, pp = edge_face_incidence(mesh)
         fe, edges = mesh.face_edges, mesh.edges
-        # residual of every element of O on an edge: ||F_i G_k - F_j||^2 = 6 - 2 tr(F_j^T F_i G_k)
-        while len(info["moves"]) < limit:
-            C = torch.nonzero(typ == 3).reshape(-1)
-            if C.numel() == 0:
-                break
-            ce, inv = torch.unique(fe[C].reshape(-1), return_inverse=True)
+        E = edges.shape[0]
+        # the best move of every candidate edge (an edge of a complex face), kept per edge and
+        # updated only around each move: a move changes the types of the faces around its edge,
+        # so only the edges of those faces change their best move or stop/start being candidates
+        best_score = torch.full((E,), math.inf, dtype=frames.dtype, device=dev)
+        best_k = torch.zeros(E, dtype=torch.long, device=dev)
+        best_dc = torch.zeros(E, dtype=frames.dtype, device=dev)
+        best_dres = torch.zeros(E, dtype=frames.dtype, device=dev)
+
+        def rescore(ce: torch.Tensor) -> None:
+            """Best move (lowest score among the face-cost-lowering ones) of each edge of ``ce``
+            (sorted, unique), or ``inf`` where the edge is on no complex face or has none."""
             cnt = offsets[ce + 1] - offsets[ce]
             owner = torch.repeat_interleave(torch.arange(ce.numel(), device=dev), cnt)
             start = torch.repeat_interleave(offsets[ce] - torch.cumsum(cnt, 0) + cnt, cnt)
             sel = start + torch.arange(owner.numel(), device=dev)
             f, slot = pf[sel], pp[sel]
+            on_complex = torch.zeros(ce.numel(), dtype=torch.long, device=dev).index_add_(
+                0, owner, (typ[f] == 3).long()) > 0
             g3 = G[idx[fe[f]]]  # (m, 3, 3, 3)
             gg = g3[:, None].expand(-1, 24, -1, -1, -1).clone()  # (m, 24, 3, 3, 3)
-            m_ = torch.arange(f.numel(), device=dev)
-            gg[m_, :, slot] = G[None].expand(f.numel(), -1, -1, -1)
+            gg[torch.arange(f.numel(), device=dev), :, slot] = G[None].expand(f.numel(), -1, -1, -1)
             dcost = cost[_types_of(gg)] - cost[typ[f]][:, None]  # (m, 24)
             dc = torch.zeros(ce.numel(), 24, dtype=frames.dtype, device=dev).index_add_(0, owner, dcost)
-            M = frames[edges[ce, 1]].transpose(-1, -2) @ frames[edges[ce, 0]]  # F_j^T F_i
+            # residual of every element of O on an edge: ||F_i G_k - F_j||^2 = 6 - 2 tr(F_j^T F_i G_k)
+            M = frames[edges[ce, 1]].transpose(-1, -2) @ frames[edges[ce, 0]]
             res = 6.0 - 2.0 * torch.einsum("nab,kba->nk", M, G)
             dres = res - res.gather(1, idx[ce][:, None])
-            score = torch.where(dc < -0.5, dc + residual_weight * dres, torch.full_like(dc, math.inf))
-            best = int(score.reshape(-1).argmin())
-            e_loc, k = divmod(best, 24)
-            if not math.isfinite(float(score[e_loc, k])):
+            score = torch.where((dc < -0.5) & on_complex[:, None], dc + residual_weight * dres,
+                                torch.full_like(dc, math.inf))
+            sc, k = score.min(1)  # the first k on a tie
+            best_score[ce], best_k[ce] = sc, k
+            best_dc[ce] = dc.gather(1, k[:, None]).squeeze(1)
+            best_dres[ce] = dres.gather(1, k[:, None]).squeeze(1)
+
+        rescore(torch.unique(fe[typ == 3].reshape(-1)))
+        while len(info["moves"]) < limit:
+            e = int(best_score.argmin())  # the first edge on a tie: the same order as a full rescan
+            if not math.isfinite(float(best_score[e])):
                 break
-            e = int(ce[e_loc])
-            info["moves"].append((e, int(idx[e]), k, float(dc[e_loc, k]), float(dres[e_loc, k])))
+            k = int(best_k[e])
+            info["moves"].append((e, int(idx[e]), k, float(best_dc[e]), float(best_dres[e])))
             idx[e] = k
             around = pf[offsets[e]:offsets[e + 1]]
             typ[around] = _face_types(idx, G, mesh, around)
+            rescore(torch.unique(fe[around].reshape(-1)))
     info.update(complex_after=int((typ == 3).sum()), singular_after=int((typ > 0).sum()),
                 cost_after=float(cost[typ].sum()))
     return idx, info
