@@ -35,6 +35,10 @@ Constraints (:class:`~torchconn.frames.constraints.BoundaryConstraint`), two pat
   tangent term ``tangent_weight x axis_angle_loss / a_ref``. The set is re-detected every round.
   The feature term covers the incident face normals.
 
+:func:`relax_to_matchings` is one ``"soft"`` round with *prescribed* matchings instead of the
+frames' own: the frames follow a singular structure chosen elsewhere (the repair of
+:mod:`torchconn.frames.structure`).
+
 Measured on the 35 HexMe ``c`` meshes (``docs/results/hexme.md``, ``studies/frame_quality.py``): the
 soft path gives the lowest energies but lets the tangent drift where a singular curve meets a
 feature curve; the tangent path holds the curves; the guard of
