@@ -10,6 +10,20 @@ import torch
 # ../shared/data beside the repository (DEVELOPERS.md); overridable for other layouts.
 DATA_DIR = Path(os.environ.get("TORCHCONN_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
+
+
+def assert_hvp_matches_fd(f, w: torch.Tensor, v: torch.Tensor, h: float = 1e-5, tol: float = 1e-6) -> None:
+    """The Hessian-vector product of the scalar ``f`` at ``w`` along ``v`` (double backward) equals the
+    central difference of its gradient, ``(grad f(w + h v) - grad f(w - h v)) / 2h``."""
+    def grad(z):
+        z = z.clone().requires_grad_()
+        return torch.autograd.grad(f(z), z)[0]
+
+    _, hv = torch.autograd.functional.hvp(f, w, v)
+    fd = (grad(w + h * v) - grad(w - h * v)) / (2 * h)
+    torch.testing.assert_close(hv, fd, atol=tol, rtol=tol)
+
+
 TET_MESHES = ["sphere_r0.17.mesh", "78322_gear.2.mesh", "dinosaur.msh"]
 SURFACES = ["bunny.obj", "fandisk.ply", "rocker_arm.ply"]
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import assert_hvp_matches_fd
 from torch.autograd import gradcheck, gradgradcheck
 
 import torchconn.ops
@@ -126,15 +127,8 @@ def test_curvature_hvp_matches_central_differences(mesh, compiled):
     def f(w):
         return ops_curvature.face_curvature(so3.exp(w), mesh, 0, "holonomy").square().sum()
 
-    def grad(z):
-        z = z.clone().requires_grad_()
-        return torch.autograd.grad(f(z), z)[0]
-
     with torchconn.ops.compiled(compiled):
-        _, hv = torch.autograd.functional.hvp(f, w, v)
-        h = 1e-5
-        fd = (grad(w + h * v) - grad(w - h * v)) / (2 * h)
-    torch.testing.assert_close(hv, fd, atol=1e-6, rtol=1e-6)
+        assert_hvp_matches_fd(f, w, v)
 
 
 def test_curvature_vmap_batched_and_loop(mesh):
@@ -258,14 +252,7 @@ def test_torsion_vmap_batched_and_hvp(mesh):
     w = 0.5 * torch.randn(mesh.edges.shape[0], 3, generator=torch.Generator().manual_seed(16), dtype=torch.float64)
     v = torch.randn(w.shape, generator=torch.Generator().manual_seed(17), dtype=torch.float64)
     f = lambda z: ops_torsion.face_torsion(so3.exp(z), mesh).square().sum()  # noqa: E731
-
-    def grad(z):
-        z = z.clone().requires_grad_()
-        return torch.autograd.grad(f(z), z)[0]
-
-    _, hv = torch.autograd.functional.hvp(f, w, v)
-    fd = (grad(w + 1e-5 * v) - grad(w - 1e-5 * v)) / 2e-5
-    torch.testing.assert_close(hv, fd, atol=1e-6, rtol=1e-6)
+    assert_hvp_matches_fd(f, w, v)
     per = torch.func.vmap(torch.func.grad(lambda A: ops_torsion.face_torsion(A, mesh).square().sum()))(R)
     ref = torch.stack([torch.func.grad(lambda A: ops_torsion.face_torsion(A, mesh).square().sum())(R[i])
                        for i in range(2)])

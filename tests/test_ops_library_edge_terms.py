@@ -12,6 +12,7 @@ import math
 
 import pytest
 import torch
+from conftest import assert_hvp_matches_fd
 from torch.autograd import gradcheck, gradgradcheck
 
 import torchconn.ops
@@ -128,13 +129,7 @@ def test_hvp_matches_central_differences(mesh):
     def f(z):
         return ops_et.matched_edge_terms(so3.exp(z) @ F0, mesh.edges, idx, G, s_a=0.7, s_d=1.3)
 
-    def grad(z):
-        z = z.clone().requires_grad_()
-        return torch.autograd.grad(f(z), z)[0]
-
-    _, hv = torch.autograd.functional.hvp(f, w, v)
-    fd = (grad(w + 1e-5 * v) - grad(w - 1e-5 * v)) / 2e-5
-    torch.testing.assert_close(hv, fd, atol=1e-6, rtol=1e-6)
+    assert_hvp_matches_fd(f, w, v)
 
 
 def test_batched_vmap_and_func_transforms(mesh):
