@@ -1,6 +1,6 @@
 """The package's layering: the core never imports the application, imports only go down, no cycles.
 
-Layer order (docs/architecture.md): ``tolerances < ops < lie < mesh < dec < nn < frames``; the
+Layer order (docs/architecture.md): ``tolerances < ops < lie < mesh < dec < nn < frames < hexmesh``; the
 jobs (``training/``), ``studies/`` and ``benchmarks/`` sit on top. The checks walk the source
 tree, so they hold for whatever modules each layer holds.
 """
@@ -16,9 +16,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "torchconn"
-LAYERS = ("tolerances", "ops", "lie", "mesh", "dec", "nn", "frames")
-CORE = LAYERS[:-1]
-APPLICATION_PREFIXES = ("torchconn.frames", "torchconn.training", "training", "studies", "benchmarks")
+LAYERS = ("tolerances", "ops", "lie", "mesh", "dec", "nn", "frames", "hexmesh")
+CORE = LAYERS[:-2]
+APPLICATION_PREFIXES = ("torchconn.frames", "torchconn.hexmesh", "torchconn.training", "training", "studies", "benchmarks")
 MESH_IO_DEPENDENCIES = ("meshio", "igl", "pymeshlab")
 
 

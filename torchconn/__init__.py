@@ -10,6 +10,7 @@ Layers, each importing only the ones above it:
   dnabla, bianchi;
 * :mod:`torchconn.nn` -- ``nn.Module`` wrappers;
 * :mod:`torchconn.frames` -- the application: octahedral frame fields on tet meshes.
+* :mod:`torchconn.hexmesh` -- hexahedral meshes from frame fields (integer-grid map, extraction).
 
 The report's modules are also reachable from the top level (``torchconn.so3``,
 ``torchconn.curvature``, ...). The core (``tolerances`` ... ``nn``) never imports the
@@ -36,11 +37,11 @@ from .tolerances import get_eps
 __version__ = "0.1.0"
 
 #: Subpackages of the application, imported on first attribute access (PEP 562).
-_LAZY_SUBPACKAGES = ("frames",)
+_LAZY_SUBPACKAGES = ("frames", "hexmesh")
 
 __all__ = [
     # submodules
-    "lie", "mesh", "ops", "dec", "nn", "frames", "tolerances",
+    "lie", "mesh", "ops", "dec", "nn", "frames", "hexmesh", "tolerances",
     "so3", "son", "io", "transport", "connection", "smooth", "curvature", "chains", "torsion", "dnabla", "bianchi",
     # meshes
     "TetMesh", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",
