@@ -9,8 +9,8 @@ import torch
 from torchconn import io, so3
 from torchconn.frames.constraints import BoundaryConstraint, boundary_face_normals, feature_edges
 from torchconn.frames.formats import read_fra, read_mouette_frame, write_fra, write_mouette_frame
-from torchconn.mesh import TetMesh
 from torchconn.mesh.cad import cad_tags_from_elements, load_tagged_msh
+from torchconn.mesh.convert import from_meshio, to_meshio
 
 
 @pytest.fixture(scope="module")
@@ -74,15 +74,15 @@ def test_mouette_frame_round_trip_and_layout(tmp_path, cube, gen):
 # ----------------------------------------------------------------------------- meshio, boundary surface
 def test_meshio_round_trip(tmp_path, cube, gen):
     pytest.importorskip("meshio", reason="meshio is part of the io extra")
-    m = cube.to_meshio(point_data={"w": torch.arange(cube.n_vertices)}, cell_data={"q": torch.ones(cube.n_tets, 3)})
+    m = to_meshio(cube, point_data={"w": torch.arange(cube.n_vertices)}, cell_data={"q": torch.ones(cube.n_tets, 3)})
     assert m.cells[0].type == "tetra" and len(m.cells) == 1
-    back = TetMesh.from_meshio(m)
+    back = from_meshio(m)
     assert torch.equal(back.vertices, cube.vertices) and torch.equal(back.tets, cube.tets)
     assert back.cad is None
     m.write(tmp_path / "c.vtu")
     import meshio
 
-    again = TetMesh.from_meshio(meshio.read(tmp_path / "c.vtu"))
+    again = from_meshio(meshio.read(tmp_path / "c.vtu"))
     assert torch.equal(again.tets, cube.tets) and torch.equal(again.vertices, cube.vertices)
 
 
@@ -122,7 +122,7 @@ def test_tagged_msh_written_by_meshio_reads_back(tmp_path, cube):
     cube = cube.to()  # a copy: tags on the shared fixture would leak into other tests
     cube.cad = cad_tags_from_elements(cube, bf, surf, fe, curve, corners, 1000 + torch.arange(corners.numel()))
     assert cube.cad.n_surfaces == 6 and cube.cad.n_curves == 12 and corners.numel() == 8
-    m = cube.to_meshio()
+    m = to_meshio(cube)
     assert [c.type for c in m.cells] == ["tetra", "triangle", "line", "vertex"]
     m.write(tmp_path / "t.msh", file_format="gmsh22", binary=False)
     back = load_tagged_msh(tmp_path / "t.msh")

@@ -1,4 +1,5 @@
-"""The package's layering: the core never imports the application, imports only go down, no cycles.
+"""The package's layering: the core never imports the application, imports only go down, no cycles
+(imports inside functions included).
 
 Layer order (docs/architecture.md): ``tolerances < ops < lie < mesh < dec < nn < frames < hexmesh``; the
 jobs (``training/``), ``studies/`` and ``benchmarks/`` sit on top. The checks walk the source
@@ -221,10 +222,50 @@ def _cycles(graph: dict[str, list[str]]) -> list[list[str]]:
     return components
 
 
+def _cycle_report(modules: dict[str, Path], module_level_only: bool) -> list[str]:
+    """Each cycle of the import graph of ``modules`` as its modules and the import statements
+    between them (``file:line``, marked ``(in a function)`` when not at module level)."""
+    imports = _imports(modules)
+    graph = {m: sorted({t for t, _, top in edges if top or not module_level_only}) for m, edges in imports.items()}
+    report = []
+    for component in _cycles(graph):
+        members = set(component)
+        lines = [
+            f"  {modules[m].name if not modules[m].is_relative_to(ROOT) else modules[m].relative_to(ROOT)}:{line}: "
+            f"imports {t}" + ("" if top else " (in a function)")
+            for m in component for t, line, top in imports[m]
+            if t in members and (top or not module_level_only)
+        ]
+        report.append(" <-> ".join(component) + "\n" + "\n".join(sorted(set(lines))))
+    return report
+
+
 def test_no_import_cycles_between_modules():
     """Module-level imports form no cycle (a package's ``__init__`` counts as its own module)."""
-    graph = {m: sorted({t for t, _, top in edges if top}) for m, edges in _imports(_modules()).items()}
-    assert _cycles(graph) == []
+    assert _cycle_report(_modules(), module_level_only=True) == []
+
+
+def test_no_import_cycles_including_function_level_imports():
+    """No cycle either when the imports inside functions and methods count: deferring an import
+    into a function hides a cycle, it does not remove it (one home per concept: the lower module
+    must not need the upper one). A package ``__init__`` is a module of its own, as above."""
+    cycles = _cycle_report(_modules(), module_level_only=False)
+    assert cycles == [], "import cycles (function-level imports included):\n" + "\n".join(cycles)
+
+
+def test_function_level_cycle_is_seen(tmp_path):
+    """On a two-module package whose cycle closes inside a method, the module-level check passes
+    and the full check names the cycle and the function-level import."""
+    (tmp_path / "__init__.py").write_text("")
+    (tmp_path / "a.py").write_text("from .b import f\n")
+    (tmp_path / "b.py").write_text("def f():\n    return 1\n\n\nclass C:\n    def g(self):\n"
+                                   "        from .a import f\n        return f()\n")
+    modules = {"torchconn": tmp_path / "__init__.py", "torchconn.a": tmp_path / "a.py",
+               "torchconn.b": tmp_path / "b.py"}
+    assert _cycle_report(modules, module_level_only=True) == []
+    report = _cycle_report(modules, module_level_only=False)
+    assert len(report) == 1 and report[0].startswith("torchconn.a <-> torchconn.b")
+    assert "b.py:7: imports torchconn.a (in a function)" in report[0] and "a.py:1: imports torchconn.b" in report[0]
 
 
 def test_cycle_detection_sees_a_cycle():

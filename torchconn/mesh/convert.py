@@ -1,13 +1,14 @@
-"""Conversions of a :class:`TetMesh` to and from other libraries' meshes.
+"""Conversions of a :class:`TetMesh` to and from meshio's meshes.
 
 - :func:`to_meshio` / :func:`from_meshio`: a ``meshio.Mesh`` with a ``tetra`` block (and, for a
   mesh with CAD tags, ``triangle``/``line``/``vertex`` blocks carrying them as gmsh physical
   tags, so ``to_meshio(mesh).write("x.msh", file_format="gmsh22")`` is read back by
   :func:`~torchconn.mesh.cad.load_tagged_msh`).
-- :func:`boundary_surface`: the outward boundary triangle surface as compact ``(V, F)`` tensors.
 
-:class:`TetMesh` delegates to these functions (``TetMesh.from_meshio``, ``mesh.to_meshio()``,
-``mesh.boundary_surface()``). meshio is imported inside the functions that use it.
+Layering inside :mod:`torchconn.mesh`: this module sits above :mod:`.tet` and :mod:`.cad` (it
+imports both, neither imports it), so the conversions are functions here, not ``TetMesh``
+methods; the boundary surface, which needs no other library, is the method
+:meth:`TetMesh.boundary_surface`. meshio is imported inside the functions that use it.
 """
 from __future__ import annotations
 
@@ -17,19 +18,7 @@ import torch
 from .cad import _mesh_from_meshio
 from .tet import TetMesh
 
-__all__ = ["to_meshio", "from_meshio", "boundary_surface"]
-
-
-def boundary_surface(mesh: TetMesh) -> tuple[torch.Tensor, torch.Tensor]:
-    """The boundary surface as ``(V (Vb, 3) float, F (B, 3) long)``.
-
-    Vertex ``i`` of the surface is mesh vertex ``mesh.boundary_vertices[i]``; face ``k`` is
-    ``mesh.boundary_faces[k]`` re-indexed, outward oriented (counter-clockwise seen from
-    outside). Same dtype/device as the mesh.
-    """
-    remap = torch.full((mesh.n_vertices,), -1, dtype=torch.long, device=mesh.device)
-    remap[mesh.boundary_vertices] = torch.arange(mesh.boundary_vertices.numel(), device=mesh.device)
-    return mesh.vertices[mesh.boundary_vertices], remap[mesh.boundary_faces]
+__all__ = ["to_meshio", "from_meshio"]
 
 
 def _np(x) -> np.ndarray:

@@ -342,18 +342,28 @@ class TetMesh(MeshBase):
         ft = self.face_tets
         return ft[(ft >= 0).all(dim=1)]
 
+    def boundary_surface(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The outward boundary surface as compact ``(V (Vb, 3) float, F (B, 3) long)`` tensors.
+
+        Vertex ``i`` of the surface is mesh vertex ``boundary_vertices[i]``; face ``k`` is
+        ``boundary_faces[k]`` re-indexed, outward oriented (counter-clockwise seen from
+        outside). Same dtype/device as the mesh.
+        """
+        remap = torch.full((self.n_vertices,), -1, dtype=torch.long, device=self.device)
+        remap[self.boundary_vertices] = torch.arange(self.boundary_vertices.numel(), device=self.device)
+        return self.vertices[self.boundary_vertices], remap[self.boundary_faces]
+
     def boundary_complex(self, compact: bool = True) -> "CellComplex":
         """The boundary surface as a :class:`CellComplex` of outward triangles.
 
         With ``compact=True`` (default) it holds only the boundary vertices: its vertex ``i``
         is mesh vertex ``boundary_vertices[i]`` and its face ``k`` is ``boundary_faces[k]``
-        re-indexed. With ``compact=False`` it keeps all mesh vertices (interior ones unused).
+        re-indexed (:meth:`boundary_surface`). With ``compact=False`` it keeps all mesh
+        vertices (interior ones unused).
         """
         if not compact:
             return CellComplex(self.vertices, self.boundary_faces)
-        remap = torch.full((self.n_vertices,), -1, dtype=torch.long, device=self.device)
-        remap[self.boundary_vertices] = torch.arange(self.boundary_vertices.numel(), device=self.device)
-        return CellComplex(self.vertices[self.boundary_vertices], remap[self.boundary_faces])
+        return CellComplex(*self.boundary_surface())
 
     def as_cell_complex(self) -> "CellComplex":
         """See :func:`tet_mesh_as_cell_complex`."""
@@ -399,7 +409,7 @@ class TetMesh(MeshBase):
         kids[neg] = kids[neg][:, [0, 1, 3, 2]]
         return TetMesh(v, kids, dtype=self.dtype, device=self.device)
 
-    # ------------------------------------------------------------------ CAD tags, conversion
+    # ------------------------------------------------------------------ CAD tags
     @property
     def cad(self):
         """CAD entities (:class:`torchconn.mesh.cad.CadTags`) set by
@@ -418,21 +428,6 @@ class TetMesh(MeshBase):
                             f"this mesh has F = {self.n_faces} faces")
         self.__dict__["_cad"] = tags
 
-    @classmethod
-    def from_meshio(cls, m, **kwargs) -> "TetMesh":
-        """See :func:`torchconn.mesh.convert.from_meshio`."""
-        from .convert import from_meshio
-        return from_meshio(m, **kwargs)
-
-    def to_meshio(self, **kwargs):
-        """See :func:`torchconn.mesh.convert.to_meshio`."""
-        from .convert import to_meshio
-        return to_meshio(self, **kwargs)
-
-    def boundary_surface(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """See :func:`torchconn.mesh.convert.boundary_surface`."""
-        from .convert import boundary_surface
-        return boundary_surface(self)
 
 
 def _check_volume_range(vol6: torch.Tensor, L: torch.Tensor) -> None:
