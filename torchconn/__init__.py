@@ -28,8 +28,8 @@ from .dec.connection import Connection
 from .dec.smooth import FunctionConnection, ReportConnection, SmoothConnection, evaluate_2form, unit_normal
 from .lie import so3, son
 from .mesh import (
-    CellComplex, FaceGroup, MeshError, TetMesh, ball, box, cylinder, io, load_mesh, load_polygon_surface, load_surface,
-    load_tet_mesh, tet_mesh_as_cell_complex, tetrahedralize, torus,
+    CellComplex, FaceGroup, MeshError, TetMesh, TetMeshBatch, ball, box, cylinder, io, join_meshes, load_mesh,
+    load_polygon_surface, load_surface, load_tet_mesh, tet_mesh_as_cell_complex, tetrahedralize, torus,
 )
 from .nn import AveragedCovariantD, BianchiCheck, ConnectionField, CovariantD, Curvature, Torsion
 from .tolerances import get_eps
@@ -44,7 +44,7 @@ __all__ = [
     "lie", "mesh", "ops", "dec", "nn", "frames", "hexmesh", "tolerances",
     "so3", "son", "io", "transport", "connection", "smooth", "curvature", "chains", "torsion", "dnabla", "bianchi",
     # meshes
-    "TetMesh", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",
+    "TetMesh", "TetMeshBatch", "join_meshes", "CellComplex", "FaceGroup", "MeshError", "tet_mesh_as_cell_complex",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
     "box", "ball", "cylinder", "torus",
     # connections

@@ -8,14 +8,16 @@ Modules: :mod:`.base` (:class:`MeshBase`, what both complexes share: edge lookup
 buffers, device moves, the ``require`` cache), :mod:`.tet`, :mod:`.cells`, :mod:`.simplex`
 (local simplex templates), :mod:`.errors`, :mod:`.io` (files), :mod:`.builtin` (meshes
 without files), :mod:`.cad` (CAD models through gmsh, tagged ``.msh``; the ``cad`` extra),
-:mod:`.convert` (meshio conversion).
+:mod:`.convert` (meshio conversion), :mod:`.batch` (several meshes as one disjoint union,
+:func:`join_meshes`).
 
 Inside the package each module imports only modules to its left in ``errors, base, simplex,
-cells, tet, cad, convert, builtin, io`` (function-level imports included; no cycle,
+cells, tet, cad, batch, convert, builtin, io`` (function-level imports included; no cycle,
 ``tests/test_layering.py``).
 """
-from . import builtin, cad, convert, io, simplex
+from . import batch, builtin, cad, convert, io, simplex
 from .base import FaceGroup, MeshBase
+from .batch import TetMeshBatch, join_meshes
 from .builtin import ball, box, cylinder, tetrahedralize, torus
 from .cad import CadTags, load_cad, load_hexme, load_tagged_msh
 from .cells import CellComplex, tet_mesh_as_cell_complex
@@ -25,8 +27,8 @@ from .io import load_mesh, load_polygon_surface, load_surface, load_tet_mesh
 from .tet import TetMesh
 
 __all__ = [
-    "io", "builtin", "simplex", "cad", "convert",
-    "MeshError", "MeshBase", "TetMesh", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
+    "io", "builtin", "simplex", "cad", "convert", "batch",
+    "MeshError", "MeshBase", "TetMesh", "TetMeshBatch", "join_meshes", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
     "box", "ball", "cylinder", "torus",
     "CadTags", "load_cad", "load_tagged_msh", "load_hexme", "to_meshio", "from_meshio",
