@@ -30,6 +30,7 @@ import torch
 
 from . import native as _native
 from ._cache import require as _require
+from ._cache import traced_constant
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
@@ -277,8 +278,10 @@ class _CurvatureBwdFn(torch.autograd.Function):
 
 # ----------------------------------------------------------------------------- tables, public
 
+@traced_constant
 def _tables(mesh, device):
-    """``(face_index (3, F) int64, inc_ptr (E + 1) int32, inc (3F) int32)`` on ``device``, once per mesh."""
+    """``(face_index (3, F) int64, inc_ptr (E + 1) int32, inc (3F) int32)`` on ``device``, once per mesh
+    (built eagerly on the real mesh, also when asked while ``torch.compile`` traces: :mod:`._cache`)."""
     def build(m):
         fi = m.face_edges[:, [2, 0, 1]].t().contiguous()  # rows ab, bc, ac
         E = int(m.edges.shape[0])

@@ -65,6 +65,7 @@ import torch
 from . import _frame_loss_torch as _T
 from . import native as _native
 from ._cache import require as _require
+from ._cache import traced_constant
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
@@ -449,12 +450,15 @@ class _LossFn(torch.autograd.Function):
 
 # ----------------------------------------------------------------------------- public function
 
+@traced_constant
 def mesh_tables(mesh, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(edges (E, 2) int64, face_edges (F, 3) int64, edge_vec (E, 3), face_area (F,))`` of ``mesh``.
 
     ``face_edges`` = canonical edges ``ab, bc, ac`` of each sorted face ``[a<b<c]``,
     ``edge_vec = v_j - v_i`` and the face areas in ``dtype`` (formed in float64), on ``device``.
-    Built once per mesh, dtype and device (``mesh.require``); immutable.
+    Built once per mesh, dtype and device (``mesh.require``); immutable. While ``torch.compile``
+    traces, built (or found) on the real mesh at trace time and passed to the graph as
+    constants (:func:`torchconn.ops._cache.traced_constant`).
     """
     dev = torch.device(device)
 

@@ -18,11 +18,17 @@ The op ``torchconn::tet_dd`` (:func:`tet_dd`) maps ``edge_rot (*B, E, 3, 3)`` an
   so that no two chunks of a color share an edge), whose own autograd differentiates the
   generic torch formula: double backward, ``create_graph`` and Hessian-vector products are exact
   on every path;
-* vmap: :func:`torchconn.ops._library.leading_vmap` (native leading batch dims). Autograd
-  outside ``vmap`` works; ``torch.func.grad`` / ``jvp`` / ``jacrev`` over the op raise
-  ``RuntimeError`` from torch (``torch.library`` autograd registrations do not support
-  functorch transforms in torch 2.13): use ``torch.autograd.grad`` /
-  ``torch.autograd.functional``.
+* vmap: :func:`torchconn.ops._library.leading_vmap` (native leading batch dims);
+* ``torch.func``: the ``autograd.Function`` that ``register_autograd`` generates has no
+  ``setup_context``, which ``torch.func.grad`` / ``vmap(grad)`` / ``jacrev`` refuse
+  (pytorch/pytorch#168393), so eager calls go through an ``autograd.Function`` of the same two
+  ops (:func:`_func_wrapper`: ``setup_context``, a backward whose own derivative and ``jvp``
+  are ``torch.func`` of the generic formula, vmap rule generated); while ``torch.compile``
+  traces, the op itself is called (dynamo does not trace a custom ``jvp``; the op's own
+  autograd applies), as in :mod:`torchconn.ops.so3`.
+
+The tables are built once per mesh on the real mesh tensors, also when first asked for inside a
+``torch.func`` transform or while ``torch.compile`` traces (:mod:`torchconn.ops._cache`).
 
 The variants with ``θ̃`` (and ``√R``) formed inside the kernel, ``torchconn::tet_dd_sqrt`` and
 ``torchconn::tet_dd_rot``, and the mesh-level entry point ``tet_dd_solder`` that
@@ -39,6 +45,8 @@ import torch
 from . import _tet_soa
 from . import native as _native
 from ._cache import require as _require
+from ._cache import traced_constant
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
 from .backend import can_use_compiled
@@ -53,7 +61,6 @@ __all__ = ["TetKernel", "tet_kernel", "edge_solder_sqrt", "tet_dd", "tet_dd_from
 #: 1.4 s instead of 0.14 s while another process held one of the two cores.
 CHUNK = 4096
 
-_FIELDS = ("rot_index", "theta_index", "order", "chunk_start", "color_start")
 _I64 = ctypes.c_int64
 _P = ctypes.c_void_p
 _FWD = {dt: _native.declare("tet", f"tet_dd_fwd_{sfx}", [_P, _P, _P, _P, _P, _I64, _I64, _I64, ctypes.c_int])
@@ -150,7 +157,7 @@ class TetKernel:
 
     def tables(self) -> tuple[torch.Tensor, ...]:
         """``(rot_index, theta_index, order, chunk_start, color_start)``: the table arguments of :func:`tet_dd`."""
-        return tuple(getattr(self, name) for name in _FIELDS)
+        return _tables(self)
 
     def to(self, device) -> "TetKernel":
         """A copy with the tables on ``device`` (``self`` is left as it is)."""
@@ -167,8 +174,20 @@ class TetKernel:
         return new
 
 
+def _tables(kernel: TetKernel) -> tuple[torch.Tensor, ...]:
+    """:meth:`TetKernel.tables` as attribute reads: while ``torch.compile`` traces, a kernel is a
+    constant of the graph (:func:`tet_kernel`) whose attributes dynamo reads but whose methods it
+    cannot call (no guardable source)."""
+    return kernel.rot_index, kernel.theta_index, kernel.order, kernel.chunk_start, kernel.color_start
+
+
+@traced_constant
 def tet_kernel(mesh, device: torch.device | str | None = None) -> TetKernel:
-    """The :class:`TetKernel` of ``mesh`` on ``device`` (default: the mesh's), cached with ``mesh.require``."""
+    """The :class:`TetKernel` of ``mesh`` on ``device`` (default: the mesh's), cached with ``mesh.require``.
+
+    Built eagerly on the real mesh tensors, also when first asked for inside a ``torch.func``
+    transform or while ``torch.compile`` traces (then at trace time; the tables enter the graph
+    as constants): :mod:`torchconn.ops._cache`."""
     k = _require(mesh, "ops.tet_kernel", TetKernel)
     if device is None or k.rot_index.device == torch.device(device):
         return k
@@ -312,6 +331,79 @@ _tet_dd_op.register_vmap(leading_vmap(_tet_dd_op, "tet_dd", batched=(0, 1)))
 _tet_dd_backward_op.register_vmap(leading_vmap(_tet_dd_backward_op, "tet_dd_backward", batched=(0, 1, 2), n_out=2))
 
 
+def _func_wrapper(op, bwd_op, generic_fwd, n_diff: int):
+    """``op`` (a tet op: ``n_diff`` differentiable inputs, then the five tables of
+    :meth:`TetKernel.tables`) through ``autograd.Function`` s with ``setup_context``, for eager
+    calls and the ``torch.func`` transforms (module doc).
+
+    Forward is ``op``, backward ``bwd_op`` (``(*inputs, grad, *tables)`` -> the ``n_diff``
+    gradients; C on the CPU); the backward's own backward and both ``jvp`` are ``torch.func``
+    of ``generic_fwd(*inputs, rot_index, theta_index)``, the generic torch formula, so higher
+    derivatives are exact on every path. ``generate_vmap_rule``: under ``vmap`` the ops' own
+    vmap rules run. Returns ``call(*inputs, *tables)``: the op itself while ``torch.compile``
+    traces."""
+
+    def vjp_generic(*args):  # (*inputs, grad, rot_index, theta_index) -> n_diff gradients
+        *xs, g, ri, ti = args
+        return torch.func.vjp(lambda *d: generic_fwd(*d, ri, ti), *xs)[1](g)
+
+    class Backward(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(*args):
+            return bwd_op(*args)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs[:n_diff + 1])
+            ctx.save_for_forward(*inputs[:n_diff + 1])
+            ctx.tables = inputs[n_diff + 1:n_diff + 3]
+
+        @staticmethod
+        def backward(ctx, *gg):
+            xs = ctx.saved_tensors
+            gg = tuple(torch.zeros_like(x) if g is None else g for g, x in zip(gg, xs))
+            res = torch.func.vjp(lambda *a: vjp_generic(*a, *ctx.tables), *xs)[1](gg)
+            return (*res, None, None, None, None, None)
+
+        @staticmethod
+        def jvp(ctx, *tangents):
+            xs = ctx.saved_tensors
+            return _library_jvp(lambda *a: vjp_generic(*a, *ctx.tables), xs, tangents[:n_diff + 1])
+
+    class Fn(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(*args):
+            return op(*args)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs[:n_diff])
+            ctx.save_for_forward(*inputs[:n_diff])
+            ctx.tables = inputs[n_diff:]
+
+        @staticmethod
+        def backward(ctx, grad):
+            gs = Backward.apply(*ctx.saved_tensors, grad.contiguous(), *ctx.tables)
+            return (*(g if n else None for g, n in zip(gs, ctx.needs_input_grad)), None, None, None, None, None)
+
+        @staticmethod
+        def jvp(ctx, *tangents):
+            ri, ti = ctx.tables[:2]
+            return _library_jvp(lambda *d: generic_fwd(*d, ri, ti), ctx.saved_tensors, tangents[:n_diff])
+
+    def call(*args):
+        return op(*args) if torch.compiler.is_compiling() else Fn.apply(*args)
+
+    return call
+
+
+_tet_dd_call = _func_wrapper(_tet_dd_op, _tet_dd_backward_op, _generic_fwd, 2)
+
+
 def tet_dd(edge_rot: torch.Tensor, edge_theta: torch.Tensor, kernel: TetKernel) -> torch.Tensor:
     """``torchconn::tet_dd`` on the tables of ``kernel``: ``(*B, E, 3, 3)``, ``(*B, E, 2, 3)`` -> ``(*B, T, 3)``.
 
@@ -329,7 +421,7 @@ def tet_dd(edge_rot: torch.Tensor, edge_theta: torch.Tensor, kernel: TetKernel) 
     if edge_theta.dtype != edge_rot.dtype or edge_theta.device != edge_rot.device:
         raise ValueError(f"tet_dd: edge_theta ({edge_theta.dtype}, {edge_theta.device}) must match edge_rot "
                          f"({edge_rot.dtype}, {edge_rot.device})")
-    return _tet_dd_op(edge_rot, edge_theta, *kernel.tables())
+    return _tet_dd_call(edge_rot, edge_theta, *_tables(kernel))
 
 
 def tet_dd_from_rotations(rot: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:

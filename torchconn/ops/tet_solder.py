@@ -3,7 +3,8 @@
 Two custom ops next to ``torchconn::tet_dd`` of :mod:`torchconn.ops.tet` (same tables, same
 contract: CPU kernel in ``csrc/tet.c`` when :func:`torchconn.ops.backend.can_use_compiled` allows,
 generic torch kernel on every device, fake implementation, exact autograd whose backward op
-differentiates the generic formula, vmap rule):
+differentiates the generic formula, vmap rule, and the ``autograd.Function`` of
+:func:`torchconn.ops.tet._func_wrapper` for eager calls and the ``torch.func`` transforms):
 
 * ``torchconn::tet_dd_sqrt`` (:func:`tet_dd_sqrt`): ``θ̃ = edge_solder_sqrt(√R, v_j - v_i)``
   formed per edge inside the kernel (no ``θ̃`` tensor and no ``θ̃`` gradient in memory);
@@ -29,8 +30,8 @@ from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
 from .backend import can_use_compiled
 from .so3 import sqrt as _sqrt
-from .tet import (_I64, _P, TetKernel, _c_sizes, _generic_bwd, _generic_fwd, _setup_bwd, _setup_fwd,
-                  edge_solder_sqrt, tet_dd, tet_kernel)
+from .tet import (_I64, _P, TetKernel, _c_sizes, _func_wrapper, _generic_bwd, _tables, _generic_fwd, _setup_bwd,
+                  _setup_fwd, edge_solder_sqrt, tet_dd, tet_kernel)
 from ..tolerances import get_eps
 
 __all__ = ["tet_dd_sqrt", "tet_dd_rot", "tet_dd_solder"]
@@ -152,6 +153,7 @@ _tet_dd_sqrt_backward_op.register_autograd(_backward_sqrt_bwd, setup_context=_se
 _tet_dd_sqrt_op.register_vmap(leading_vmap(_tet_dd_sqrt_op, "tet_dd_sqrt", batched=(0, 1)))
 _tet_dd_sqrt_backward_op.register_vmap(
     leading_vmap(_tet_dd_sqrt_backward_op, "tet_dd_sqrt_backward", batched=(0, 1, 3), n_out=3, summed=True))
+_tet_dd_sqrt_call = _func_wrapper(_tet_dd_sqrt_op, _tet_dd_sqrt_backward_op, _generic_sqrt_fwd, 3)
 
 
 # ---- and with √R formed inside too: torchconn::tet_dd_rot (no √R tensor, no ∂L/∂√R tensor)
@@ -262,6 +264,7 @@ _tet_dd_rot_backward_op.register_autograd(_backward_rot_bwd, setup_context=_setu
 _tet_dd_rot_op.register_vmap(leading_vmap(_tet_dd_rot_op, "tet_dd_rot", batched=(0,)))
 _tet_dd_rot_backward_op.register_vmap(
     leading_vmap(_tet_dd_rot_backward_op, "tet_dd_rot_backward", batched=(0, 2), n_out=2, summed=True))
+_tet_dd_rot_call = _func_wrapper(_tet_dd_rot_op, _tet_dd_rot_backward_op, _generic_rot_fwd, 2)
 
 
 def tet_dd_sqrt(edge_rot: torch.Tensor, half_rot: torch.Tensor, edge_vec: torch.Tensor,
@@ -281,8 +284,8 @@ def tet_dd_sqrt(edge_rot: torch.Tensor, half_rot: torch.Tensor, edge_vec: torch.
     if edge_vec.shape != (E, 3):
         raise ValueError(f"tet_dd_sqrt: edge_vec must have shape ({E}, 3), got {tuple(edge_vec.shape)}")
     batch = torch.broadcast_shapes(edge_rot.shape[:-3], half_rot.shape[:-3])
-    return _tet_dd_sqrt_op(edge_rot.expand(*batch, E, 3, 3), half_rot.expand(*batch, E, 3, 3),
-                           edge_vec.to(edge_rot), *kernel.tables())
+    return _tet_dd_sqrt_call(edge_rot.expand(*batch, E, 3, 3), half_rot.expand(*batch, E, 3, 3),
+                             edge_vec.to(edge_rot), *_tables(kernel))
 
 
 def tet_dd_rot(edge_rot: torch.Tensor, edge_vec: torch.Tensor, kernel: TetKernel) -> torch.Tensor:
@@ -297,7 +300,7 @@ def tet_dd_rot(edge_rot: torch.Tensor, edge_vec: torch.Tensor, kernel: TetKernel
         raise ValueError(f"tet_dd_rot: edge_rot must have shape (*B, {E}, 3, 3), got {tuple(edge_rot.shape)}")
     if edge_vec.shape != (E, 3):
         raise ValueError(f"tet_dd_rot: edge_vec must have shape ({E}, 3), got {tuple(edge_vec.shape)}")
-    return _tet_dd_rot_op(edge_rot, edge_vec.to(edge_rot), *kernel.tables())
+    return _tet_dd_rot_call(edge_rot, edge_vec.to(edge_rot), *_tables(kernel))
 
 
 def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = None,
