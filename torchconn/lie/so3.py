@@ -10,6 +10,18 @@ Conventions
   (docs/conventions.md §1: it maps the edge-midpoint fiber to the fiber at ``v_i``).
 * ``euler_xyz(a, b, c) = Rx(a) @ Ry(b) @ Rz(c)`` (report Sec. 3.4); this equals SciPy's
   *intrinsic* ``Rotation.from_euler("XYZ", [a, b, c])`` (upper-case axes).
+* Quaternions (:func:`quat_to_matrix`, :func:`matrix_to_quat`) are Hamilton unit quaternions
+  ``q = w + x i + y j + z k`` rotating ``x -> q x q*``; the rotation by ``t`` about the unit axis
+  ``n`` is ``(cos(t/2), sin(t/2) n)``. The storage order is an argument with no default,
+  ``convention="wxyz"`` (scalar first: pytorch3d, Eigen's constructor, ``scipy`` with
+  ``scalar_first=True``) or ``convention="xyzw"`` (scalar last: scipy's default, roma, ROS),
+  because the libraries disagree and a silent mix-up gives a valid but wrong rotation.
+  ``q`` and ``-q`` are the same rotation; :func:`matrix_to_quat` returns ``w >= 0``.
+* The 6D representation (Zhou, Barnes, Lu, Yang, Li 2019, "On the continuity of rotation
+  representations in neural networks") is the first two *columns* of ``R``, column 0 then
+  column 1: ``(R00, R10, R20, R01, R11, R21)`` (:func:`matrix_to_rot6d`); back by Gram-Schmidt
+  (:func:`rot6d_to_matrix`). pytorch3d's ``matrix_to_rotation_6d`` takes the first two *rows*
+  (its matrices act on row vectors), i.e. the 6D vector of ``R^T``.
 
 Input types
 -----------
@@ -67,7 +79,15 @@ __all__ = [
     "random_rotation",
     "check_rotation",
     "project_to_rotation",
+    "QUAT_CONVENTIONS",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "rot6d_to_matrix",
+    "matrix_to_rot6d",
 ]
+
+#: Storage orders of a quaternion's components (see the module docstring).
+QUAT_CONVENTIONS = ("wxyz", "xyzw")
 
 
 def _check_mat3(R: torch.Tensor, fn: str, arg: str = "R") -> None:
@@ -324,17 +344,7 @@ def random_rotation(
     """
     dtype = dtype or torch.get_default_dtype()
     q = torch.randn(*shape, 4, generator=generator, dtype=dtype, device=device)
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        (
-            torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)), -1),
-            torch.stack((2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)), -1),
-            torch.stack((2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)), -1),
-        ),
-        -2,
-    )
-    return R
+    return quat_to_matrix(q, convention="wxyz")
 
 
 def check_rotation(R: torch.Tensor, name: str = "R", atol: float | None = None) -> None:
@@ -362,3 +372,122 @@ def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
     D = torch.stack((ones, ones, torch.where(d < 0, -ones, ones)), -1)
     return (U * D[..., None, :]) @ Vh
 
+
+
+# ----------------------------------------------------------------------------- quaternions, 6D
+def _quat_convention(convention, fn: str) -> str:
+    if convention not in QUAT_CONVENTIONS:
+        raise ValueError(f"so3.{fn}: convention must be 'wxyz' (scalar first) or 'xyzw' (scalar last, scipy's "
+                         f"default), got {convention!r}")
+    return convention
+
+
+def quat_to_matrix(q: torch.Tensor, *, convention: str) -> torch.Tensor:
+    """Rotation of a quaternion: ``q (..., 4) -> (..., 3, 3)``.
+
+    Args:
+        q: quaternions, stored ``(w, x, y, z)`` or ``(x, y, z, w)`` as ``convention`` says; any
+            nonzero scale (``q`` is divided by ``|q|`` first, so ``q`` and ``c q`` give the same
+            rotation for every ``c != 0``).
+        convention: ``"wxyz"`` (scalar first) or ``"xyzw"`` (scalar last, scipy's default),
+            keyword only, no default (module docstring).
+
+    ``R = I + 2 w K + 2 K^2`` with ``K = hat((x, y, z))`` for the unit ``q``, i.e. the rotation by
+    ``2 atan2(|(x, y, z)|, w)`` about ``(x, y, z)``; equals scipy's
+    ``Rotation.from_quat(q, scalar_first=(convention == "wxyz")).as_matrix()``. Differentiable
+    (finite gradients for every nonzero ``q``, at the identity and at angle pi included).
+    Values are not validated (no sync): a zero quaternion gives NaN in that batch element.
+    """
+    _check_float(q, "so3.quat_to_matrix", "q")
+    if q.dim() < 1 or q.shape[-1] != 4:
+        raise ValueError(f"so3.quat_to_matrix expects a tensor of shape (..., 4), got {tuple(q.shape)}")
+    if _quat_convention(convention, "quat_to_matrix") == "xyzw":
+        q = q[..., [3, 0, 1, 2]]
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)), -1),
+            torch.stack((2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)), -1),
+            torch.stack((2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)), -1),
+        ),
+        -2,
+    )
+
+
+def matrix_to_quat(R: torch.Tensor, *, convention: str) -> torch.Tensor:
+    """Unit quaternion of a rotation: ``R (..., 3, 3) -> q (..., 4)`` with ``w >= 0``.
+
+    Args:
+        R: rotations.
+        convention: ``"wxyz"`` (scalar first) or ``"xyzw"`` (scalar last, scipy's default),
+            keyword only, no default (module docstring).
+
+    Shepperd's method, without ``acos`` and without square roots of small numbers: the four
+    rows ``4 q_i q`` (``i = w, x, y, z``) are linear in ``R``, with diagonal entries
+    ``t_i = 4 q_i^2`` (``t_w = 1 + tr R``, ``t_x = 1 + R00 - R11 - R22``, ...); the row of the
+    largest ``t_i`` (chosen without gradient) is normalized. The ``t_i`` sum to 4 for any
+    matrix, so the chosen one is at least 1: value and gradient are finite everywhere, at the
+    identity and at angle pi included, and the rows agree where the choice switches (the
+    result is continuous except where ``w`` changes sign, see below). For a matrix that is a
+    rotation only to round-off (float32 products) the result is a unit quaternion of a nearby
+    rotation; off SO(3) the rows differ to first order in the distance from SO(3), so where two
+    ``t_i`` tie the derivative is exact along rotations (``matrix_to_quat(exp(w))``) but, in
+    directions leaving SO(3), that of the chosen row.
+
+    Sign: ``q`` and ``-q`` are one rotation; the result has ``w >= 0`` (scipy's
+    ``as_quat(canonical=True)``). At angle exactly pi (``w = 0``) both signs qualify and the
+    one with the largest-magnitude component positive is returned (scipy's canonical form makes
+    the *first* nonzero component positive instead), so only there may the two differ, by sign.
+    Values are not validated (garbage in, garbage out: see :func:`check_rotation`).
+    """
+    _check_mat3(R, "matrix_to_quat")
+    convention = _quat_convention(convention, "matrix_to_quat")
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    rows = torch.stack(
+        (
+            torch.stack((1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01), -1),  # 4 w q
+            torch.stack((m21 - m12, 1 + m00 - m11 - m22, m10 + m01, m02 + m20), -1),  # 4 x q
+            torch.stack((m02 - m20, m10 + m01, 1 - m00 + m11 - m22, m12 + m21), -1),  # 4 y q
+            torch.stack((m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22), -1),  # 4 z q
+        ),
+        -2,
+    )  # (..., 4, 4), wxyz columns
+    with torch.no_grad():
+        k = rows.diagonal(dim1=-2, dim2=-1).argmax(-1)  # the largest 4 q_i^2, >= 1
+    row = torch.gather(rows, -2, k[..., None, None].expand(*k.shape, 1, 4)).squeeze(-2)
+    q = row / row.norm(dim=-1, keepdim=True)  # row_k = 4 q_k q with q_k > 0: the norm is >= 1
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q[..., [1, 2, 3, 0]] if convention == "xyzw" else q
+
+
+def rot6d_to_matrix(x: torch.Tensor) -> torch.Tensor:
+    """Rotation of a 6D vector by Gram-Schmidt: ``x (..., 6) -> (..., 3, 3)`` (Zhou et al. 2019).
+
+    With ``a1 = x[..., :3]`` and ``a2 = x[..., 3:]``, the columns of ``R`` are
+    ``b1 = a1 / |a1|``, ``b2 = (a2 - (b1 . a2) b1) / |...|`` and ``b3 = b1 x b2``: the inverse
+    of :func:`matrix_to_rot6d` on rotations (``rot6d_to_matrix(matrix_to_rot6d(R)) == R``) and
+    a continuous, differentiable map from every ``x`` with ``a1 != 0`` and ``a2`` not parallel
+    to ``a1`` (the representation learning code regresses; finite gradients at the identity and
+    at angle pi). Values are not validated (no sync): a degenerate ``x`` gives NaN in that batch
+    element.
+    """
+    _check_float(x, "so3.rot6d_to_matrix", "x")
+    if x.dim() < 1 or x.shape[-1] != 6:
+        raise ValueError(f"so3.rot6d_to_matrix expects a tensor of shape (..., 6), got {tuple(x.shape)}")
+    a1, a2 = x[..., :3], x[..., 3:]
+    b1 = a1 / a1.norm(dim=-1, keepdim=True)
+    b2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+    b2 = b2 / b2.norm(dim=-1, keepdim=True)
+    b3 = torch.linalg.cross(b1, b2, dim=-1)
+    return torch.stack((b1, b2, b3), dim=-1)
+
+
+def matrix_to_rot6d(R: torch.Tensor) -> torch.Tensor:
+    """The 6D representation of a rotation: ``R (..., 3, 3) -> (..., 6)``, its first two columns,
+    column 0 then column 1: ``(R00, R10, R20, R01, R11, R21)`` (Zhou et al. 2019; the transpose
+    of pytorch3d's ``matrix_to_rotation_6d``, see the module docstring)."""
+    _check_mat3(R, "matrix_to_rot6d")
+    return R[..., :, :2].transpose(-1, -2).reshape(*R.shape[:-2], 6)
