@@ -1,0 +1,315 @@
+"""The seamless parametrization: unknowns, constraints, frame-fitting objective, one sparse solve.
+
+Unknowns (HEXMESH.md steps 3-5; CubeCover, Nieser et al. 2011)
+-----------------------------------------------------------------
+* one parameter ``u in R^3`` per *corner copy*: the corners ``(t, k)`` of the tets (``k`` the local
+  corner, vertex ``mesh.tets[t, k]``) merged across every un-cut face (their charts agree there,
+  :mod:`.cut`); variable ``3 c + i`` is coordinate ``i`` of copy ``c``;
+* a translation ``s_f in Z^3`` per cut face (integer);
+* an integer per boundary face (the integer plane it lies on), two per meshable singular edge and
+  per constrained feature edge (the integer line), three per CAD corner.
+
+Constraints (rows of :class:`~.elimination.ConstraintRows`, eliminated exactly)
+-----------------------------------------------------------------------------------
+* cut face ``f = (t0, t1)``, each vertex ``v``: ``u_{t1}(v) = R_f u_{t0}(v) + s_f``;
+* boundary face of tet ``t`` with outward normal ``n``: coordinate ``k = argmax_k |(F_t^T n)_k|``
+  of its three corners equals the face's integer;
+* meshable singular edge (a quarter or half turn about its parameter axis ``k``), in its start
+  tet's chart: the two other coordinates of both endpoints equal the edge's two integers (the
+  transitions around the edge already put it on the turn's fixed line; this makes the line an
+  integer line);
+* feature edge (a sharp CAD curve, or a dihedral feature of an untagged mesh) whose direction
+  in a tet's chart is within ``feature_max_deg`` of a parameter axis ``k``: the other two
+  coordinates of both endpoints equal the edge's two integers;
+* CAD corner: its three coordinates are integers;
+* one vertex pinned at the origin (a corner, else a singular-edge vertex, else a boundary
+  vertex): the map is defined up to an integer translation.
+
+Objective: ``E(u) = sum_t vol_t || grad u_t (h F_t) - I ||_F^2`` with ``F_t`` the combed tet frame
+and ``h`` the hex edge length (``grad u_t`` is exact for the linear map on tet ``t``); after the
+elimination ``u = Z y + z0`` it is a quadratic in the free unknowns ``y`` whose normal equations
+``A y = b`` are solved by one sparse Cholesky factorization (:mod:`.solver`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+import torch
+
+from .cut import TetCharts, face_corner_pairs, group_matrices
+from .elimination import ConstraintRows, Elimination, eliminate
+
+__all__ = ["SeamlessProblem", "build_problem", "default_edge_length", "INTEGER_KINDS"]
+
+INTEGER_KINDS = ("translation", "boundary", "singular", "feature", "corner")
+"""What each integer unknown stands for (codes of :attr:`SeamlessProblem.var_kind` minus 1; 0 = continuous)."""
+
+
+def default_edge_length(mesh) -> float:
+    """The default hex edge length ``h``: the mean edge length of the tet mesh.
+
+    A hex then spans about one tet edge, so the parameter has several integer lines inside a
+    curvature-adapted mesh's coarsest features and the map needs no refinement of the tets
+    (HEXMESH.md: AlgoHex's rule ``h = (volume / target hex count)^(1/3)`` is the same for a
+    target count of ``volume / mean_edge^3`` hexes).
+    """
+    X = mesh.vertices.detach().cpu().double()
+    e = mesh.edges.cpu()
+    return float((X[e[:, 1]] - X[e[:, 0]]).norm(dim=1).mean())
+
+
+@dataclass
+class SeamlessProblem:
+    """The constrained least-squares problem of a seamless parametrization (module docstring).
+
+    Attributes:
+        charts: the :class:`~.cut.TetCharts` it was built from.
+        edge_length: ``h``.
+        corner_copy: ``(T, 4)`` int64, the copy of each tet corner.
+        n_copies: number of copies.
+        n_vars: number of unknowns; ``var_kind (n_vars,)`` int8 (0 continuous, else
+            ``1 + INTEGER_KINDS.index(kind)``).
+        elim: the :class:`~.elimination.Elimination` of the constraints.
+        G: ``(9T, 12T)`` CSR, ``g (9T,)``: ``grad u_t (h F_t) - I`` per tet, row ``9t + 3i + k``
+            (component ``i``, frame axis ``k``) over the corner unknowns ``12 t + 3 k' + i``
+            (``k'`` the local corner); ``vol (T,)`` the tet volumes (weights).
+        corner_var: ``(T, 4, 3)`` int64, the unknown of each corner coordinate.
+        boundary_axis: ``(B,)`` the parameter axis of each boundary face (rows of
+            ``mesh.boundary_faces``) and ``boundary_tet (B,)`` its tet.
+        feature_edges: ``(K, 2)`` the feature edges; ``feature_constrained (K,)`` bool, those
+            close enough to a parameter axis to be constrained; ``corner_vertices (C,)``.
+        pinned_vertex: the pinned vertex.
+        counts: sizes, for reports.
+    """
+
+    charts: TetCharts
+    edge_length: float
+    corner_copy: np.ndarray
+    n_copies: int
+    n_vars: int
+    var_kind: np.ndarray
+    elim: Elimination
+    G: sp.csr_matrix
+    g: np.ndarray
+    vol: np.ndarray
+    corner_var: np.ndarray
+    boundary_axis: np.ndarray
+    boundary_tet: np.ndarray
+    feature_edges: np.ndarray
+    feature_constrained: np.ndarray
+    corner_vertices: np.ndarray
+    pinned_vertex: int
+    counts: dict = field(default_factory=dict)
+
+    @property
+    def free_is_int(self) -> np.ndarray:
+        return self.elim.free_is_int
+
+    def corner_params(self, y: np.ndarray) -> np.ndarray:
+        """``(T, 4, 3)`` parameters of the tet corners from the free unknowns ``y``."""
+        x = self.elim.expand(y)
+        return x[self.corner_var]
+
+    def energy_matrices(self, weights: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray, float]:
+        """``(A, b, c)`` with ``E(y) = y^T A y - 2 b^T y + c`` for tet weights ``vol * weights``."""
+        w = self.vol if weights is None else self.vol * weights
+        W = sp.diags(np.repeat(w, 9))
+        GZ = (self.G @ self.elim.Z[self._corner_rows()]).tocsr()
+        r0 = self.G @ self.elim.z0[self._corner_rows()] - self.g
+        A = (GZ.T @ W @ GZ).tocsr()
+        b = -(GZ.T @ (W @ r0))
+        c = float(r0 @ (W @ r0))
+        return A, b, c
+
+    def _corner_rows(self) -> np.ndarray:
+        return self.corner_var.reshape(-1)
+
+
+# ----------------------------------------------------------------------------- building
+def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool = True,
+                  feature_max_deg: float = 30.0) -> SeamlessProblem:
+    """Unknowns, constraints (eliminated) and objective of the seamless map (module docstring).
+
+    Args:
+        mesh: the ``TetMesh``; ``charts``: its :func:`~.cut.tet_charts`.
+        edge_length: ``h > 0``, in the mesh's length unit.
+        features: constrain feature edges and CAD corners (a mesh's CAD tags or its dihedral
+            features, as :class:`torchconn.frames.constraints.BoundaryConstraint` finds them).
+        feature_max_deg: feature edges whose parametric direction is farther than this from
+            every axis are left free (the field does not follow them; forcing them would fold
+            the map); their number is in ``counts``.
+    """
+    if not (isinstance(edge_length, (int, float)) and math.isfinite(edge_length) and edge_length > 0):
+        raise ValueError(f"edge_length must be a positive finite number, got {edge_length!r}")
+    h = float(edge_length)
+    tets = mesh.tets.cpu().numpy()
+    faces = mesh.faces.cpu().numpy()
+    face_tets = mesh.face_tets.cpu().numpy()
+    tet_faces = mesh.tet_faces.cpu().numpy()
+    edges = mesh.edges.cpu().numpy()
+    X = mesh.vertices.detach().cpu().double().numpy()
+    T, F = tets.shape[0], faces.shape[0]
+    Gm = group_matrices()
+    frames = charts.frames
+
+    # ---- corner copies: union of corners across un-cut interior faces
+    fc = face_corner_pairs(tets, faces, tet_faces, face_tets)  # (F, 2, 3)
+    glue = charts.interior_face & ~charts.cut
+    gf = np.nonzero(glue)[0]
+    a = (face_tets[gf, 0][:, None] * 4 + fc[gf, 0]).reshape(-1)
+    b = (face_tets[gf, 1][:, None] * 4 + fc[gf, 1]).reshape(-1)
+    adj = sp.coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(4 * T, 4 * T))
+    n_copies, label = connected_components(adj, directed=False)
+    corner_copy = label.reshape(T, 4).astype(np.int64)
+
+    # ---- unknowns
+    cutf = np.nonzero(charts.cut)[0]
+    bf_index = mesh.boundary_face_index.cpu().numpy()
+    B = bf_index.size
+    sing = np.nonzero(charts.singular_edge & charts.edge_meshable)[0]
+    from ..frames.constraints import BoundaryConstraint  # the one home of feature edges
+
+    if features:
+        bc = BoundaryConstraint.from_mesh(mesh)
+        fedges = (bc.feature_edges.cpu().numpy() if bc.feature_edges is not None else np.zeros((0, 2), np.int64))
+        corners = (bc.corner_vertices.cpu().numpy() if bc.corner_vertices is not None else np.zeros(0, np.int64))
+    else:
+        fedges, corners = np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    K, C = fedges.shape[0], corners.size
+    # feature edges close enough to a parameter axis (in the chart of a tet at the edge)
+    fcon = np.zeros(K, bool)
+    if K:
+        eid, _ = mesh.edge_index(torch.as_tensor(fedges[:, 0]), torch.as_tensor(fedges[:, 1]))
+        eid = eid.cpu().numpy()
+        ft = charts.edge_start_tet[eid]
+        d = X[fedges[:, 1]] - X[fedges[:, 0]]
+        dpar = np.einsum("kji,kj->ki", frames[ft], d)
+        dn = dpar / np.linalg.norm(dpar, axis=1, keepdims=True)
+        fax = np.abs(dn).argmax(1)
+        fcon = np.abs(dn[np.arange(K), fax]) >= math.cos(math.radians(feature_max_deg))
+    fidx = np.nonzero(fcon)[0]
+    off = {}
+    n = 3 * n_copies
+    for name, size in (("translation", 3 * cutf.size), ("boundary", B), ("singular", 2 * sing.size),
+                       ("feature", 2 * fidx.size), ("corner", 3 * C)):
+        off[name] = n
+        n += size
+    var_kind = np.zeros(n, np.int8)
+    ends = [off[k] for k in INTEGER_KINDS[1:]] + [n]
+    for code, (name, end) in enumerate(zip(INTEGER_KINDS, ends), start=1):
+        var_kind[off[name]:end] = code
+    corner_var = 3 * corner_copy[:, :, None] + np.arange(3)  # (T, 4, 3)
+
+    rows = ConstraintRows()
+    # ---- cut faces: u_B[i] - R[i, j] u_A[j] - s_f[i] = 0
+    if cutf.size:
+        R = Gm[charts.face_rot[cutf]]  # (n, 3, 3)
+        j_of = np.abs(R).argmax(2)  # (n, 3): column of the nonzero in row i
+        sgn = np.take_along_axis(R, j_of[:, :, None], 2)[:, :, 0]  # (n, 3)
+        t0, t1 = face_tets[cutf, 0], face_tets[cutf, 1]
+        s_var = off["translation"] + 3 * np.arange(cutf.size)[:, None] + np.arange(3)  # (n, 3)
+        for m in range(3):  # the three vertices of each cut face
+            ca = corner_copy[t0, fc[cutf, 0, m]]
+            cb = corner_copy[t1, fc[cutf, 1, m]]
+            for i in range(3):
+                vars_ = np.stack([3 * cb + i, 3 * ca + j_of[:, i], s_var[:, i]], 1)
+                coefs = np.stack([np.ones(cutf.size), -sgn[:, i], -np.ones(cutf.size)], 1)
+                rows.add_many(vars_, coefs, label="cut face")
+
+    # ---- boundary faces: coordinate k of the three corners equals the face's integer
+    bt = np.where(face_tets[bf_index, 0] >= 0, face_tets[bf_index, 0], face_tets[bf_index, 1])
+    bfaces = mesh.boundary_faces.cpu().numpy()
+    P = X[bfaces]
+    nrm = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    npar = np.einsum("bji,bj->bi", frames[bt], nrm)
+    baxis = np.abs(npar).argmax(1)
+    slot = np.argmax(tet_faces[bt] == bf_index[:, None], axis=1)  # local slot of the face in its tet
+    bvar = off["boundary"] + np.arange(B)
+    for m in range(3):
+        loc = (slot + 1 + m) % 4  # the three other local corners
+        cv = corner_var[bt, loc, baxis]
+        rows.add_many(np.stack([cv, bvar], 1), np.array([1.0, -1.0]), label="boundary plane")
+
+    # ---- singular edges: transverse coordinates of both endpoints equal two integers
+    if sing.size:
+        st = charts.edge_start_tet[sing]
+        ax = charts.edge_axis[sing]
+        la = np.argmax(tets[st] == edges[sing, 0][:, None], axis=1)
+        lb = np.argmax(tets[st] == edges[sing, 1][:, None], axis=1)
+        others = np.stack([(ax + 1) % 3, (ax + 2) % 3], 1)
+        for q in range(2):
+            mvar = off["singular"] + 2 * np.arange(sing.size) + q
+            for loc in (la, lb):
+                cv = corner_var[st, loc, others[:, q]]
+                rows.add_many(np.stack([cv, mvar], 1), np.array([1.0, -1.0]), label="singular line")
+
+    # ---- feature edges and corners
+    if fidx.size:
+        la = np.argmax(tets[ft] == fedges[:, 0][:, None], axis=1)
+        lb = np.argmax(tets[ft] == fedges[:, 1][:, None], axis=1)
+        others = np.stack([(fax + 1) % 3, (fax + 2) % 3], 1)
+        for q in range(2):
+            mvar = off["feature"] + 2 * np.arange(fidx.size) + q
+            for loc in (la, lb):
+                cv = corner_var[ft[fidx], loc[fidx], others[fidx, q]]
+                rows.add_many(np.stack([cv, mvar], 1), np.array([1.0, -1.0]), label="feature line")
+    if C:
+        # a tet at each corner vertex: the first tet listing it
+        first = np.full(X.shape[0], tets.size, np.int64)
+        np.minimum.at(first, tets.reshape(-1), np.arange(tets.size))
+        ct, cl = first[corners] // 4, first[corners] % 4
+        for i in range(3):
+            mvar = off["corner"] + 3 * np.arange(C) + i
+            rows.add_many(np.stack([corner_var[ct, cl, i], mvar], 1), np.array([1.0, -1.0]), label="corner point")
+
+    # ---- pin one vertex at the origin
+    if C:
+        pin_t, pin_l = int(ct[0]), int(cl[0])
+    elif sing.size:
+        pin_t = int(charts.edge_start_tet[sing[0]])
+        pin_l = int(np.argmax(tets[pin_t] == edges[sing[0], 0]))
+    else:
+        pin_t = int(bt[0]) if B else 0
+        pin_l = int((slot[0] + 1) % 4) if B else 0
+    for i in range(3):
+        rows.add([corner_var[pin_t, pin_l, i]], [1.0], 0.0, label="pinned point")
+    pinned_vertex = int(tets[pin_t, pin_l])
+
+    is_int = var_kind > 0
+    elim = eliminate(rows, n, is_int)
+
+    # ---- objective rows: grad u_t (h F_t) - I
+    Xt = X[tets]  # (T, 4, 3)
+    Em = np.transpose(Xt[:, 1:] - Xt[:, :1], (0, 2, 1))  # (T, 3, 3) columns x_m - x_0
+    D = np.linalg.inv(Em)  # (T, 3, 3): grad of the barycentric-difference coordinates
+    M = D @ frames * h  # (T, 3, 3), rows m (corner m+1), columns k (frame axis)
+    coef = np.concatenate([-M.sum(1, keepdims=True), M], 1)  # (T, 4, 3): corner k', axis k
+    vol = np.abs(np.linalg.det(Em)) / 6.0
+    # row 9t + 3i + k, column 12t + 3k' + i (corner-major unknowns of corner_var's order)
+    t_idx = np.arange(T)[:, None, None, None]
+    i_idx = np.arange(3)[None, :, None, None]
+    k_idx = np.arange(3)[None, None, :, None]
+    kp = np.arange(4)[None, None, None, :]
+    rr = np.broadcast_to(9 * t_idx + 3 * i_idx + k_idx, (T, 3, 3, 4))
+    cc = np.broadcast_to(12 * t_idx + 3 * kp + i_idx, (T, 3, 3, 4))
+    vv = np.broadcast_to(np.transpose(coef, (0, 2, 1))[:, None, :, :], (T, 3, 3, 4))
+    G = sp.csr_matrix((vv.reshape(-1), (rr.reshape(-1), cc.reshape(-1))), shape=(9 * T, 12 * T))
+    g = np.broadcast_to(np.eye(3).reshape(1, 9), (T, 9)).reshape(-1).copy()
+
+    counts = {
+        "tets": int(T), "corner_copies": int(n_copies), "unknowns": int(n), "rows": len(rows),
+        "free_unknowns": int(elim.free.size), "free_integers": int(elim.free_is_int.sum()),
+        "redundant_rows": int(elim.redundant), "conflicting_rows": len(elim.conflicts),
+        "relaxed_integers": len(elim.relaxed_integers), "cut_faces": int(cutf.size),
+        "boundary_faces": int(B), "singular_edges_constrained": int(sing.size),
+        "feature_edges": int(K), "feature_edges_constrained": int(fcon.sum()),
+        "feature_edges_free": int(K - fidx.size), "corners": int(C),
+    }
+    return SeamlessProblem(charts=charts, edge_length=h, corner_copy=corner_copy, n_copies=int(n_copies), n_vars=n,
+                           var_kind=var_kind, elim=elim, G=G, g=g, vol=vol, corner_var=corner_var,
+                           boundary_axis=baxis, boundary_tet=bt, feature_edges=fedges, feature_constrained=fcon,
+                           corner_vertices=corners, pinned_vertex=pinned_vertex, counts=counts)

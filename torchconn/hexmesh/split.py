@@ -1,0 +1,207 @@
+"""Edge splits that separate the singular edges before the map (HEXMESH.md step 1).
+
+A map sends every vertex of a singular edge onto an integer line. A tet whose vertices all lie
+on singular edges (two singular edges of one chain sharing a vertex, or two opposite ones)
+then has a face or edge that the constraints collapse onto that line, and an interior edge
+whose two ends lie on the boundary can be pressed flat between boundary planes. The remedy of
+the hex-meshing pipelines is to split such edges first: the midpoint ``m`` of an edge ``(a, b)``
+replaces every tet ``(a, b, c, d)`` around it by ``(m, b, c, d)`` and ``(a, m, c, d)`` (same
+orientation), both children keep the parent's frame, so the transitions inside a parent are the
+identity and every holonomy, hence the singular structure, is unchanged; the original vertices
+keep their index and coordinates (the map is of the refined mesh, vertices ``V..`` appended).
+CAD tags follow the split (a tagged boundary triangle and a tagged curve edge become two).
+
+Rules, applied in rounds until none applies (each round splits a set of edges no two of which
+share a tet, so every parent tet is split at most once per round):
+
+* ``"singular"``: a non-singular edge whose two ends lie on singular edges;
+* ``"boundary"``: an interior edge whose two ends lie on the boundary.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["SplitResult", "split_for_map", "split_edges", "SPLIT_RULES"]
+
+SPLIT_RULES = ("singular", "boundary")
+
+
+@dataclass
+class SplitResult:
+    """The refined mesh and its frames.
+
+    Attributes:
+        mesh: the refined ``TetMesh`` (original vertices first, same coordinates).
+        tet_frames: ``(T', 3, 3)`` float64 frames, each child tet with its parent's frame.
+        parent_tet: ``(T',)`` int64, the original tet each tet comes from.
+        splits: ``{rule: number of edges split}``; ``rounds``: the rounds run.
+        face_match: ``(F',)`` the carried face matchings (``None`` if none were given).
+    """
+
+    mesh: object
+    tet_frames: torch.Tensor
+    parent_tet: np.ndarray
+    splits: dict
+    rounds: int
+    face_match: np.ndarray | None = None
+
+
+def _independent(tet_edges: np.ndarray, cand: np.ndarray, E: int) -> np.ndarray:
+    """A maximal subset of the candidate edges no two of which share a tet (greedy in edge order;
+    a loop over the candidates, one-time setup)."""
+    if cand.size == 0:
+        return cand
+    T = tet_edges.shape[0]
+    inc_e = tet_edges.reshape(-1)
+    inc_t = np.repeat(np.arange(T), 6)
+    order = np.argsort(inc_e, kind="stable")
+    ptr = np.searchsorted(inc_e[order], np.arange(E + 1))
+    tets_of = inc_t[order]
+    taken = np.zeros(T, bool)
+    chosen = []
+    for e in np.sort(cand).tolist():
+        ts = tets_of[ptr[e]:ptr[e + 1]]
+        if not taken[ts].any():
+            taken[ts] = True
+            chosen.append(e)
+    return np.asarray(chosen, np.int64)
+
+
+def split_edges(mesh, tet_frames: torch.Tensor, edge_ids: np.ndarray, face_match: np.ndarray | None = None):
+    """Split the edges ``edge_ids`` (no two in one tet) at their midpoints (module docstring).
+
+    ``face_match (F,)``: face matchings of ``mesh`` (:func:`~.cut.tet_charts`) to carry over: a
+    face inside a parent tet gets the identity, a piece of an old face the old face's matching.
+
+    Returns ``(new_mesh, new_tet_frames, parent (T',), new_face_match (F',) or None)``.
+    """
+    from ..mesh.cad import cad_tags_from_elements
+    from ..mesh.tet import TetMesh
+
+    tets = mesh.tets.cpu().numpy()
+    edges = mesh.edges.cpu().numpy()
+    X = mesh.vertices.detach().cpu()
+    V, T = X.shape[0], tets.shape[0]
+    edge_ids = np.asarray(edge_ids, np.int64)
+    mid_of = np.full(edges.shape[0], -1, np.int64)
+    mid_of[edge_ids] = V + np.arange(edge_ids.size)
+    newX = torch.cat([X, 0.5 * (X[edges[edge_ids, 0]] + X[edges[edge_ids, 1]])])
+    tet_edges = mesh.tet_edges.cpu().numpy()
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    hit = mid_of[tet_edges] >= 0  # (T, 6)
+    if (hit.sum(1) > 1).any():
+        raise ValueError("split_edges: two edges of one tet in one round")
+    t_hit = np.nonzero(hit.any(1))[0]
+    p = hit[t_hit].argmax(1)
+    m = mid_of[tet_edges[t_hit, p]]
+    i_loc, j_loc = pairs[p, 0], pairs[p, 1]
+    c1 = tets[t_hit].copy()
+    c2 = tets[t_hit].copy()
+    c1[np.arange(t_hit.size), i_loc] = m  # (m, b, c, d)
+    c2[np.arange(t_hit.size), j_loc] = m  # (a, m, c, d)
+    keep = np.ones(T, bool)
+    keep[t_hit] = False
+    new_tets = np.concatenate([tets[keep], c1, c2])
+    parent = np.concatenate([np.nonzero(keep)[0], t_hit, t_hit])
+    Fr = torch.as_tensor(tet_frames)[torch.as_tensor(parent)]
+    new = TetMesh(newX, torch.as_tensor(new_tets), dtype=mesh.vertices.dtype)
+    new_match = None
+    if face_match is not None:
+        from .cut import GROUP_INV
+
+        old_ft = mesh.face_tets.cpu().numpy()
+        ofi = np.nonzero((old_ft >= 0).all(1))[0]
+        key_old = old_ft[ofi, 0] * T + old_ft[ofi, 1]
+        order = np.argsort(key_old)
+        nft = new.face_tets.cpu().numpy()
+        new_match = np.zeros(nft.shape[0], np.int64)
+        nfi = np.nonzero((nft >= 0).all(1))[0]
+        p0, p1 = parent[nft[nfi, 0]], parent[nft[nfi, 1]]
+        cross = p0 != p1
+        for a, b, flip in ((p0, p1, False), (p1, p0, True)):
+            k = a * T + b
+            pos = np.searchsorted(key_old[order], k).clip(max=max(ofi.size - 1, 0))
+            hit = cross & (key_old[order][pos] == k) if ofi.size else np.zeros_like(cross)
+            g = np.asarray(face_match)[ofi[order][pos]]
+            new_match[nfi[hit]] = GROUP_INV[g[hit]] if flip else g[hit]
+    cad = getattr(mesh, "cad", None)
+    if cad is not None:
+        faces = mesh.faces.cpu().numpy()
+        fs = cad.face_surface.cpu().numpy()
+        tf = np.nonzero(fs >= 0)[0]
+        tris, ttag = [], []
+        fe = mesh.face_edges.cpu().numpy()[tf]  # edges bc, ac, ab of the sorted face
+        split_e = mid_of[fe]  # (n, 3)
+        for k, (ka, kb, kc) in enumerate(((1, 2, 0), (0, 2, 1), (0, 1, 2))):  # edge k joins corners ka, kb
+            sel = split_e[:, k] >= 0
+            f = faces[tf[sel]]
+            mm = split_e[sel, k]
+            t1 = f.copy()
+            t1[:, ka] = mm
+            t2 = f.copy()
+            t2[:, kb] = mm
+            tris += [t1, t2]
+            ttag += [fs[tf[sel]], fs[tf[sel]]]
+        unsplit = (split_e < 0).all(1)
+        tris.append(faces[tf[unsplit]])
+        ttag.append(fs[tf[unsplit]])
+        fe_edges = cad.feature_edges.cpu().numpy()
+        fe_idx = cad.feature_edge_index.cpu().numpy()
+        curve = cad.feature_edge_curve.cpu().numpy()
+        mm = mid_of[fe_idx]
+        s = mm >= 0
+        lines = np.concatenate([fe_edges[~s], np.stack([fe_edges[s, 0], mm[s]], 1), np.stack([mm[s], fe_edges[s, 1]], 1)])
+        ltag = np.concatenate([curve[~s], curve[s], curve[s]])
+        new.cad = cad_tags_from_elements(new, np.concatenate(tris), np.concatenate(ttag), lines, ltag,
+                                         cad.corner_vertices, cad.corner_point, source="split")
+    return new, Fr, parent, new_match
+
+
+def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rules=SPLIT_RULES,
+                  max_rounds: int = 50) -> SplitResult:
+    """Split edges by ``rules`` (module docstring) until none applies or ``max_rounds``.
+
+    Args:
+        mesh: a ``TetMesh``; tet_frames: ``(T, 3, 3)`` rotations.
+        face_match: ``(F,)`` face matchings to use and carry (default: the best ones).
+        rules: a subset of :data:`SPLIT_RULES`.
+    """
+    from .cut import tet_charts
+
+    unknown = [r for r in rules if r not in SPLIT_RULES]
+    if unknown:
+        raise ValueError(f"unknown split rules {unknown}; known: {list(SPLIT_RULES)}")
+    Fr = torch.as_tensor(tet_frames).detach().to("cpu", torch.float64)
+    parent = np.arange(mesh.n_tets)
+    counts = {r: 0 for r in SPLIT_RULES}
+    rounds = 0
+    for _ in range(max_rounds):
+        edges = mesh.edges.cpu().numpy()
+        V, E = mesh.n_vertices, edges.shape[0]
+        cand_by_rule = {}
+        if "singular" in rules:
+            ch = tet_charts(mesh, Fr, face_match)
+            sv = np.zeros(V, bool)
+            sv[edges[ch.singular_edge].reshape(-1)] = True
+            cand_by_rule["singular"] = np.nonzero(~ch.singular_edge & sv[edges[:, 0]] & sv[edges[:, 1]])[0]
+        if "boundary" in rules:
+            bv = np.zeros(V, bool)
+            bv[mesh.boundary_vertices.cpu().numpy()] = True
+            bfe = mesh.face_edges.cpu().numpy()[mesh.boundary_face_index.cpu().numpy()].reshape(-1)
+            on_b = np.zeros(E, bool)
+            on_b[bfe] = True
+            cand_by_rule["boundary"] = np.nonzero(~on_b & bv[edges[:, 0]] & bv[edges[:, 1]])[0]
+        cand = np.unique(np.concatenate([c for c in cand_by_rule.values()] or [np.zeros(0, np.int64)]))
+        if cand.size == 0:
+            break
+        chosen = _independent(mesh.tet_edges.cpu().numpy(), cand, E)
+        for r, c in cand_by_rule.items():
+            counts[r] += int(np.isin(chosen, c).sum())
+        mesh, Fr, par, face_match = split_edges(mesh, Fr, chosen, face_match)
+        parent = parent[par]
+        rounds += 1
+    return SplitResult(mesh=mesh, tet_frames=Fr, parent_tet=parent, splits=counts, rounds=rounds,
+                       face_match=face_match)

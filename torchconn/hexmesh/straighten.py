@@ -1,0 +1,233 @@
+"""Singular edges along their turn axis: a greedy search over the face matchings of tet charts.
+
+With one frame per tet the singular curves of a field run along mesh edges (:mod:`.cut`), and
+a curve that crosses the mesh obliquely becomes a staircase of edges. A map sends every
+singular edge onto the fixed line of its holonomy (a turn about parameter axis ``k``), so a
+step of the staircase whose direction in the field is *across* that axis must be turned onto
+it: the tets around it fold (measured on HexMe: most inverted tets of the maps sit at such
+edges). The holonomy of an edge is the product of the face transitions around it, and changing
+the matching of one face ``f`` (its transition ``R_f <- g R_f``, ``g in O``) changes the holonomy
+of exactly the three edges of ``f``: it moves a singular edge onto the other two edges of the
+face (a singular curve through ``a -> b`` then runs ``a -> c -> b``), or back.
+
+The search (as :mod:`torchconn.frames.structure` does for the vertex-based picture) descends a
+cost over interior edges: regular 0, a quarter or half turn about the parameter axis closest
+to the edge's direction in the field ``w_along``, a turn about another axis ``w_across``, a
+complex holonomy ``w_complex``; plus ``w_misfit`` times the rotation angle (radians) by which a
+face's matching departs from its best match. Each step takes the move with the largest
+decrease among the faces at a singular edge (faces with a boundary edge are left alone: their
+matchings set how the boundary planes meet); it stops when no move decreases the cost. It
+terminates: the cost falls at every move and takes finitely many values.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..frames.singular import classify_holonomy
+from .cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
+
+__all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS"]
+
+DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "misfit": 2.0}
+
+
+def _element_tables():
+    G = torch.as_tensor(group_matrices(), dtype=torch.float64)
+    typ, axis, _ = classify_holonomy(G)
+    return typ.numpy(), axis.numpy()
+
+
+_ETYPE, _EAXIS = _element_tables()
+
+
+def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = None, *, weights: dict | None = None,
+                              max_moves: int = 10_000) -> tuple[np.ndarray, dict]:
+    """Greedy repair of the face matchings so that singular edges run along their axis.
+
+    Args:
+        mesh: a ``TetMesh``; tet_frames: ``(T, 3, 3)`` rotations.
+        face_match: ``(F,)`` starting matchings (default the best ones,
+            :func:`~.cut.face_matchings`).
+        weights: overrides of :data:`DEFAULT_WEIGHTS`.
+        max_moves: a cap on the moves (the descent ends earlier on every mesh measured).
+
+    Returns:
+        ``(face_match (F,), info)`` with ``info``: ``moves``, ``edge_cost_before/after`` (the
+        edge part of the cost), ``misfit_added_rad`` (summed over the moved faces), and the edge counts ``across_before/after``, ``complex_before/after``,
+        ``singular_before/after``.
+    """
+    w = dict(DEFAULT_WEIGHTS)
+    if weights:
+        unknown = set(weights) - set(w)
+        if unknown:
+            raise ValueError(f"unknown weights {sorted(unknown)}; known: {sorted(w)}")
+        w.update({k: float(v) for k, v in weights.items()})
+    Fr = torch.as_tensor(tet_frames).detach().to("cpu", torch.float64)
+    g_best = face_matchings(mesh, Fr)
+    match = (g_best if face_match is None else np.asarray(face_match, np.int64)).copy()
+    face_tets = mesh.face_tets.cpu().numpy()
+    edges = mesh.edges.cpu().numpy()
+    E, F = edges.shape[0], face_tets.shape[0]
+    walks = edge_walks(mesh)
+    interior_e = ~walks.boundary
+
+    # misfit of a face for every matching: the angle between F_t0 g and F_t1 (computed on demand)
+    Fnp = Fr.numpy()
+    Gf = group_matrices().astype(np.float64)
+
+    def misfit_row(f: int) -> np.ndarray:
+        Mf = Fnp[face_tets[f, 0]].T @ Fnp[face_tets[f, 1]]
+        tr = np.einsum("jab,ab->j", Gf, Mf)
+        return np.arccos(np.clip((tr - 1) / 2, -1, 1))
+
+    fi = np.nonzero((face_tets >= 0).all(1))[0]
+
+    # cost table per edge: along axis from the field direction in the start tet's frame
+    X = mesh.vertices.detach().cpu().double().numpy()
+    d = X[edges[:, 1]] - X[edges[:, 0]]
+    dpar = np.einsum("eji,ej->ei", Fr.numpy()[walks.start], d)
+    along = np.abs(dpar).argmax(1)
+    turn = (_ETYPE == 1) | (_ETYPE == 2)
+    cost_tab = np.where(_ETYPE[None] == 3, w["complex"],
+                        np.where(turn[None], np.where(_EAXIS[None] == along[:, None], w["along"], w["across"]), 0.0))
+    cost_tab[walks.boundary] = 0.0
+
+    def transitions():
+        return GROUP_INV[match]
+
+    def edge_cost(hol):
+        return cost_tab[np.arange(E), np.maximum(hol, 0)] * interior_e
+
+    hol = walks.holonomy(transitions())
+    cost_e = edge_cost(hol)
+    info = {"edge_cost_before": float(cost_e.sum())}
+    misfit_added = 0.0
+    sing0 = (hol > 0)
+    info.update(singular_before=int(sing0.sum()), across_before=int((sing0 & turn[np.maximum(hol, 0)]
+                                                                     & (_EAXIS[np.maximum(hol, 0)] != along)).sum()),
+                complex_before=int((sing0 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()))
+
+    # face -> its (edge, step) incidences in the walks of interior edges
+    steps_e = np.repeat(np.arange(E), np.diff(walks.ptr))
+    steps_k = np.arange(walks.face.size) - walks.ptr[steps_e]
+    order = np.argsort(walks.face, kind="stable")
+    f_ptr = np.searchsorted(walks.face[order], np.arange(F + 1))
+    inc_step = order  # step ids grouped by face
+    # faces with a boundary edge are not moved
+    fe = mesh.face_edges.cpu().numpy()
+    movable = np.zeros(F, bool)
+    movable[fi] = ~walks.boundary[fe[fi]].any(1)
+
+    def prefix_suffix(e_ids):
+        """For every step of the walks of edges ``e_ids``: (P, S) products before / after it."""
+        R = transitions()
+        out = {}
+        for e in e_ids.tolist():
+            a, b = walks.ptr[e], walks.ptr[e + 1]
+            st = np.where(walks.forward[a:b], R[walks.face[a:b]], GROUP_INV[R[walks.face[a:b]]])
+            n = b - a
+            P = np.zeros(n, np.int64)
+            S = np.zeros(n, np.int64)
+            acc = 0
+            for k in range(n):
+                P[k] = acc
+                acc = GROUP_MUL[st[k], acc]
+            acc = 0
+            for k in range(n - 1, -1, -1):
+                S[k] = acc
+                acc = GROUP_MUL[acc, st[k]]
+            out[e] = (P, S)
+        return out
+
+    ps: dict = {}
+
+    def score(faces):
+        """Best (delta, g) of each face in ``faces`` over the 23 non-identity left factors."""
+        R = transitions()
+        best_d = np.full(len(faces), np.inf)
+        best_g = np.zeros(len(faces), np.int64)
+        for n_f, f in enumerate(faces):
+            if not movable[f]:
+                continue
+            steps = inc_step[f_ptr[f]:f_ptr[f + 1]]
+            es = steps_e[steps]
+            keep = interior_e[es]
+            steps, es = steps[keep], es[keep]
+            if steps.size == 0:
+                continue
+            ks = steps_k[steps]
+            for e in es.tolist():
+                if e not in ps:
+                    ps.update(prefix_suffix(np.array([e])))
+            P = np.array([ps[e][0][k] for e, k in zip(es.tolist(), ks.tolist())])
+            S = np.array([ps[e][1][k] for e, k in zip(es.tolist(), ks.tolist())])
+            fwd = walks.forward[steps]
+            Rn = GROUP_MUL[np.arange(24), R[f]]  # (24,) new transitions g R_f
+            step_new = np.where(fwd[:, None], Rn[None, :], GROUP_INV[Rn][None, :])  # (m, 24)
+            Hn = GROUP_MUL[S[:, None], GROUP_MUL[step_new, P[:, None]]]  # (m, 24)
+            dc = (cost_tab[es[:, None], Hn] - cost_e[es][:, None]).sum(0)
+            new_match = GROUP_INV[Rn]
+            mr = misfit_row(f)
+            dm = w["misfit"] * (mr[new_match] - mr[match[f]])
+            delta = dc + dm
+            delta[0] = np.inf  # g = I: no move
+            j = int(np.argmin(delta))
+            best_d[n_f], best_g[n_f] = delta[j], j
+        return best_d, best_g
+
+    # candidate faces: those in the walks of singular interior edges
+    def faces_of(e_ids):
+        if len(e_ids) == 0:
+            return np.zeros(0, np.int64)
+        idx = np.concatenate([np.arange(walks.ptr[e], walks.ptr[e + 1]) for e in e_ids])
+        return np.unique(walks.face[idx])
+
+    sing_e = np.nonzero((hol > 0) & interior_e)[0]
+    cand = faces_of(sing_e.tolist())
+    fbest_d = np.full(F, np.inf)
+    fbest_g = np.zeros(F, np.int64)
+    if cand.size:
+        fbest_d[cand], fbest_g[cand] = score(cand.tolist())
+    moves = 0
+    tol = 1e-9
+    while moves < max_moves:
+        f = int(np.argmin(fbest_d))
+        if not fbest_d[f] < -tol:
+            break
+        g = int(fbest_g[f])
+        R = transitions()
+        mr = misfit_row(f)
+        new = GROUP_INV[GROUP_MUL[g, R[f]]]
+        misfit_added += float(mr[new] - mr[match[f]])
+        match[f] = new
+        moves += 1
+        # the three edges of f change; rescore every face on their walks
+        steps = inc_step[f_ptr[f]:f_ptr[f + 1]]
+        es = np.unique(steps_e[steps])
+        hol[es] = _holonomy_of(walks, es, transitions())
+        cost_e[es] = edge_cost(hol)[es]
+        for e in es.tolist():
+            ps.pop(e, None)
+        ps.update(prefix_suffix(es))
+        aff = faces_of(es.tolist())
+        # faces on the walks of the affected edges' faces also see changed P/S of those edges
+        fbest_d[aff], fbest_g[aff] = score(aff.tolist())
+    hol = walks.holonomy(transitions())
+    sing1 = hol > 0
+    info.update(moves=moves, edge_cost_after=float(edge_cost(hol).sum()), misfit_added_rad=misfit_added,
+                singular_after=int(sing1.sum()),
+                across_after=int((sing1 & turn[np.maximum(hol, 0)] & (_EAXIS[np.maximum(hol, 0)] != along)).sum()),
+                complex_after=int((sing1 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()))
+    return match, info
+
+
+def _holonomy_of(walks, e_ids, face_rot):
+    R = np.where(walks.forward, face_rot[walks.face], GROUP_INV[face_rot[walks.face]])
+    out = np.empty(len(e_ids), np.int64)
+    for n, e in enumerate(np.asarray(e_ids).tolist()):
+        acc = 0
+        for k in range(walks.ptr[e], walks.ptr[e + 1]):
+            acc = GROUP_MUL[R[k], acc]
+        out[n] = -1 if walks.boundary[e] else acc
+    return out
