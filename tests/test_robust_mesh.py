@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn.mesh import MeshError, TetMesh, builtin
+from torchconn.mesh import MeshError, TetMesh, builtin, merge_duplicate_vertices
 from torchconn.mesh.io import ball, cylinder, load_mesh, load_polygon_surface, load_surface, load_tet_mesh, tetrahedralize
 
 from conftest import data_path
@@ -257,6 +257,61 @@ def test_non_manifold_file_names_vertex(tmp_path):
     path = _write_medit(tmp_path / "pinch.mesh", OCTA_V, [[0, 1, 3, 5], [0, 2, 6, 4]])
     with pytest.raises(MeshError, match=r"non-manifold vertices .*\[0\]"):
         load_tet_mesh(path)
+
+
+def _cracked_box(keep=(), mixed=()):
+    """box(2) cut along its middle plane z = 0.5: the tets above use copies of the plane's 9
+    vertices (vertex 27 + k copies the k-th copied plane vertex, in index order), except the
+    vertices in ``keep`` (not copied: shared by both sides) and, for the top tets with x < 0.5,
+    those in ``mixed`` (so both copies of them are used above). Vertex 13 is the plane's centre
+    (0.5, 0.5, 0.5)."""
+    m = builtin.box(2)
+    V, T = m.vertices.numpy(), m.tets.numpy()
+    plane = np.array([i for i in np.nonzero(V[:, 2] == 0.5)[0] if i not in keep])
+    copy = np.arange(V.shape[0])
+    copy[plane] = V.shape[0] + np.arange(plane.size)
+    top = (V[T][:, :, 2] >= 0.5).all(axis=1)
+    left = V[T].mean(axis=1)[:, 0] < 0.5
+    Tc = T.copy()
+    for i in plane:
+        swap = (T == i) & top[:, None] & ~(left[:, None] & (i in mixed))
+        Tc[swap] = copy[i]
+    return m, np.vstack([V, V[plane]]), Tc
+
+
+def test_crack_of_duplicated_vertices_names_the_duplicate():
+    """Above the centre both of its copies are used: the centre is non-manifold and is named as a
+    duplicated vertex, with its coordinates, its copy and the merge as the remedy."""
+    box, V, T = _cracked_box(mixed=(13,))
+    with pytest.raises(MeshError, match=r"non-manifold vertices .* e\.g\. vertex 13: .*form 2 groups.*\. Vertex 13 is a "
+                                        r"duplicated vertex: vertex 31 has the same coordinates \(0\.5, 0\.5, 0\.5\) "
+                                        r"\(2 of the 4 non-manifold vertices have coincident copies, 18 vertices of the "
+                                        r"mesh in all\): the mesh is cut along a crack of duplicated vertices; merge the "
+                                        r"coincident vertices: .*merge_duplicates=True.*merge_duplicate_vertices"):
+        TetMesh(V, T)
+    # the remedy named in the message: the merged mesh is the box again
+    merged, pairs = merge_duplicate_vertices(V, T)
+    assert pairs.tolist() == [[27 + k, int(i)] for k, i in enumerate(np.nonzero(V[:27, 2] == 0.5)[0])]
+    m = TetMesh(V, merged, unreferenced="drop")
+    assert torch.equal(m.tets, box.tets) and torch.equal(m.vertices, box.vertices)
+
+
+def test_crack_pinched_at_a_shared_vertex_names_the_duplicates(tmp_path):
+    """The crack covers the whole plane except its centre: the two halves meet only there; the
+    centre is not itself duplicated, so the message names a duplicated vertex of its tets; the
+    loader with merge_duplicates=False says the same, by default it merges and the box is valid."""
+    box, V, T = _cracked_box(keep=(13,))
+    match = (r"non-manifold vertices .*vertex indices \[13\] \(count 1\).*form 2 groups.*\. Its tets have duplicated "
+             r"vertices: vertex 1 at \(0, 0, 0\.5\) has the same coordinates as vertex 27 .*16 of the mesh in all.*"
+             r"crack of duplicated vertices that leaves vertex 13 shared; merge the coincident vertices")
+    with pytest.raises(MeshError, match=match):
+        TetMesh(V, T, unreferenced="drop")
+    path = _write_medit(tmp_path / "crack.mesh", V, T)
+    with pytest.raises(MeshError, match=match):
+        load_tet_mesh(path, merge_duplicates=False)
+    with pytest.warns(UserWarning, match=r"crack\.mesh: merged 8 duplicate vertices"):
+        m = load_tet_mesh(path)
+    assert torch.equal(m.tets, box.tets) and m.n_boundary_faces == box.n_boundary_faces
 
 
 # ----------------------------------------------------------------------------- weak cases

@@ -24,11 +24,12 @@ from .cells import CellComplex, tet_mesh_as_cell_complex
 from .convert import from_meshio, to_meshio
 from .errors import MeshError
 from .io import load_mesh, load_polygon_surface, load_surface, load_tet_mesh
-from .tet import TetMesh
+from .tet import TetMesh, merge_duplicate_vertices
 
 __all__ = [
     "io", "builtin", "simplex", "cad", "convert", "batch",
     "MeshError", "MeshBase", "TetMesh", "TetMeshBatch", "join_meshes", "CellComplex", "FaceGroup", "tet_mesh_as_cell_complex",
+    "merge_duplicate_vertices",
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
     "box", "ball", "cylinder", "torus",
     "CadTags", "load_cad", "load_tagged_msh", "load_hexme", "to_meshio", "from_meshio",

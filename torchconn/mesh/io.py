@@ -37,7 +37,7 @@ from . import cad as _cad
 from .cad import CAD_SUFFIXES as _CAD_SUFFIXES
 from .cells import CellComplex
 from .errors import MeshError, _checked_path, _few
-from .tet import TetMesh
+from .tet import TetMesh, merge_duplicate_vertices
 
 __all__ = [
     "load_tet_mesh", "load_surface", "load_polygon_surface", "load_mesh", "tetrahedralize",
@@ -159,27 +159,22 @@ def _guarded(reader, path: Path):
 
 
 def _clean_vertices(V: np.ndarray, T: np.ndarray, path: Path, merge_duplicates: bool):
-    """Merge coincident vertices (bitwise-equal coordinates) into their first copy, with a
-    warning that says how many; ``(V, T)`` unchanged when there are none or ``merge_duplicates``
-    is False. Copies that no tet uses afterwards are dropped by :class:`TetMesh`.
+    """Merge coincident vertices (bitwise-equal coordinates) into their first copy
+    (:func:`~torchconn.mesh.tet.merge_duplicate_vertices`), with a warning that says how many;
+    ``(V, T)`` unchanged when there are none or ``merge_duplicates`` is False. Copies that no tet
+    uses afterwards are dropped by :class:`TetMesh`.
 
     Returns:
         ``(T (M,4), merged (K,))``: re-indexed tets and the ids of the merged copies.
     """
-    none = np.zeros(0, np.int64)
-    if not merge_duplicates or V.shape[0] < 2 or T.size == 0 or not np.isfinite(V).all():
-        return T, none
-    _, first, inv = np.unique(V, axis=0, return_index=True, return_inverse=True)
-    rep = first[inv.reshape(-1)]  # first vertex with the same coordinates
-    dup = np.nonzero(rep != np.arange(V.shape[0]))[0]
-    if dup.size == 0:
-        return T, none
-    inside = (T >= 0) & (T < V.shape[0])
-    T = np.where(inside, rep[np.where(inside, T, 0)], T)
-    warnings.warn(f"{path}: merged {dup.size} duplicate vertices (same coordinates as an earlier vertex), "
-                  f"e.g. vertex {int(dup[0])} into vertex {int(rep[dup[0]])}: indices {_few(dup)}; "
-                  f"pass merge_duplicates=False to keep them", stacklevel=3)
-    return T, dup
+    if not merge_duplicates:
+        return T, np.zeros(0, np.int64)
+    T, pairs = merge_duplicate_vertices(V, T)
+    if pairs.shape[0]:
+        warnings.warn(f"{path}: merged {pairs.shape[0]} duplicate vertices (same coordinates as an earlier vertex), "
+                      f"e.g. vertex {int(pairs[0, 0])} into vertex {int(pairs[0, 1])}: indices {_few(pairs[:, 0])}; "
+                      f"pass merge_duplicates=False to keep them", stacklevel=3)
+    return T, pairs[:, 0]
 
 
 def load_tet_mesh(path, *, merge_duplicates: bool = True, **kwargs) -> TetMesh:

@@ -25,7 +25,7 @@ from .cells import CellComplex, tet_mesh_as_cell_complex
 from .errors import MeshError, _few, _few_rows
 from .simplex import TET_FACE_SIGNS, TET_FACES, pair_list
 
-__all__ = ["TetMesh"]
+__all__ = ["TetMesh", "merge_duplicate_vertices"]
 
 
 def _unique_rows(rows: np.ndarray):
@@ -240,7 +240,7 @@ class TetMesh(MeshBase):
             raise MeshError(f"overlapping tets: faces with both tets on the same side {_few_rows(faces[bad])}; "
                             f"e.g. face {faces[bad[0]].tolist()} with tets {tets_of}")
         face_tets[f_inv, col] = flat_tet
-        _check_vertex_manifold(t, V, edges, faces, f_cnt, face_tets)
+        _check_vertex_manifold(t, V, edges, faces, f_cnt, face_tets, v)
 
         # face edges: bc, ac, ab of the sorted face, coefficients +1, -1, +1
         fe = np.stack([_edge_keys(faces[:, [1, 2]], V), _edge_keys(faces[:, [0, 2]], V),
@@ -445,8 +445,42 @@ def _check_volume_range(vol6: torch.Tensor, L: torch.Tensor) -> None:
                             f"pass dtype=torch.float64 or rescale the vertices")
 
 
+def merge_duplicate_vertices(vertices, cells) -> tuple[np.ndarray, np.ndarray]:
+    """Re-index ``cells`` so that vertices with the same coordinates become one (their first copy).
+
+    A mesh written per region, or with vertices split along a surface, repeats the vertices of
+    that surface: the tets on its two sides then share no face, so the mesh is cut along a
+    crack there (or, where the crack pinches, has non-manifold vertices).
+
+    Args:
+        vertices: ``(V, 3)`` float array or tensor; coordinates are compared bitwise.
+        cells: ``(M, k)`` integer array or tensor of vertex indices (tets: ``k = 4``).
+
+    Returns:
+        ``(cells (M, k), merged (K, 2))`` int64 numpy arrays: the re-indexed cells and one row
+        ``(copy, first)`` per vertex merged into an earlier one (the copies are then used by no
+        cell: build with ``TetMesh(vertices, cells, unreferenced="drop")``). Nothing is merged
+        when a coordinate is NaN/inf (:class:`TetMesh` reports those); indices out of range are
+        left as they are (:class:`TetMesh` reports them).
+
+    :func:`torchconn.io.load_tet_mesh` does this by default (``merge_duplicates=True``).
+    """
+    v = vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else np.asarray(vertices)
+    c = _as_index_array(cells, "cells")
+    none = np.zeros((0, 2), np.int64)
+    if v.ndim != 2 or v.shape[0] < 2 or c.size == 0 or not np.isfinite(v).all():
+        return c, none
+    _, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    rep = first[inv.reshape(-1)]  # first vertex with the same coordinates
+    dup = np.nonzero(rep != np.arange(v.shape[0]))[0]
+    if dup.size == 0:
+        return c, none
+    inside = (c >= 0) & (c < v.shape[0])
+    return np.where(inside, rep[np.where(inside, c, 0)], c), np.stack([dup, rep[dup]], axis=1)
+
+
 def _check_vertex_manifold(t: np.ndarray, V: int, edges: np.ndarray, faces: np.ndarray, f_cnt: np.ndarray,
-                           face_tets: np.ndarray) -> None:
+                           face_tets: np.ndarray, vertices: torch.Tensor) -> None:
     """MeshError naming the vertices whose star is not a ball or half-ball.
 
     A vertex ``v`` is manifold when its link (the triangles opposite ``v`` in its tets) is one
@@ -458,7 +492,9 @@ def _check_vertex_manifold(t: np.ndarray, V: int, edges: np.ndarray, faces: np.n
     - sphere / disc: ``χ(link v) = deg_E(v) - deg_F(v) + deg_T(v)`` is 2 for an interior and 1
       for a boundary vertex (a connected link with handles or pinched points has a smaller χ).
 
-    Vertices used by no tet are skipped (``unreferenced`` handles them).
+    Vertices used by no tet are skipped (``unreferenced`` handles them). The usual cause is a
+    crack of duplicated vertices (:func:`merge_duplicate_vertices`), so the message says when
+    a bad vertex, or a vertex of its tets, has the same coordinates as another vertex.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -483,14 +519,46 @@ def _check_vertex_manifold(t: np.ndarray, V: int, edges: np.ndarray, faces: np.n
     expected = np.where(on_boundary, 1, 2)
     bad = np.nonzero((deg_t > 0) & ((n_comp > 1) | (chi != expected)))[0]
     if bad.size:
-        v0 = int(bad[0])
+        # the error path only: which vertices coincide with another one (bitwise-equal coordinates)
+        v = vertices.detach().cpu().numpy()
+        _, group, size = np.unique(v, axis=0, return_inverse=True, return_counts=True)
+        group = group.reshape(-1)
+        twin = size[group] > 1
+        bad_twin = bad[twin[bad]]
+        v0 = int(bad_twin[0]) if bad_twin.size else int(bad[0])
         tets_of = np.nonzero((t == v0).any(axis=1))[0]
         how = (f"its {tets_of.size} tets {_few(tets_of)} form {int(n_comp[v0])} groups that meet only at the vertex "
                f"or along an edge" if n_comp[v0] > 1 else
                f"its link has Euler characteristic {int(chi[v0])}, not {int(expected[v0])}")
-        raise MeshError(f"non-manifold vertices (the tets around each do not form one ball or half-ball): vertex "
-                        f"indices {_few(bad)}; e.g. vertex {v0}: {how}. Give each group of tets its own copy of the "
-                        f"vertex, or remove the tets that touch only there")
+        msg = (f"non-manifold vertices (the tets around each do not form one ball or half-ball): vertex "
+               f"indices {_few(bad)}; e.g. vertex {v0}: {how}")
+
+        def at(i):
+            return "(" + ", ".join(f"{float(x):.6g}" for x in v[i]) + ")"
+
+        def copies(i):
+            return np.nonzero(group == group[i])[0]
+
+        merge = ("merge the coincident vertices: torchconn.io.load_tet_mesh does by default (merge_duplicates=True); "
+                 "for arrays, TetMesh(vertices, torchconn.mesh.merge_duplicate_vertices(vertices, tets)[0], "
+                 "unreferenced='drop')")
+        near = np.unique(t[tets_of])
+        near = near[twin[near]]
+        if bad_twin.size:
+            others = [int(i) for i in copies(v0) if i != v0]
+            raise MeshError(f"{msg}. Vertex {v0} is a duplicated vertex: vertex {others[0] if len(others) == 1 else others} "
+                            f"has the same coordinates {at(v0)} ({bad_twin.size} of the {bad.size} non-manifold vertices "
+                            f"have coincident copies, {int(twin.sum())} vertices of the mesh in all): the mesh is cut "
+                            f"along a crack of duplicated vertices; {merge}")
+        if near.size:
+            w = int(near[0])
+            others = [int(i) for i in copies(w) if i != w]
+            raise MeshError(f"{msg}. Its tets have duplicated vertices: vertex {w} at {at(w)} has the same coordinates "
+                            f"as vertex {others[0] if len(others) == 1 else others} ({near.size} vertices of its tets, "
+                            f"{int(twin.sum())} of the mesh in all, coincide with another vertex): the mesh is cut along a "
+                            f"crack of duplicated vertices that leaves vertex {v0} shared; {merge}")
+        raise MeshError(f"{msg}. Give each group of tets its own copy of the vertex, or remove the tets that touch "
+                        f"only there")
 
 
 def _signed_volumes6(v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
