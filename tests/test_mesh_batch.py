@@ -196,7 +196,8 @@ def test_connection_field_on_union(meshes, union, gen):
 
 
 # ----------------------------------------------------------------------------- frame-field loss
-def test_frame_field_loss_on_union_is_the_count_weighted_mean(meshes, union, gen):
+@pytest.mark.parametrize("native", [True, False], ids=["compiled", "torch"])
+def test_frame_field_loss_on_union_is_the_count_weighted_mean(meshes, union, gen, native):
     """Each term on the union is sum_k n_k term_k / sum_k n_k with n_k the elements that term
     averages over on mesh k (edges, faces, aligned vertices, feature pairs, unrelabeled faces);
     so are the gradients, term by term."""
@@ -214,19 +215,19 @@ def test_frame_field_loss_on_union_is_the_count_weighted_mean(meshes, union, gen
              "feature": loss.feature_vertices_rep.numel()}
         return out, n, params, frames
 
-    out_u, n_u, p_u, f_u = terms(union, joined, fjoined)
-    seps = [terms(m, p, f) for m, p, f in zip(meshes, parts, fparts)]
+    with compiled(native):
+        out_u, n_u, p_u, f_u = terms(union, joined, fjoined)
+        seps = [terms(m, p, f) for m, p, f in zip(meshes, parts, fparts)]
     assert all(n > 0 for n in n_u.values()), n_u  # every term is exercised (the boxes have feature edges)
     for t in TERMS:
         assert n_u[t] == sum(s[1][t] for s in seps), t
         expect = sum(s[1][t] * s[0][t] for s in seps) / n_u[t]
         torch.testing.assert_close(out_u[t], expect, rtol=1e-12, atol=1e-14, msg=t)
     # gradients of the pooled total: mesh k's part is sum_t w_t n_k,t / N_t * grad term_t,k
-    total_u = out_u["total"]
-    g_p, g_f = torch.autograd.grad(total_u, (p_u, f_u))
-    for k, (out, n, p, f) in enumerate(seps):
-        pooled = sum(out[t] * n[t] / n_u[t] for t in TERMS)
-        e_p, e_f = torch.autograd.grad(pooled, (p, f))
+    with compiled(native):
+        g_p, g_f = torch.autograd.grad(out_u["total"], (p_u, f_u))
+        expected = [torch.autograd.grad(sum(out[t] * n[t] / n_u[t] for t in TERMS), (p, f)) for out, n, p, f in seps]
+    for k, (e_p, e_f) in enumerate(expected):
         torch.testing.assert_close(union.split(g_p, "edge")[k], e_p, rtol=1e-10, atol=1e-13)
         torch.testing.assert_close(union.split(g_f, "vertex")[k], e_f, rtol=1e-10, atol=1e-13)
 
