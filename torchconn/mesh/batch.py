@@ -101,9 +101,9 @@ class TetMeshBatch(TetMesh):
     """
 
     def __init__(self, meshes: Sequence[TetMesh]):
-        meshes = list(meshes) if not isinstance(meshes, TetMesh) else None
-        if meshes is None:
+        if isinstance(meshes, TetMesh):
             raise TypeError("join_meshes takes a sequence of TetMesh, got a single TetMesh; pass [mesh]")
+        meshes = list(meshes)
         if not meshes:
             raise ValueError("join_meshes needs at least one TetMesh, got an empty sequence")
         for k, m in enumerate(meshes):
