@@ -8,15 +8,12 @@ carries no batch dims and is shared by every item.
 The ops of :mod:`torchconn.ops` (``torchconn::`` custom ops) take the leading batch dims
 themselves and have vmap rules, so the batched tensor goes straight to the op. :func:`ask_op`
 falls back to the generic torch formula of the caller (which broadcasts over the leading dims)
-only when
-
-* the op returns ``None`` (it does not apply: rank, cut, mesh kind), or
-* a forward-mode tangent is being propagated (``torch.func.jvp``,
-  ``torch.autograd.forward_ad``; :func:`forward_mode`): a ``torch.library`` custom op with
-  ``register_autograd`` has no forward-mode formula and returns a zero tangent under
-  ``torch.func.jvp`` (torch 2.13, measured), so forward mode runs the generic formula — torch
-  operations with exact forward-mode derivatives. Under ``torch.compile`` this is not asked
-  (dynamo traces no jvp, and the functorch interpreter stack is not traceable).
+only when the op returns ``None`` (it does not apply: rank, cut, mesh kind). Forward mode
+(``torch.func.jvp``, ``jacfwd``, ``torch.autograd.forward_ad``) goes to the op as well: the
+public functions of :mod:`torchconn.ops` call their op through an ``autograd.Function`` with
+an exact ``jvp`` rule in eager mode. (The generic formula would be the wrong fallback: the
+fused tet closed form and the dense generic operators agree on rotations only, so off SO(3)
+their derivatives differ and ``jacfwd`` would disagree with ``jacrev``.)
 
 Every exception of an op propagates.
 """
@@ -26,7 +23,7 @@ from typing import Callable
 
 import torch
 
-__all__ = ["edge_batch", "check_frames", "batch_text", "forward_mode", "ask_op", "expand_to", "on_device"]
+__all__ = ["edge_batch", "check_frames", "batch_text", "ask_op", "expand_to", "on_device"]
 
 
 def batch_text(batch: tuple[int, ...]) -> str:
@@ -69,24 +66,9 @@ def check_frames(frames, V: int, n: int, batch: tuple[int, ...], fn: str):
     return frames
 
 
-def forward_mode(*tensors) -> bool:
-    """Whether a forward-mode tangent is being propagated: a ``torch.func.jvp`` level on the
-    functorch interpreter stack, or a ``forward_ad`` dual tensor among ``tensors``. Always
-    ``False`` while ``torch.compile`` traces."""
-    if torch.compiler.is_compiling():
-        return False
-    stack = torch._C._functorch.get_interpreter_stack()
-    if stack and any(i.key() == torch._C._functorch.TransformType.Jvp for i in stack):
-        return True
-    return any(isinstance(t, torch.Tensor) and torch.autograd.forward_ad.unpack_dual(t).tangent is not None
-               for t in tensors)
-
-
 def ask_op(call: Callable, R: torch.Tensor, *others):
-    """``call()`` (an op of :mod:`torchconn.ops`), or ``None`` where the caller must use its
-    generic formula: the op returned ``None``, or forward mode (see the module docstring)."""
-    if forward_mode(R, *others):
-        return None
+    """``call()`` (an op of :mod:`torchconn.ops`); ``None`` (the op does not apply) tells the
+    caller to use its generic formula. ``R`` and ``others`` are the op's tensor arguments."""
     return call()
 
 

@@ -326,7 +326,9 @@ class FrameFieldLoss:
         total = frames.new_zeros(())
         for k, v in out.items():
             if w[k]:
-                total = total + w[k] * v
+                # alpha, not `w[k] * v`: forward mode of a 0-dim tensor times a Python float gives a
+                # float64 tangent for float32 values (pytorch/pytorch#90065; torch.func.jvp, jacfwd)
+                total = torch.add(total, v, alpha=w[k])
         out["total"] = total
         return out
 
