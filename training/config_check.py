@@ -169,6 +169,22 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "bianchi_atol": _float(0, lo_open=True, nullable=True),
 }
 
+# The keys of configs/hex_mesh.yaml: the frame job's, with ``mbo`` as a method, and the hex stage's.
+HEX_MESH: dict[str, Spec] = {
+    **TRAIN_FRAMES,
+    "method": _choice("connection", "sh_baseline", "mbo"),
+    "frames": _str(nullable=True),
+    "hex.edge_length": _float(0, lo_open=True, nullable=True),
+    "hex.straighten": _bool(),
+    "hex.split": _bool(),
+    "hex.features": _bool(),
+    "hex.feature_max_deg": _float(0, 90),
+    "hex.batch_error": _float(0, lo_open=True),
+    "hex.stiffening_iters": _int(0),
+    "hex.stiffening_factor": _float(1),
+    "hex.backend": _choice("auto", "cholmod", "superlu"),
+}
+
 # The keys of configs/demo.yaml.
 DEMO: dict[str, Spec] = {
     "mesh": _str(),

@@ -10,3 +10,21 @@ and the hex mesh's quality.
 This subpackage sits above :mod:`torchconn.frames` (it reuses the octahedral group, the
 matchings and the boundary/feature constraints) and is imported on first use.
 """
+from .cut import TetCharts, tet_charts
+from .extract import HexExtraction, extract_hexes
+from .igm import IntegerGridMap, integer_grid_map
+from .io import plot_hex_mesh, read_hex_mesh, read_hexex, write_hex_mesh, write_hexex
+from .pipeline import MAP_OPTIONS, HexMeshResult, hex_mesh
+from .quality import HexQuality, hex_quality, scaled_jacobian
+from .seamless import default_edge_length
+from .validity import MapValidity, check_map
+
+__all__ = [
+    "hex_mesh", "HexMeshResult", "MAP_OPTIONS",
+    "integer_grid_map", "IntegerGridMap", "default_edge_length",
+    "tet_charts", "TetCharts",
+    "check_map", "MapValidity",
+    "extract_hexes", "HexExtraction",
+    "hex_quality", "HexQuality", "scaled_jacobian",
+    "write_hexex", "read_hexex", "write_hex_mesh", "read_hex_mesh", "plot_hex_mesh",
+]

@@ -1,0 +1,141 @@
+"""From a tet mesh and a frame field to a hex mesh, in one call: map, validity, extraction, quality.
+
+>>> from torchconn import io
+>>> from torchconn.hexmesh import hex_mesh
+>>> import torch
+>>> mesh = io.box(2)                                   # the unit cube, 48 tets
+>>> frames = torch.eye(3, dtype=torch.float64).expand(mesh.n_tets, 3, 3)
+>>> result = hex_mesh(mesh, frames, edge_length=0.25)
+>>> result.validity.valid, result.hexes.shape, round(result.quality.sj_min, 12)
+(True, (64, 8), 1.0)
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .igm import IntegerGridMap, integer_grid_map
+from .validity import MapValidity, check_map
+
+__all__ = ["HexMeshResult", "hex_mesh", "MAP_OPTIONS"]
+
+MAP_OPTIONS = ("edge_length", "straighten", "split", "features", "feature_max_deg", "batch_error",
+               "stiffening_iters", "stiffening_factor", "grid_bits", "backend")
+"""The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
+
+
+@dataclass
+class HexMeshResult:
+    """What :func:`hex_mesh` returns (numpy arrays; nothing is written).
+
+    Attributes:
+        map: the :class:`~.igm.IntegerGridMap` (``map.mesh`` is the tet mesh it lives on: the
+            input, or its refinement by the map's edge splits).
+        validity: the :class:`~.validity.MapValidity` of the map (valid, counts, reasons, where).
+        extraction: the :class:`~.extract.HexExtraction` (``None`` with ``extract=False``): the
+            hex mesh, extracted also from an invalid map where the map allows it, with the cubes
+            it dropped and why.
+        quality: the :class:`~.quality.HexQuality` of the hex mesh against the input mesh
+            (``None`` without hexes or with ``quality=False``).
+        timings: seconds per step (``map``, ``validity``, ``extract``, ``quality``, ``total``).
+    """
+
+    map: IntegerGridMap
+    validity: MapValidity
+    extraction: object | None = None
+    quality: object | None = None
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def points(self) -> np.ndarray:
+        """``(N, 3)`` hex-mesh vertices (empty without an extraction)."""
+        return self.extraction.points if self.extraction is not None else np.zeros((0, 3))
+
+    @property
+    def hexes(self) -> np.ndarray:
+        """``(H, 8)`` hexahedra in VTK order, positively oriented."""
+        return self.extraction.hexes if self.extraction is not None else np.zeros((0, 8), np.int64)
+
+    @property
+    def good(self) -> bool:
+        """A valid map and a good hex mesh (:attr:`HexQuality.good`)."""
+        return bool(self.validity.valid and self.quality is not None and self.quality.good)
+
+    def metrics(self) -> dict:
+        """JSON-ready summary: map figures and validity, extraction counts, hex quality, timings."""
+        m = self.map
+        stats = {k: v for k, v in m.stats.items() if k != "timings"}
+        out = {
+            "good": self.good,
+            "map": {"valid": self.validity.valid, "reasons": list(self.validity.reasons),
+                    "checks": dict(self.validity.counts), "where": self.validity.where,
+                    "edge_length": m.edge_length, "energy": m.energy, "energy_continuous": m.energy_continuous,
+                    "tets": int(m.mesh.n_tets), "vertices": int(m.mesh.n_vertices),
+                    "singular_graph": m.charts.counts(), **stats},
+            "extraction": self.extraction.counts() if self.extraction is not None else None,
+            "quality": self.quality.as_dict() if self.quality is not None else None,
+            "timings": {**{f"map_{k}": v for k, v in m.stats.get("timings", {}).items()}, **self.timings},
+        }
+        return out
+
+
+def hex_mesh(mesh, frames, *, extract: bool = True, quality: bool = True, progress: bool = False,
+             **map_options) -> HexMeshResult:
+    """The hex mesh of a frame field (HEXMESH.md steps 1-8 and the judgement).
+
+    Args:
+        mesh: a ``TetMesh`` or a path that :func:`torchconn.io.load_mesh` reads (a tet mesh, a
+            CAD file or a HexMe parameter file; CAD tags are kept).
+        frames: a :class:`~torchconn.frames.design.FrameFieldResult` on ``mesh``, or frames
+            ``(V, 3, 3)`` per vertex or ``(T, 3, 3)`` per tet.
+        extract: extract the hexes (also from an invalid map, where it allows).
+        quality: judge the hex mesh (:func:`~.quality.hex_quality`) against ``mesh``.
+        progress: progress bars on the rounding and the extraction.
+        **map_options: :data:`MAP_OPTIONS`, passed to :func:`~.igm.integer_grid_map`
+            (``edge_length`` defaults to the mean edge length of ``mesh``).
+
+    Returns:
+        :class:`HexMeshResult`. An invalid map is a result (``validity.valid`` false, with its
+        reasons), not an error.
+
+    Raises:
+        ValueError: unknown options, frames that do not fit the mesh, a non-positive edge length.
+    """
+    unknown = set(map_options) - set(MAP_OPTIONS)
+    if unknown:
+        raise ValueError(f"unknown hex_mesh options {sorted(unknown)}; known: {list(MAP_OPTIONS)}")
+    if isinstance(mesh, (str, Path)):
+        from ..mesh import load_mesh
+
+        mesh = load_mesh(mesh)
+    import torch
+
+    if mesh.vertices.dtype != torch.float64 or mesh.vertices.device.type != "cpu":
+        mesh = mesh.to(device="cpu", dtype=torch.float64)
+    timings = {}
+    t_all = time.perf_counter()
+    t0 = time.perf_counter()
+    igm = integer_grid_map(mesh, frames, progress=progress, **map_options)
+    timings["map_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    validity = check_map(igm.mesh, igm)
+    timings["validity_s"] = time.perf_counter() - t0
+    ext = hq = None
+    if extract:
+        from .extract import extract_hexes
+
+        t0 = time.perf_counter()
+        ext = extract_hexes(igm.mesh, igm.uvw, igm.face_rot, igm.face_shift, grid_bits=igm.grid_bits,
+                            progress=progress)
+        timings["extract_s"] = time.perf_counter() - t0
+        if quality and ext.hexes.shape[0]:
+            from .quality import hex_quality
+
+            t0 = time.perf_counter()
+            hq = hex_quality(ext.points, ext.hexes, tet_mesh=mesh)
+            timings["quality_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_all
+    return HexMeshResult(map=igm, validity=validity, extraction=ext, quality=hq, timings=timings)
