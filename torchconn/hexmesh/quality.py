@@ -1,0 +1,818 @@
+"""How a hexahedral mesh is judged: validity, scaled Jacobian, singular structure, distance to
+the input, CAD features (``../shared/HEXMESH.md``, "How a hex mesh is judged"; issue 22).
+
+Conventions. A hex mesh is ``points (N, 3)`` float64 and ``hexes (H, 8)`` int64 in VTK order:
+``0-1-2-3`` one face, ``4-5-6-7`` the opposite one, vertex ``4 + k`` above vertex ``k``, and
+positively oriented (``det(p1 - p0, p3 - p0, p4 - p0) > 0`` for a cube). Its six faces, listed in
+:data:`HEX_FACES`, are oriented outward; its twelve edges are :data:`HEX_EDGES`. numpy arrays or
+torch tensors are accepted; everything is computed in float64 numpy on the CPU.
+
+What :func:`hex_quality` measures (every threshold is a module constant below):
+
+* **Scaled Jacobian** (Verdict's ``hex_scaled_jacobian``; Knupp 2000): per hex, the minimum over
+  its 8 corners and its centre of ``det(a/|a|, b/|b|, c/|c|)``, with ``(a, b, c)`` the corner's
+  three edge vectors in the order of :data:`_CORNERS` (Verdict's) and, at the centre, the three
+  principal axes (sums of the four parallel edges). 1 for a cube, ``<= 0`` for an inverted hex.
+  Where a vector has zero length the hex scores 0 (Verdict returns its ``1e30`` sentinel there;
+  a collapsed hex is no good hex).
+* **Validity**: all cells hexahedra (8 distinct vertex indices, no edge shorter than
+  :data:`COINCIDENT_TOL_REL` of the bounding-box diagonal), no inverted hex (scaled Jacobian
+  ``<= 0``), conforming (no quad face in more than two hexes; no face shared by two hexes with the
+  same orientation, i.e. hexes on the same side of it; no two distinct vertices closer than
+  :data:`COINCIDENT_TOL_REL` of the diagonal; no hanging vertex: a hex vertex within that
+  distance of the interior of a hex edge it does not end), and a closed manifold boundary (every
+  edge of the boundary quads in exactly two of them; the boundary quads around every boundary
+  vertex form a single cycle). Faces are compared by their vertex sets. A hex mesh's boundary is
+  always a mod-2 cycle, so an edge in an odd number of boundary quads (an *open* boundary) only
+  arises next to a face in three or more hexes; an even number above two is a non-manifold edge
+  (hexes touching along an edge only).
+* **Structure**: the edges not on the boundary surface (no edge of a boundary quad) are
+  *interior*; an interior edge not in exactly four hexes is irregular (singular). The fraction
+  of irregular interior edges is 0 for a mesh without interior edges. Boundary edges whose hex
+  valence is not 2 (a convex edge has 1, a concave one 3) are counted separately.
+* **Geometry** (with ``tet_mesh``): the two-sided Hausdorff distance between the hex boundary
+  (each boundary quad split into the triangles ``(0, 1, 2), (0, 2, 3)``) and the tet mesh's
+  boundary surface, relative to the tet mesh's bounding-box diagonal, and the volume ratio
+  hex / tet (see :func:`hex_volumes`). The distance is computed by adaptive sampling with exact
+  point-to-triangle distances (libigl's ``point_mesh_squared_distance``, an AABB tree): for each
+  direction the source triangles are evaluated at their vertices and centroids and split 1-to-4
+  where a certified upper bound on the distance over the triangle (the distance to a single
+  target triangle is convex, so its maximum over a source triangle is attained at a vertex)
+  exceeds the largest sampled distance by more than :data:`HAUSDORFF_REL_ACCURACY` of it or
+  :data:`HAUSDORFF_ABS_ACCURACY_REL` of the diagonal. ``hausdorff_rel`` is the largest sampled
+  distance (a lower bound), ``hausdorff_upper_rel`` the certified upper bound: the true value
+  lies between them.
+* **Features** (when ``tet_mesh.cad`` holds CAD tags): the sharp CAD curves and their corners
+  are those of the frame-field constraint (:class:`~torchconn.frames.constraints.BoundaryConstraint`
+  with ``features="cad"``: CAD curves between different CAD surfaces, and the CAD points and
+  junctions on them). A corner is meshed when a hex vertex lies within :data:`FEATURE_TOL_REL`
+  of the diagonal from it. A hex edge lies on a curve when both its ends are within that
+  tolerance of the curve and its midpoint within ``max(tol, FEATURE_CHORD_REL * length)`` of it
+  (a hex edge is a chord of a curved curve); a curve is meshed when every sample of it
+  (:data:`FEATURE_CURVE_SAMPLES` interior points per tet feature edge, and the ends) is within
+  that midpoint tolerance of a hex edge lying on it.
+* ``valid``: all of the validity conditions above; ``good`` (issue 22): valid, irregular
+  interior edges ``<=`` :data:`GOOD_IRREGULAR_MAX` of the interior edges and Hausdorff
+  ``<=`` :data:`GOOD_HAUSDORFF_MAX_REL` of the diagonal (``None`` without ``tet_mesh``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+__all__ = [
+    "HexQuality", "hex_quality", "scaled_jacobian", "hex_volumes", "HEX_EDGES", "HEX_FACES",
+    "COINCIDENT_TOL_REL", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "HAUSDORFF_REL_ACCURACY",
+    "HAUSDORFF_ABS_ACCURACY_REL", "HAUSDORFF_MAX_EVALUATIONS", "FEATURE_TOL_REL", "FEATURE_CHORD_REL",
+    "FEATURE_CURVE_SAMPLES",
+]
+
+# ----------------------------------------------------------------------------- thresholds
+#: Two distinct vertices closer than this fraction of the hex mesh's bounding-box diagonal are
+#: coincident (not stitched), a hex edge shorter than it is collapsed, and a vertex within it of
+#: another hex edge's interior hangs on it. Far above the round-off of an extraction (~1e-13 of
+#: the diagonal) and far below any meshed feature.
+COINCIDENT_TOL_REL = 1e-8
+#: ``good`` allows at most this fraction of irregular interior edges (issue 22: 5%).
+GOOD_IRREGULAR_MAX = 0.05
+#: ``good`` allows a two-sided Hausdorff distance of at most this fraction of the input's
+#: bounding-box diagonal (issue 22: 1%).
+GOOD_HAUSDORFF_MAX_REL = 0.01
+#: The sampled Hausdorff distance is refined until the certified upper bound is within this
+#: fraction of it ...
+HAUSDORFF_REL_ACCURACY = 0.02
+#: ... or within this fraction of the input's diagonal (1% of the ``good`` threshold), which
+#: ends the refinement where the distance is (near) zero.
+HAUSDORFF_ABS_ACCURACY_REL = 1e-4
+#: At most this many distance evaluations per direction; past it the refinement stops and the
+#: (then looser) certified upper bound says how far off the sampled value may be.
+HAUSDORFF_MAX_EVALUATIONS = 4_000_000
+#: A hex vertex "on" a CAD corner or curve is within this fraction of the input's diagonal of
+#: it (a tenth of the ``good`` Hausdorff threshold; hex vertices from a map on the tet mesh lie
+#: on its feature edges up to round-off).
+FEATURE_TOL_REL = 1e-3
+#: The midpoint of a hex edge lying on a curved CAD curve is off it by the chord's sagitta
+#: ``L^2 / (8 r)``; up to this fraction of the edge length is accepted (a chord of up to 0.8
+#: radii of arc).
+FEATURE_CHORD_REL = 0.1
+#: Interior sample points per tet feature edge when checking that hex edges cover a curve.
+FEATURE_CURVE_SAMPLES = 4
+#: Unit normals closer than this count as parallel when the Hausdorff bounds treat adjacent
+#: target triangles as one plane (the residual tilt is added to the bound as slack).
+_FLAT_NORMAL_TOL = 1e-9
+
+# ----------------------------------------------------------------------------- local tables (VTK order)
+#: The 12 edges of a hex, local vertex pairs: bottom ring, top ring, then the 4 verticals.
+HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                      [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64)
+#: The 6 faces of a hex, local vertex loops oriented outward (right-hand normal points out of a
+#: positively oriented hex): bottom, top, then the sides over the bottom edges 01, 12, 23, 30.
+HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6],
+                      [3, 0, 4, 7]], dtype=np.int64)
+#: Verdict's corner frames: ``(corner, a, b, c)``, Jacobian ``det(p_a - p_k, p_b - p_k, p_c - p_k)``.
+_CORNERS = np.array([[0, 1, 3, 4], [1, 2, 0, 5], [2, 3, 1, 6], [3, 0, 2, 7],
+                     [4, 7, 5, 0], [5, 4, 6, 1], [6, 5, 7, 2], [7, 6, 4, 3]], dtype=np.int64)
+
+
+# ----------------------------------------------------------------------------- result
+@dataclass
+class HexQuality:
+    """The judgement of a hex mesh (see the module docstring for every definition).
+
+    Per-element arrays (numpy; left out of :meth:`as_dict`): ``scaled_jacobian (H,)``,
+    ``inverted (I,)`` and ``degenerate (D,)`` hex indices, ``irregular_edges (S, 2)`` interior
+    edges not in four hexes (vertex pairs ``i < j``, sorted) with ``irregular_valence (S,)`` their
+    hex counts, ``boundary_irregular_edges (Sb, 2)`` / ``boundary_irregular_valence (Sb,)`` the
+    boundary edges not in two hexes, ``boundary_quads (Q, 4)`` outward-oriented, ``curve_coverage
+    (C,)`` the covered fraction of each sharp CAD curve's samples.
+    """
+
+    n_points: int
+    n_hexes: int
+    # scaled Jacobian
+    scaled_jacobian: np.ndarray
+    sj_min: float
+    sj_mean: float
+    n_inverted: int
+    inverted: np.ndarray
+    # validity
+    n_degenerate: int
+    degenerate: np.ndarray
+    n_faces_in_more_than_two_hexes: int
+    n_same_side_shared_faces: int
+    n_coincident_vertex_pairs: int
+    n_hanging_vertices: int
+    n_unused_points: int
+    n_boundary_quads: int
+    n_boundary_edges: int
+    n_open_boundary_edges: int
+    n_nonmanifold_boundary_edges: int
+    n_nonmanifold_boundary_vertices: int
+    all_hex: bool
+    conforming: bool
+    closed_boundary: bool
+    valid: bool
+    invalid_reasons: list
+    # structure
+    n_edges: int
+    n_interior_edges: int
+    n_irregular_interior_edges: int
+    irregular_fraction: float
+    irregular_valence_counts: dict
+    irregular_edges: np.ndarray
+    irregular_valence: np.ndarray
+    n_boundary_edges_valence_not_2: int
+    boundary_irregular_edges: np.ndarray
+    boundary_irregular_valence: np.ndarray
+    boundary_quads: np.ndarray
+    # geometry (tet_mesh given)
+    diagonal: float | None = None
+    hausdorff: float | None = None
+    hausdorff_rel: float | None = None
+    hausdorff_upper_rel: float | None = None
+    hausdorff_evaluations: int | None = None
+    hex_volume: float | None = None
+    tet_volume: float | None = None
+    volume_ratio: float | None = None
+    # features (tet_mesh.cad given)
+    n_corners: int | None = None
+    n_corners_meshed: int | None = None
+    corner_fraction: float | None = None
+    n_curves: int | None = None
+    n_curves_meshed: int | None = None
+    curve_fraction: float | None = None
+    curve_coverage: np.ndarray | None = None
+    # verdict
+    good: bool | None = None
+    not_good_reasons: list = field(default_factory=list)
+
+    _ARRAYS = ("scaled_jacobian", "inverted", "degenerate", "irregular_edges", "irregular_valence",
+               "boundary_irregular_edges", "boundary_irregular_valence", "boundary_quads", "curve_coverage")
+
+    def as_dict(self) -> dict:
+        """The scalars, counts, flags and reasons as plain Python values (``json.dumps`` works
+        with ``allow_nan=False``: NaN becomes ``None``); the per-element arrays are left out."""
+        out = {}
+        for name in self.__dataclass_fields__:
+            if name in self._ARRAYS:
+                continue
+            out[name] = _plain(getattr(self, name))
+        return out
+
+
+def _plain(x):
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(float(x)) else None
+    return x
+
+
+# ----------------------------------------------------------------------------- input
+def _as_points(points) -> np.ndarray:
+    p = points.detach().cpu().numpy() if torch.is_tensor(points) else np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {p.shape}")
+    if not np.issubdtype(p.dtype, np.number) or np.issubdtype(p.dtype, np.complexfloating):
+        raise ValueError(f"points must be real numbers, got dtype {p.dtype}")
+    p = p.astype(np.float64)
+    bad = np.nonzero(~np.isfinite(p).all(axis=1))[0]
+    if bad.size:
+        raise ValueError(f"points has NaN/inf coordinates at rows {bad[:10].tolist()} (count {bad.size})")
+    return p
+
+
+def _as_hexes(hexes, n_points: int) -> np.ndarray:
+    h = hexes.detach().cpu().numpy() if torch.is_tensor(hexes) else np.asarray(hexes)
+    if h.ndim != 2 or h.shape[1] != 8:
+        raise ValueError(f"hexes must have shape (H, 8) (VTK hexahedra), got {h.shape}")
+    if h.size and not np.issubdtype(h.dtype, np.integer):
+        raise ValueError(f"hexes must hold integer vertex indices, got dtype {h.dtype}")
+    h = h.astype(np.int64)
+    bad = np.nonzero(((h < 0) | (h >= n_points)).any(axis=1))[0]
+    if bad.size:
+        raise ValueError(f"hexes {bad[:10].tolist()} (count {bad.size}) have vertex indices outside "
+                         f"[0, {n_points}), e.g. hex {int(bad[0])} = {h[bad[0]].tolist()}")
+    return h
+
+
+def _diagonal(p: np.ndarray) -> float:
+    return float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if p.shape[0] else 0.0
+
+
+# ----------------------------------------------------------------------------- per-hex geometry
+def scaled_jacobian(points, hexes) -> np.ndarray:
+    """Verdict's scaled Jacobian ``(H,)`` float64 of ``hexes (H, 8)`` on ``points (N, 3)``.
+
+    The minimum over the 8 corners (edge vectors in Verdict's order, :data:`_CORNERS`) and the
+    centre (principal axes ``x1 = (p1-p0)+(p2-p3)+(p5-p4)+(p6-p7)``, ``x2 = (p3-p0)+(p2-p1)+
+    (p7-p4)+(p6-p5)``, ``x3 = (p4-p0)+(p5-p1)+(p6-p2)+(p7-p3)``) of the determinant of the three
+    unit vectors. 1 for a cube (any size, any rotation), ``<= 0`` for an inverted hex, 0 where a
+    vector has zero length.
+    """
+    p = _as_points(points)
+    h = _as_hexes(hexes, p.shape[0])
+    P = p[h]  # (H, 8, 3)
+    base = P[:, _CORNERS[:, 0]]
+    a = P[:, _CORNERS[:, 1]] - base
+    b = P[:, _CORNERS[:, 2]] - base
+    c = P[:, _CORNERS[:, 3]] - base
+    x1 = (P[:, 1] - P[:, 0]) + (P[:, 2] - P[:, 3]) + (P[:, 5] - P[:, 4]) + (P[:, 6] - P[:, 7])
+    x2 = (P[:, 3] - P[:, 0]) + (P[:, 2] - P[:, 1]) + (P[:, 7] - P[:, 4]) + (P[:, 6] - P[:, 5])
+    x3 = (P[:, 4] - P[:, 0]) + (P[:, 5] - P[:, 1]) + (P[:, 6] - P[:, 2]) + (P[:, 7] - P[:, 3])
+    a = np.concatenate([a, x1[:, None]], axis=1)  # (H, 9, 3)
+    b = np.concatenate([b, x2[:, None]], axis=1)
+    c = np.concatenate([c, x3[:, None]], axis=1)
+    la, lb, lc = (np.linalg.norm(v, axis=-1) for v in (a, b, c))
+    ok = (la > 0) & (lb > 0) & (lc > 0)
+    # normalize first: the determinant of unit vectors is not at the mercy of the scale
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ua, ub, uc = a / la[..., None], b / lb[..., None], c / lc[..., None]
+    det = np.einsum("hki,hki->hk", ua, np.cross(ub, uc))
+    det = np.where(ok, det, 0.0)
+    return det.min(axis=1) if det.shape[0] else np.zeros(0)
+
+
+def hex_volumes(points, hexes) -> np.ndarray:
+    """Signed volumes ``(H,)`` of ``hexes``: each hex as the 24 tets joining its centroid to the
+    fans of its faces around their centroids (exact for planar faces, independent of a choice
+    of face diagonals; positive for a positively oriented hex)."""
+    p = _as_points(points)
+    h = _as_hexes(hexes, p.shape[0])
+    P = p[h]  # (H, 8, 3)
+    cc = P.mean(axis=1)  # (H, 3)
+    F = P[:, HEX_FACES] - cc[:, None, None, :]  # (H, 6, 4, 3) relative to the centroid
+    fc = F.mean(axis=2)  # (H, 6, 3)
+    nxt = np.roll(F, -1, axis=2)
+    # det(fc, v_k, v_k+1) / 6 summed over the 4 fan triangles of each outward face
+    vol = np.einsum("hfi,hfki->hfk", fc, np.cross(F, nxt)).sum(axis=(1, 2)) / 6.0
+    return vol
+
+
+# ----------------------------------------------------------------------------- combinatorics
+def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group identical rows of an ``(M, k)`` int array: ``(group id (M,), count per group (G,))``."""
+    if rows.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.lexsort(rows.T[::-1])
+    s = rows[order]
+    new = np.ones(rows.shape[0], dtype=bool)
+    new[1:] = np.any(s[1:] != s[:-1], axis=1)
+    gid_sorted = np.cumsum(new) - 1
+    gid = np.empty(rows.shape[0], np.int64)
+    gid[order] = gid_sorted
+    return gid, np.bincount(gid_sorted)
+
+
+def _loop_direction(loops: np.ndarray) -> np.ndarray:
+    """``+1/-1`` per quad loop ``(M, 4)``: the orientation of the loop read from its smallest
+    vertex (next neighbour smaller than the previous one: +1). Two loops on the same vertex
+    cycle have opposite signs when they run opposite ways."""
+    k = loops.argmin(axis=1)
+    r = np.arange(loops.shape[0])
+    return np.where(loops[r, (k + 1) % 4] < loops[r, (k + 3) % 4], 1, -1)
+
+
+def _edge_keys(pairs: np.ndarray, n: int) -> np.ndarray:
+    lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+    return lo * n + hi
+
+
+def _vertex_link_components(quads: np.ndarray, n: int) -> np.ndarray:
+    """Boundary vertices whose link (the boundary quads around them) is not a single cycle.
+
+    Nodes are (vertex, incident boundary edge) incidences; each quad corner joins the
+    incidences of its two edges at that vertex. A vertex is manifold when its incidences form
+    one connected component. Returns the sorted non-manifold vertices.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if quads.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    prev = np.roll(quads, 1, axis=1)
+    nxt = np.roll(quads, -1, axis=1)
+    v = quads.reshape(-1)
+    e_prev = _edge_keys(np.stack([prev.reshape(-1), v], 1), n)
+    e_next = _edge_keys(np.stack([v, nxt.reshape(-1)], 1), n)
+    # node key: (edge key, vertex) -> compact ids
+    node_keys = np.concatenate([np.stack([e_prev, v], 1), np.stack([e_next, v], 1)])
+    ids, _ = _group_rows(node_keys)
+    m = v.shape[0]
+    G = int(ids.max()) + 1
+    adj = coo_matrix((np.ones(m), (ids[:m], ids[m:])), shape=(G, G))
+    _, comp = connected_components(adj, directed=False)
+    node_vertex = np.empty(G, np.int64)
+    node_vertex[ids] = np.concatenate([v, v])
+    pairs = np.unique(np.stack([node_vertex, comp], 1), axis=0)
+    per_vertex = np.bincount(pairs[:, 0], minlength=n)
+    return np.nonzero(per_vertex > 1)[0]
+
+
+def _hanging_vertices(p: np.ndarray, used: np.ndarray, edges: np.ndarray, tol: float) -> np.ndarray:
+    """Used vertices lying within ``tol`` of the interior of a hex edge they do not end
+    (sorted). Candidates come from a k-d tree ball around each edge's midpoint."""
+    from scipy.spatial import cKDTree
+
+    if edges.shape[0] == 0 or used.size == 0:
+        return np.zeros(0, np.int64)
+    tree = cKDTree(p[used])
+    a, b = p[edges[:, 0]], p[edges[:, 1]]
+    mid = 0.5 * (a + b)
+    half = 0.5 * np.linalg.norm(b - a, axis=1)
+    hits = tree.query_ball_point(mid, half + tol)
+    lens = np.fromiter((len(x) for x in hits), dtype=np.int64, count=len(hits))
+    if lens.sum() == 0:
+        return np.zeros(0, np.int64)
+    cand = used[np.concatenate([np.asarray(x, dtype=np.int64) for x in hits if len(x)])]
+    e = np.repeat(np.arange(edges.shape[0]), lens)
+    keep = (cand != edges[e, 0]) & (cand != edges[e, 1])
+    cand, e = cand[keep], e[keep]
+    ab = p[edges[e, 1]] - p[edges[e, 0]]
+    ap = p[cand] - p[edges[e, 0]]
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.einsum("ij,ij->i", ap, ab) / L2
+    d = np.linalg.norm(ap - t[:, None] * ab, axis=1)
+    L = np.sqrt(L2)
+    # strictly inside: farther than tol from both ends
+    inside = (L2 > 0) & (t * L > tol) & ((1 - t) * L > tol) & (d <= tol)
+    return np.unique(cand[inside])
+
+
+# ----------------------------------------------------------------------------- distances
+def _dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", x, y)
+
+
+def _point_segment_distance(q: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Distance ``(K,)`` from points ``q (K, 3)`` to segments ``[u, v]`` (a point when ``u = v``)."""
+    uv = v - u
+    L2 = _dot(uv, uv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(L2 > 0, np.clip(_dot(q - u, uv) / L2, 0.0, 1.0), 0.0)
+    return np.linalg.norm(q - u - t[:, None] * uv, axis=-1)
+
+
+def _point_triangle_distance(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance ``(...)`` from points ``q (..., 3)`` to triangles ``(a, b, c)``
+    (broadcast against each other).
+
+    The closest point by Voronoi regions of the vertices, sides and face (Ericson, *Real-Time
+    Collision Detection*, 5.1.5); a (near) zero-area triangle is measured to its sides.
+    """
+    q, a, b, c = np.broadcast_arrays(q, a, b, c)
+    shape = q.shape[:-1]
+    q, a, b, c = (x.reshape(-1, 3) for x in (q, a, b, c))
+    ab, ac = b - a, c - a
+    ap, bp, cp = q - a, q - b, q - c
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = va + vb + vc
+        v, w = vb / den, vc / den  # face region
+        # the regions in reverse order of precedence, each overriding the ones before
+        e1, e2 = d4 - d3, d5 - d6
+        m = (va <= 0) & (e1 >= 0) & (e2 >= 0)  # side bc
+        wbc = e1 / (e1 + e2)
+        v, w = np.where(m, 1.0 - wbc, v), np.where(m, wbc, w)
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)  # side ac
+        v, w = np.where(m, 0.0, v), np.where(m, d2 / (d2 - d6), w)
+        m = (d6 >= 0) & (d5 <= d6)  # vertex c
+        v, w = np.where(m, 0.0, v), np.where(m, 1.0, w)
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)  # side ab
+        v, w = np.where(m, d1 / (d1 - d3), v), np.where(m, 0.0, w)
+        m = (d3 >= 0) & (d4 <= d3)  # vertex b
+        v, w = np.where(m, 1.0, v), np.where(m, 0.0, w)
+        m = (d1 <= 0) & (d2 <= 0)  # vertex a
+        v, w = np.where(m, 0.0, v), np.where(m, 0.0, w)
+    d = np.linalg.norm(ap - v[:, None] * ab - w[:, None] * ac, axis=-1)
+    # (near) zero-area triangles: the face region's round-off can pick a wrong side; a triangle
+    # thinner than 1e-12 of its sides is measured to its sides (off by at most that width)
+    n2 = np.einsum("ij,ij->i", *(np.cross(ab, ac),) * 2)
+    bad = ~np.isfinite(d) | (n2 <= 1e-24 * _dot(ab, ab) * _dot(ac, ac))
+    if bad.any():
+        qa, aa, ba, ca = q[bad], a[bad], b[bad], c[bad]
+        d[bad] = np.minimum(np.minimum(_point_segment_distance(qa, aa, ba), _point_segment_distance(qa, ba, ca)),
+                            _point_segment_distance(qa, ca, aa))
+    return d.reshape(shape)
+
+
+class _Target:
+    """A target surface ``(vertices, triangles)`` for distance queries, with what the certified
+    bounds of :func:`_one_sided_hausdorff` need: unit normals, and per vertex whether its fan is
+    flat (every incident normal within :data:`_FLAT_NORMAL_TOL` of the mean, angles summing to
+    ``2 pi``) with the radius ``rho`` of the disk around it that the fan covers."""
+
+    def __init__(self, v: np.ndarray, f: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+        self.f = np.ascontiguousarray(f, dtype=np.int64)
+        self.tri = self.v[self.f]  # (F, 3, 3)
+        n = np.cross(self.tri[:, 1] - self.tri[:, 0], self.tri[:, 2] - self.tri[:, 0])
+        area2 = np.linalg.norm(n, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.normal = np.where(area2[:, None] > 0, n / area2[:, None], 0.0)
+        V = self.v.shape[0]
+        corner_v = self.f.reshape(-1)
+        corner_t = np.repeat(np.arange(self.f.shape[0]), 3)
+        a = self.v[np.roll(self.f, -1, axis=1).reshape(-1)]
+        b = self.v[np.roll(self.f, -2, axis=1).reshape(-1)]
+        w = self.v[corner_v]
+        nsum = np.zeros((V, 3))
+        np.add.at(nsum, corner_v, n[corner_t])
+        nlen = np.linalg.norm(nsum, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nw = nsum / nlen[:, None]
+        dev = np.zeros(V)
+        np.maximum.at(dev, corner_v, np.linalg.norm(self.normal[corner_t] - nw[corner_v], axis=1))
+        u, t = a - w, b - w
+        ang = np.arctan2(np.linalg.norm(np.cross(u, t), axis=1), np.einsum("ij,ij->i", u, t))
+        angle_sum = np.bincount(corner_v, weights=ang, minlength=V)
+        rho = np.full(V, np.inf)
+        np.minimum.at(rho, corner_v, _point_segment_distance(w, a, b))  # distance to the opposite side
+        flat = (nlen > 0) & (dev <= _FLAT_NORMAL_TOL) & (np.abs(angle_sum - 2 * np.pi) <= 1e-9) & np.isfinite(rho)
+        self.flat_vertex = np.nonzero(flat)[0]
+        self.flat_normal, self.flat_rho = nw[self.flat_vertex], rho[self.flat_vertex]
+        self.flat_slack = 2.0 * dev[self.flat_vertex] * rho[self.flat_vertex]
+        self.flat_tree = cKDTree(self.v[self.flat_vertex]) if self.flat_vertex.size else None
+
+    def dist(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact distances ``(Q,)`` of points ``q (Q, 3)`` to the surface and the closest triangles."""
+        import igl
+
+        sq, idx, _ = igl.point_mesh_squared_distance(np.ascontiguousarray(q, dtype=np.float64), self.v, self.f)
+        return np.sqrt(np.maximum(sq, 0.0)), np.asarray(idx, dtype=np.int64).reshape(-1)
+
+    def upper_bound(self, tri: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        """Certified upper bounds ``(M,)`` on the distance to the surface over each source
+        triangle ``tri (M, 3, 3)``, given candidate target triangles ``cand (M, J)``.
+
+        The smallest of: for one candidate ``t_j``, the largest vertex distance to it (the
+        distance to one triangle is convex); for two candidates sharing a side, coplanar, whose
+        union is convex, the largest vertex distance to the union; where the triangle's vertices
+        project into the disk a flat vertex fan covers, the largest distance to the fan's plane
+        (both convex too). The coplanarity tolerance is added as slack.
+        """
+        M, J = cand.shape
+        cand = np.sort(cand, axis=1)
+        new = np.ones((M, J), dtype=bool)
+        new[:, 1:] = cand[:, 1:] != cand[:, :-1]  # a repeated candidate copies the previous column
+        t = self.tri[cand]  # (M, J, 3, 3)
+        r, j = np.nonzero(new)
+        d = np.empty((M, J, 3))
+        d[r, j] = _point_triangle_distance(tri[r], t[r, j, None, 0], t[r, j, None, 1], t[r, j, None, 2])
+        for k in range(1, J):
+            d[:, k] = np.where(new[:, k, None], d[:, k], d[:, k - 1])
+        ub = d.max(axis=2).min(axis=1)  # (M,) single candidates
+        fv = self.f[cand]  # (M, J, 3)
+        for j in range(J):
+            for k in range(j + 1, J):
+                eq = fv[:, j, :, None] == fv[:, k, None, :]  # (M, 3, 3)
+                shared_j = eq.any(axis=2)  # vertices of t_j that t_k has
+                ok = shared_j.sum(axis=1) == 2
+                nj, nk = self.normal[cand[:, j]], self.normal[cand[:, k]]
+                ok &= np.linalg.norm(nj - nk, axis=1) <= _FLAT_NORMAL_TOL
+                if not ok.any():
+                    continue
+                r = np.arange(M)
+                oj = t[r, j, np.argmin(shared_j, axis=1)]
+                ok_ = eq.any(axis=1)
+                ok_k = t[r, k, np.argmin(ok_, axis=1)]
+                s_idx = np.argsort(~shared_j, axis=1, kind="stable")[:, :2]
+                s0, s1 = t[r, j, s_idx[:, 0]], t[r, j, s_idx[:, 1]]
+                g0 = np.einsum("ij,ij->i", np.cross(ok_k - oj, s0 - oj), nj)
+                g1 = np.einsum("ij,ij->i", np.cross(ok_k - oj, s1 - oj), nj)
+                ok &= g0 * g1 <= 0  # the two triangles form a convex quadrilateral
+                slack = 2.0 * np.abs(np.einsum("ij,ij->i", ok_k - s0, nj))
+                pair = np.minimum(d[:, j], d[:, k]).max(axis=1) + slack
+                ub = np.where(ok, np.minimum(ub, pair), ub)
+        if self.flat_tree is not None:
+            g = tri.mean(axis=1)
+            _, w = self.flat_tree.query(g)
+            c = self.v[self.flat_vertex[w]]
+            n = self.flat_normal[w]
+            rel = tri - c[:, None, :]
+            off = np.einsum("mki,mi->mk", rel, n)  # (M, 3)
+            inplane = np.linalg.norm(rel - off[..., None] * n[:, None, :], axis=2)
+            inside = (inplane <= self.flat_rho[w][:, None]).all(axis=1)
+            fan = np.abs(off).max(axis=1) + self.flat_slack[w]
+            ub = np.where(inside, np.minimum(ub, fan), ub)
+        return ub
+
+
+def _one_sided_hausdorff(src_v: np.ndarray, src_f: np.ndarray, dst: _Target, tol_abs: float) -> tuple[float, float, int]:
+    """``max over the source surface of the distance to the target surface``, by adaptive
+    sampling (module docstring): ``(lower bound, certified upper bound, distance evaluations)``."""
+    used = np.unique(src_f)
+    dv_all, iv_all = np.zeros(src_v.shape[0]), np.zeros(src_v.shape[0], np.int64)
+    dv_all[used], iv_all[used] = dst.dist(src_v[used])
+    tri = src_v[src_f]  # (M, 3, 3)
+    dv, iv = dv_all[src_f], iv_all[src_f]  # (M, 3)
+    evals = used.size
+    lower = float(dv.max()) if dv.size else 0.0
+    upper_done = lower
+    kids = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
+    while tri.shape[0]:
+        dg, ig = dst.dist(tri.mean(axis=1))
+        evals += dg.size
+        lower = max(lower, float(dg.max()))
+        ub = dst.upper_bound(tri, np.concatenate([iv, ig[:, None]], axis=1))
+        refine = ub > lower + max(HAUSDORFF_REL_ACCURACY * lower, tol_abs)
+        if (~refine).any():
+            upper_done = max(upper_done, float(ub[~refine].max()))
+        if not refine.any():
+            break
+        if evals + 7 * int(refine.sum()) > HAUSDORFF_MAX_EVALUATIONS:
+            upper_done = max(upper_done, float(ub[refine].max()))
+            break
+        tri, dv, iv = tri[refine], dv[refine], iv[refine]
+        m = np.stack([0.5 * (tri[:, 0] + tri[:, 1]), 0.5 * (tri[:, 1] + tri[:, 2]),
+                      0.5 * (tri[:, 2] + tri[:, 0])], axis=1)  # (M', 3, 3): m01, m12, m20
+        dm, im = dst.dist(m.reshape(-1, 3))
+        evals += dm.size
+        dm, im = dm.reshape(-1, 3), im.reshape(-1, 3)
+        lower = max(lower, float(dm.max()))
+        # children (a, m01, m20), (m01, b, m12), (m20, m12, c), (m01, m12, m20)
+        P = np.concatenate([tri, m], axis=1)  # (M', 6, 3): a b c m01 m12 m20
+        tri = P[:, kids].reshape(-1, 3, 3)
+        dv = np.concatenate([dv, dm], axis=1)[:, kids].reshape(-1, 3)
+        iv = np.concatenate([iv, im], axis=1)[:, kids].reshape(-1, 3)
+    return lower, max(lower, upper_done), evals
+
+
+def _hausdorff(hex_v, hex_tris, tet_v, tet_tris, diag: float) -> tuple[float, float, int]:
+    tol = HAUSDORFF_ABS_ACCURACY_REL * diag
+    lo1, up1, n1 = _one_sided_hausdorff(hex_v, hex_tris, _Target(tet_v, tet_tris), tol)
+    lo2, up2, n2 = _one_sided_hausdorff(tet_v, tet_tris, _Target(hex_v, hex_tris), tol)
+    return max(lo1, lo2), max(up1, up2), n1 + n2
+
+
+# ----------------------------------------------------------------------------- features
+def _feature_metrics(p: np.ndarray, used: np.ndarray, edges: np.ndarray, tet_mesh, diag: float) -> dict:
+    """Corners and sharp curves of ``tet_mesh.cad`` meshed by the hex mesh (module docstring)."""
+    import igl
+    from scipy.spatial import cKDTree
+
+    from ..frames.constraints import BoundaryConstraint
+
+    bc = BoundaryConstraint.from_mesh(tet_mesh, features="cad")
+    tv = tet_mesh.vertices.detach().cpu().double().numpy()
+    V = tv.shape[0]
+    tol = FEATURE_TOL_REL * diag
+    corners = bc.corner_vertices.cpu().numpy()
+    if corners.size and used.size:
+        dc, _ = cKDTree(p[used]).query(tv[corners])
+        corner_ok = dc <= tol
+    else:
+        corner_ok = np.zeros(corners.size, dtype=bool)
+
+    fe = bc.feature_edges.cpu().numpy().astype(np.int64)  # (K, 2), i < j
+    tags = tet_mesh.cad
+    tag_keys = (tags.feature_edges[:, 0] * V + tags.feature_edges[:, 1]).cpu().numpy()
+    tag_curve = tags.feature_edge_curve.cpu().numpy()
+    pos = np.searchsorted(tag_keys, fe[:, 0] * V + fe[:, 1])  # fe is a subset of the tagged edges
+    curve_of = tag_curve[pos] if fe.shape[0] else np.zeros(0, np.int64)
+    curves = np.unique(curve_of)
+    coverage = np.zeros(curves.size)
+    if curves.size and edges.shape[0]:
+        fe_v = np.ascontiguousarray(tv)
+        # hex edges lying on the feature set: ends within tol, midpoint within the chord tolerance
+        d_end = np.full(p.shape[0], np.inf)
+        d_end[used], _, _ = igl.point_mesh_squared_distance(p[used], fe_v, fe)
+        d_end = np.sqrt(np.maximum(d_end, 0.0))
+        on = (d_end[edges[:, 0]] <= tol) & (d_end[edges[:, 1]] <= tol)
+        he = edges[on]
+        mid = 0.5 * (p[he[:, 0]] + p[he[:, 1]])
+        length = np.linalg.norm(p[he[:, 1]] - p[he[:, 0]], axis=1)
+        radius = np.maximum(tol, FEATURE_CHORD_REL * length)
+        if he.shape[0]:
+            sq, idx, _ = igl.point_mesh_squared_distance(mid, fe_v, fe)
+            lies = np.sqrt(np.maximum(sq, 0.0)) <= radius
+            he_curve = curve_of[np.asarray(idx, dtype=np.int64).reshape(-1)]
+        else:
+            lies, he_curve = np.zeros(0, bool), np.zeros(0, np.int64)
+        t = np.linspace(0.0, 1.0, FEATURE_CURVE_SAMPLES + 2)
+        samples = tv[fe[:, 0]][:, None] + t[None, :, None] * (tv[fe[:, 1]] - tv[fe[:, 0]])[:, None]  # (K, S, 3)
+        for k, c in enumerate(curves):
+            mine = lies & (he_curve == c)
+            if not mine.any():
+                continue
+            q = samples[curve_of == c].reshape(-1, 3)
+            seg = he[mine]
+            sq, idx, _ = igl.point_mesh_squared_distance(q, p, np.ascontiguousarray(seg))
+            r = radius[mine][np.asarray(idx, dtype=np.int64).reshape(-1)]
+            coverage[k] = float(np.mean(np.sqrt(np.maximum(sq, 0.0)) <= r))
+    n_c, n_k = int(corners.size), int(curves.size)
+    return dict(
+        n_corners=n_c, n_corners_meshed=int(corner_ok.sum()),
+        corner_fraction=float(corner_ok.mean()) if n_c else float("nan"),
+        n_curves=n_k, n_curves_meshed=int((coverage >= 1.0).sum()),
+        curve_fraction=float((coverage >= 1.0).mean()) if n_k else float("nan"),
+        curve_coverage=coverage,
+    )
+
+
+# ----------------------------------------------------------------------------- the judgement
+def hex_quality(points, hexes, *, tet_mesh=None) -> HexQuality:
+    """Judge the hex mesh ``points (N, 3)``, ``hexes (H, 8)`` (VTK order; numpy or torch).
+
+    Args:
+        points: vertex positions.
+        hexes: vertex indices per hex, VTK order, positively oriented.
+        tet_mesh: the input :class:`~torchconn.TetMesh` it meshes: adds the Hausdorff distance
+            and volume ratio, ``good``, and with ``tet_mesh.cad`` the feature metrics.
+
+    Returns:
+        a :class:`HexQuality` (every definition in the module docstring). A mesh that fails a
+        check is a result (``valid = False`` with ``invalid_reasons``), not an error.
+
+    Raises:
+        ValueError: malformed input (shapes, non-integer or out-of-range indices, NaN/inf
+            points), naming the offending rows.
+    """
+    p = _as_points(points)
+    h = _as_hexes(hexes, p.shape[0])
+    N, H = p.shape[0], h.shape[0]
+    used = np.unique(h)
+    diag_hex = _diagonal(p[used]) if used.size else 0.0
+    tol = COINCIDENT_TOL_REL * diag_hex
+
+    # scaled Jacobian, degenerate and inverted hexes
+    sj = scaled_jacobian(p, h)
+    hs = np.sort(h, axis=1)
+    repeated = (hs[:, 1:] == hs[:, :-1]).any(axis=1)
+    elen = np.linalg.norm(p[h[:, HEX_EDGES[:, 1]]] - p[h[:, HEX_EDGES[:, 0]]], axis=2)  # (H, 12)
+    degenerate = np.nonzero(repeated | (elen <= tol).any(axis=1))[0]
+    inverted = np.nonzero(sj <= 0)[0]
+
+    # faces: shared by at most two hexes, on opposite sides
+    loops = h[:, HEX_FACES].reshape(-1, 4)  # (6H, 4) outward
+    fid, fcount = _group_rows(np.sort(loops, axis=1))
+    over_two = int((fcount > 2).sum())
+    same_side = 0
+    if loops.shape[0]:
+        direction = _loop_direction(loops)
+        two = np.nonzero(fcount[fid] == 2)[0]
+        order = two[np.argsort(fid[two], kind="stable")]
+        same_side = int((direction[order[0::2]] == direction[order[1::2]]).sum())
+    bquads = loops[fcount[fid] == 1]
+
+    # boundary edges and vertex links
+    bq_edges = np.stack([bquads, np.roll(bquads, -1, axis=1)], axis=2).reshape(-1, 2)
+    bkeys, bval = np.unique(_edge_keys(bq_edges, N), return_counts=True)
+    open_edges = int((bval % 2 == 1).sum())
+    nonmanifold_edges = int(((bval % 2 == 0) & (bval > 2)).sum())
+    nonmanifold_vertices = _vertex_link_components(bquads, N)
+
+    # edges and their hex valence
+    hpairs = h[:, HEX_EDGES].reshape(-1, 2)
+    ekeys, evalence = np.unique(_edge_keys(hpairs, N), return_counts=True)
+    edges = np.stack([ekeys // N, ekeys % N], axis=1) if N else np.zeros((0, 2), np.int64)
+    on_boundary = np.isin(ekeys, bkeys)
+    interior = ~on_boundary
+    irregular = interior & (evalence != 4)
+    n_int = int(interior.sum())
+    b_irregular = on_boundary & (evalence != 2)
+    vals, cnts = np.unique(evalence[irregular], return_counts=True)
+
+    # coincident and hanging vertices
+    if used.size > 1:
+        from scipy.spatial import cKDTree
+
+        n_coincident = len(cKDTree(p[used]).query_pairs(tol, output_type="ndarray")) if tol > 0 else 0
+    else:
+        n_coincident = 0
+    hanging = _hanging_vertices(p, used, edges, tol)
+
+    reasons = []
+    if H == 0:
+        reasons.append("no hexes")
+    if degenerate.size:
+        reasons.append(f"not all hexahedra: {degenerate.size} degenerate hexes (repeated vertices or collapsed "
+                       f"edges), e.g. {degenerate[:5].tolist()}")
+    if inverted.size:
+        reasons.append(f"{inverted.size} inverted hexes (scaled Jacobian <= 0), e.g. {inverted[:5].tolist()}")
+    conform = []
+    if over_two:
+        conform.append(f"{over_two} faces in more than two hexes")
+    if same_side:
+        conform.append(f"{same_side} faces shared by two hexes on the same side (overlapping hexes)")
+    if n_coincident:
+        conform.append(f"{n_coincident} pairs of coincident vertices (closer than {COINCIDENT_TOL_REL:g} of the "
+                       f"diagonal: unstitched)")
+    if hanging.size:
+        conform.append(f"{hanging.size} hanging vertices (on another hex edge), e.g. {hanging[:5].tolist()}")
+    reasons += [f"not conforming: {c}" for c in conform]
+    closed = []
+    if open_edges:
+        closed.append(f"boundary not closed: {open_edges} boundary edges in an odd number of boundary quads")
+    if nonmanifold_edges:
+        closed.append(f"boundary not manifold: {nonmanifold_edges} boundary edges in more than two boundary quads")
+    if nonmanifold_vertices.size:
+        closed.append(f"boundary not manifold: {nonmanifold_vertices.size} boundary vertices whose quads form "
+                      f"more than one cycle, e.g. {nonmanifold_vertices[:5].tolist()}")
+    reasons += closed
+
+    q = HexQuality(
+        n_points=N, n_hexes=H,
+        scaled_jacobian=sj, sj_min=float(sj.min()) if H else float("nan"),
+        sj_mean=float(sj.mean()) if H else float("nan"),
+        n_inverted=int(inverted.size), inverted=inverted,
+        n_degenerate=int(degenerate.size), degenerate=degenerate,
+        n_faces_in_more_than_two_hexes=over_two, n_same_side_shared_faces=same_side,
+        n_coincident_vertex_pairs=int(n_coincident), n_hanging_vertices=int(hanging.size),
+        n_unused_points=int(N - used.size),
+        n_boundary_quads=int(bquads.shape[0]), n_boundary_edges=int(bkeys.size),
+        n_open_boundary_edges=open_edges, n_nonmanifold_boundary_edges=nonmanifold_edges,
+        n_nonmanifold_boundary_vertices=int(nonmanifold_vertices.size),
+        all_hex=bool(H > 0 and degenerate.size == 0), conforming=not conform, closed_boundary=not closed,
+        valid=not reasons, invalid_reasons=reasons,
+        n_edges=int(ekeys.size), n_interior_edges=n_int, n_irregular_interior_edges=int(irregular.sum()),
+        irregular_fraction=float(irregular.sum() / n_int) if n_int else 0.0,
+        irregular_valence_counts={int(v): int(c) for v, c in zip(vals, cnts)},
+        irregular_edges=edges[irregular], irregular_valence=evalence[irregular],
+        n_boundary_edges_valence_not_2=int(b_irregular.sum()),
+        boundary_irregular_edges=edges[b_irregular], boundary_irregular_valence=evalence[b_irregular],
+        boundary_quads=bquads,
+    )
+
+    if tet_mesh is not None:
+        tv = tet_mesh.vertices.detach().cpu().double().numpy()
+        tt = tet_mesh.tets.cpu().numpy().astype(np.int64)
+        bf = tet_mesh.boundary_faces.cpu().numpy().astype(np.int64)
+        diag = _diagonal(tv)
+        hex_tris = bquads[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
+        if hex_tris.shape[0]:
+            lo, up, n_eval = _hausdorff(p, hex_tris, tv, bf, diag)
+        else:
+            lo, up, n_eval = float("inf"), float("inf"), 0
+        T = tv[tt]
+        tet_vol = float(np.einsum("ti,ti->t", np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]),
+                                  T[:, 3] - T[:, 0]).sum() / 6.0)
+        hex_vol = float(hex_volumes(p, h).sum())
+        q.diagonal, q.hausdorff, q.hausdorff_evaluations = diag, lo, n_eval
+        q.hausdorff_rel, q.hausdorff_upper_rel = lo / diag, up / diag
+        q.hex_volume, q.tet_volume, q.volume_ratio = hex_vol, tet_vol, hex_vol / tet_vol
+        if getattr(tet_mesh, "cad", None) is not None:
+            for k, v in _feature_metrics(p, used, edges, tet_mesh, diag).items():
+                setattr(q, k, v)
+        not_good = [] if q.valid else ["not valid"]
+        if q.irregular_fraction > GOOD_IRREGULAR_MAX:
+            not_good.append(f"irregular interior edges {q.irregular_fraction:.2%} > {GOOD_IRREGULAR_MAX:.0%}")
+        if not q.hausdorff_rel <= GOOD_HAUSDORFF_MAX_REL:
+            not_good.append(f"Hausdorff distance {q.hausdorff_rel:.3%} of the diagonal > {GOOD_HAUSDORFF_MAX_REL:.0%}")
+        q.good, q.not_good_reasons = not not_good, not_good
+    return q
