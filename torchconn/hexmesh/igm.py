@@ -191,7 +191,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     else:
         cb = None
     try:
-        y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb)
+        y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
+                                flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))
     finally:
         if bar is not None:
             bar.close()

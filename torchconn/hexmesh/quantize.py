@@ -34,7 +34,7 @@ def param_volumes(uvw: np.ndarray) -> np.ndarray:
 
 
 def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch_error: float = 0.5,
-                 backend: str = "auto", progress=None) -> tuple[np.ndarray, dict]:
+                 backend: str = "auto", progress=None, flips=None, flip_budget: int = 40_000_000) -> tuple[np.ndarray, dict]:
     """Greedy multiple rounding of the integer unknowns of ``min y^T A y - 2 b^T y`` (module docstring).
 
     Args:
@@ -43,6 +43,13 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
         batch_error: the largest summed rounding distance of one step.
         backend: the :class:`~.solver.SPDFactor` backend.
         progress: an optional callable ``progress(n_fixed, n_total)``.
+        flips: an optional callable ``flips(y) -> int`` (the map's tets that are not positively
+            oriented for the unknowns ``y``). With it, and when ``m * |I| <= flip_budget``, the
+            rounding is *flip-aware*: one integer at a time (the closest to an integer first), both
+            neighbouring integers are tried and the one whose conditional optimum has fewer
+            flipped tets is kept (then the nearer one). The conditional optimum of every unknown
+            is kept up to date by rank-one updates of the ``(m, |I|)`` conditional covariance
+            columns, from the same single factorization.
 
     Returns:
         ``(y (m,), info)``: ``y`` with every integer unknown an exact integer and the continuous
@@ -57,6 +64,8 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
     info = {"steps": 0, "n_integers": int(I.size), "max_rounding": 0.0, "undetermined": 0, "backend": fac.backend}
     if I.size == 0:
         return y0, info
+    if flips is not None and m * I.size <= flip_budget:
+        return _round_flip_aware(fac, y0, I, flips, info, progress)
     # C = (A^{-1})_{II}, from |I| solves in batches
     C = np.empty((I.size, I.size))
     for s in range(0, I.size, _RHS_BATCH):
@@ -110,6 +119,60 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
     info["max_rounding"] = max_round
     info["undetermined"] = undetermined
     y = solve_fixed(A, b, int_mask, x, backend=backend)
+    return y, info
+
+
+def _round_flip_aware(fac, y0, I, flips, info, progress):
+    """One integer at a time, each rounding chosen among its two neighbours by the flips it makes."""
+    m = y0.size
+    K = np.empty((m, I.size))  # conditional covariance columns Cov(y, y_I)
+    for s in range(0, I.size, _RHS_BATCH):
+        cols = I[s:s + _RHS_BATCH]
+        E = np.zeros((m, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        K[:, s:s + cols.size] = fac.solve(E)
+    y = y0.copy()
+    rem = np.ones(I.size, bool)
+    scale = max(float(np.abs(K[I, np.arange(I.size)]).max()), 1e-300)
+    undetermined, max_round, changed = 0, 0.0, 0
+    for step in range(I.size):
+        r = np.nonzero(rem)[0]
+        xi = y[I[r]]
+        d = np.abs(xi - np.round(xi))
+        j = int(r[np.argmin(d)])
+        v = K[I[j], j]
+        x = y[I[j]]
+        if v <= 1e-12 * scale:  # already determined by the fixed ones
+            if abs(x - round(x)) > 1e-9:
+                undetermined += 1
+            else:
+                y[I[j]] = round(x)
+            rem[j] = False
+            continue
+        near = float(np.round(x))
+        other = near + (1.0 if x > near else -1.0)
+        best = None
+        for cand in (near, other):
+            yc = y + ((cand - x) / v) * K[:, j]
+            nf = int(flips(yc))
+            key = (nf, abs(cand - x))
+            if best is None or key < best[0]:
+                best = (key, cand, yc)
+            if nf == 0:
+                break
+        (_, dist), cand, yc = best
+        changed += cand != near
+        max_round = max(max_round, dist)
+        y = yc
+        y[I[j]] = cand
+        # condition the covariance on y_I[j] = cand
+        kj = K[:, j].copy()
+        K -= np.outer(kj, K[I[j], :] / v)
+        rem[j] = False
+        if progress is not None:
+            progress(int((~rem).sum()), I.size)
+    info.update(steps=I.size, max_rounding=max_round, undetermined=undetermined, flip_aware=True,
+                rounded_away=int(changed))
     return y, info
 
 

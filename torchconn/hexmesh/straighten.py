@@ -13,7 +13,9 @@ face (a singular curve through ``a -> b`` then runs ``a -> c -> b``), or back.
 The search (as :mod:`torchconn.frames.structure` does for the vertex-based picture) descends a
 cost over interior edges: regular 0, a quarter or half turn about the parameter axis closest
 to the edge's direction in the field ``w_along``, a turn about another axis ``w_across``, a
-complex holonomy ``w_complex``; plus ``w_misfit`` times the rotation angle (radians) by which a
+complex holonomy ``w_complex``, and ``w_tangent`` more for a turn at a boundary vertex about an
+axis more than 45° from the boundary normal there (a singular curve touching the boundary
+instead of ending on it: the map lays its line into the boundary plane); plus ``w_misfit`` times the rotation angle (radians) by which a
 face's matching departs from its best match. Each step takes the move with the largest
 decrease among the faces at a singular edge (faces with a boundary edge are left alone: their
 matchings set how the boundary planes meet); it stops when no move decreases the cost. It
@@ -29,7 +31,7 @@ from .cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrice
 
 __all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS"]
 
-DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "misfit": 2.0}
+DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "tangent": 8.0, "misfit": 2.0}
 
 
 def _element_tables():
@@ -91,6 +93,10 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
     turn = (_ETYPE == 1) | (_ETYPE == 2)
     cost_tab = np.where(_ETYPE[None] == 3, w["complex"],
                         np.where(turn[None], np.where(_EAXIS[None] == along[:, None], w["along"], w["across"]), 0.0))
+    # an interior singular edge at a boundary vertex whose turn axis is not along the boundary
+    # normal there: the map puts its line into the boundary plane (the tets between collapse)
+    tang = tangent_axes(mesh, Fr.numpy()[walks.start], edges, walks.boundary)  # (E, 3) bool per axis
+    cost_tab = cost_tab + w["tangent"] * (turn[None] & tang[:, np.maximum(_EAXIS, 0)])
     cost_tab[walks.boundary] = 0.0
 
     def transitions():
@@ -220,6 +226,31 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
                 across_after=int((sing1 & turn[np.maximum(hol, 0)] & (_EAXIS[np.maximum(hol, 0)] != along)).sum()),
                 complex_after=int((sing1 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()))
     return match, info
+
+
+def tangent_axes(mesh, start_frames: np.ndarray, edges: np.ndarray, boundary_edge: np.ndarray) -> np.ndarray:
+    """``(E, 3)`` bool: for each interior edge with an end on the boundary, the parameter axes
+    (frame axes of its start tet) more than 45° from the boundary normal at that end (either end).
+
+    A singular line about such an axis through a boundary vertex lies in the boundary plane of the
+    map there. Edges without a boundary end: all false.
+    """
+    E = edges.shape[0]
+    V = mesh.n_vertices
+    nrm = np.zeros((V, 3))
+    bvi = mesh.boundary_vertices.cpu().numpy()
+    nrm[bvi] = mesh.boundary_vertex_normals.detach().cpu().double().numpy()
+    onb = np.zeros(V, bool)
+    onb[bvi] = True
+    out = np.zeros((E, 3), bool)
+    c45 = np.sqrt(0.5)
+    for end in (0, 1):
+        v = edges[:, end]
+        sel = onb[v] & ~boundary_edge
+        if sel.any():
+            cosk = np.abs(np.einsum("eik,ei->ek", start_frames[sel], nrm[v[sel]]))  # (n, 3): |F[:, k] . n|
+            out[sel] |= cosk < c45
+    return out
 
 
 def _holonomy_of(walks, e_ids, face_rot):
