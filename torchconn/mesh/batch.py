@@ -78,10 +78,8 @@ class TetMeshBatch(TetMesh):
     the per-mesh means, a max (``BianchiCheck``) the max over the meshes; per-mesh reductions
     come from :meth:`split` or :meth:`mesh_index` (e.g. ``index_add_``).
 
-    Attributes:
-        n_meshes: number of meshes ``B``.
-        counts(kind) / offsets(kind): per-mesh element counts ``(B,)`` and offsets ``(B + 1,)``
-            as Python ints (no device sync), for ``kind`` in :data:`ELEMENT_KINDS`.
+    Per mesh: :attr:`n_meshes` ``B``; :meth:`counts` and :meth:`offsets` of each element kind
+    (:data:`ELEMENT_KINDS`) as Python ints (no device sync); :meth:`mesh_index`; :meth:`split`.
 
     CAD tags (``mesh.cad``, :class:`~torchconn.mesh.cad.CadTags`): carried when every mesh has
     them (faces, feature edges and corners offset; the tag values are kept, so the same tag in

@@ -5,8 +5,8 @@
   tags, so ``to_meshio(mesh).write("x.msh", file_format="gmsh22")`` is read back by
   :func:`~torchconn.mesh.cad.load_tagged_msh`).
 
-Layering inside :mod:`torchconn.mesh`: this module sits above :mod:`.tet` and :mod:`.cad` (it
-imports both, neither imports it), so the conversions are functions here, not ``TetMesh``
+Layering inside :mod:`torchconn.mesh`: this module sits above :mod:`torchconn.mesh.tet` and
+:mod:`torchconn.mesh.cad` (it imports both, neither imports it), so the conversions are functions here, not ``TetMesh``
 methods; the boundary surface, which needs no other library, is the method
 :meth:`TetMesh.boundary_surface`. meshio is imported inside the functions that use it.
 """
