@@ -8,6 +8,7 @@ tree, so they hold for whatever modules each layer holds.
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import subprocess
 import sys
@@ -100,6 +101,12 @@ def _modules() -> dict[str, Path]:
     return {_module_name(p): p for p in sorted(PKG.rglob("*.py"))}
 
 
+@functools.lru_cache(maxsize=None)
+def _parse(path: Path) -> ast.Module:
+    """The syntax tree of a source file, parsed once per test session (three tests walk them all)."""
+    return ast.parse(path.read_text())
+
+
 def _resolve_from(module: str, path: Path, node: ast.ImportFrom) -> str:
     """Absolute name of the module a ``from X import ...`` statement names as X."""
     if node.level == 0:
@@ -113,7 +120,7 @@ def _resolve_from(module: str, path: Path, node: ast.ImportFrom) -> str:
 def _root_reexports(modules: dict[str, Path]) -> dict[str, str]:
     """Name re-exported by ``torchconn/__init__.py`` -> the torchconn module it comes from."""
     out = {}
-    for node in ast.walk(ast.parse(modules["torchconn"].read_text())):
+    for node in ast.walk(_parse(modules["torchconn"])):
         if isinstance(node, ast.ImportFrom) and node.level >= 1:
             source = _resolve_from("torchconn", modules["torchconn"], node)
             for alias in node.names:
@@ -133,7 +140,7 @@ def _imports(modules: dict[str, Path]) -> dict[str, list[tuple[str, int, bool]]]
     for module, path in modules.items():
         if module == "torchconn":
             continue
-        tree = ast.parse(path.read_text())
+        tree = _parse(path)
         top_level = {id(n) for n in tree.body}
         # imports under `if`/`try` at module level run at import time too
         for stmt in tree.body:
