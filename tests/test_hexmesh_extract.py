@@ -298,6 +298,39 @@ def test_rotated_box_gives_the_rotated_grid():
     assert_structured_grid(res, 4.0, 2.0, R=R)
 
 
+def jittered_box_map(n, size, h, amp=0.2, seed=0):
+    """``box(n, size)`` with parameters ``x / h`` plus a random offset of up to ``amp`` tet
+    spacings (snapped to 2**-20; boundary vertices keep their coordinate on their plane): generic
+    vertex positions, so the predicates take their filtered path, not the lattice shortcut."""
+    mesh = tc.io.box(n, size=size)
+    V = mesh.vertices.numpy()
+    P = V / h + np.random.default_rng(seed).uniform(-amp, amp, V.shape) * (size / n / h)
+    for ax in range(3):
+        on = (np.abs(V[:, ax]) < 1e-12) | (np.abs(V[:, ax] - size) < 1e-12)
+        P[on, ax] = V[on, ax] / h
+    uvw = (np.round(P * 2 ** 20) / 2 ** 20)[mesh.tets.numpy()]
+    assert (pr.orient3d(uvw[:, 0], uvw[:, 1], uvw[:, 2], uvw[:, 3]) > 0).all()
+    return mesh, uvw
+
+
+def test_generic_map_gives_the_grid_topology():
+    mesh, uvw = jittered_box_map(4, 4.0, 1.0)
+    res = extract_hexes(mesh, uvw, *identity_transitions(mesh))
+    assert res.hexes.shape == (64, 8) and sum(res.dropped.values()) == 0
+    assert set(map(tuple, res.point_param)) == set(itertools.product(range(5), repeat=3))
+    interior, _ = edge_valences(res)
+    assert len(interior) == 3 * 4 * 3 * 3 and set(interior.values()) == {4}
+    # each hex vertex maps back to its parameter through its tet (the map is linear per tet)
+    X = mesh.vertices.numpy()[mesh.tets.numpy()[res.point_tet]]
+    lam = np.linalg.solve(np.concatenate([X, np.ones((len(X), 4, 1))], 2).transpose(0, 2, 1),
+                          np.concatenate([res.points, np.ones((len(X), 1))], 1)[:, :, None])[:, :, 0]
+    assert (lam > -1e-9).all()
+    np.testing.assert_allclose(np.einsum("nk,nki->ni", lam, uvw[res.point_tet]), res.point_param, atol=1e-9)
+    # hex corners in VTK order: the parameter offsets from the min corner are the template
+    rel = res.point_param[res.hexes] - res.point_param[res.hexes[:, :1]]
+    np.testing.assert_array_equal(rel, np.broadcast_to(HEX_CORNERS, rel.shape))
+
+
 def _rechart(uvw, tets_sel, rng):
     """Apply a random element of O and a random integer shift to the charts of ``tets_sel``."""
     out = uvw.copy()
@@ -492,3 +525,30 @@ def test_singular_edge_off_its_integer_line():
     assert set(np.unique(res.dropped_reason)) <= {REASONS.index("near_invalid"), REASONS.index("leaves_domain")}
     assert (scaled_jacobian_corners(res.points[res.hexes]) > 0).all()
     check_conforming(res)
+
+
+def test_unstructured_ball_matches_brute_force():
+    """A tetgen ball (unstructured tets, boundary off the lattice) with the linear map x / h:
+    the hexes are exactly the lattice cubes whose 8 corners lie in the closed domain (the domain
+    is convex, so the centre-to-corner segments are inside too), found by brute force over all
+    tets; re-charting every tet by a random element of O and shift gives the same hexes."""
+    mesh = tc.ball(radius=1.5, edge_length=0.5)
+    h = 0.5
+    uvw = np.round(mesh.vertices.numpy() / h * 2 ** 20)[mesh.tets.numpy()] / 2 ** 20
+    res = extract_hexes(mesh, uvw, *identity_transitions(mesh))
+    lo, hi = np.floor(uvw.min((0, 1))).astype(int), np.ceil(uvw.max((0, 1))).astype(int)
+    grid = np.array(list(itertools.product(*[range(a, b + 1) for a, b in zip(lo, hi)])))
+    near = ((grid[:, None] >= uvw.min(1)[None]) & (grid[:, None] <= uvw.max(1)[None])).all(2)   # bbox holds it
+    g, t = np.nonzero(near)
+    inside = np.zeros(len(grid), bool)
+    inside[g[(pr.barycentric_signs(uvw[t], grid[g]) >= 0).all(1)]] = True
+    ins = set(map(tuple, grid[inside]))
+    cubes = {tuple(c) for c in grid if all(tuple(c + o) in ins for o in HEX_CORNERS)}
+    assert len(cubes) > 20 and {tuple(c) for c in res.hex_param} == cubes
+    assert set(np.unique(res.dropped_reason)) <= {REASONS.index("leaves_domain")}
+    np.testing.assert_allclose(res.points, h * res.point_param, atol=h * 2.0 ** -19)
+    np.testing.assert_allclose(scaled_jacobian_corners(res.points[res.hexes]), 1.0, atol=1e-5)
+    check_conforming(res)
+    new = _rechart(uvw, range(uvw.shape[0]), np.random.default_rng(6))
+    res2 = extract_hexes(mesh, new, *fit_transitions(mesh, new))
+    assert hex_keys(res2, 6) == hex_keys(res, 6)

@@ -173,11 +173,23 @@ def _group_tables():
 
 
 def _apply(G: np.ndarray, rot: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``G[rot] @ x`` for ``rot (N,)``, ``x (N, 3)`` or ``(N, k, 3)`` (int64)."""
-    M = G[rot]
+    """``G[rot] @ x`` for ``rot (N,)``, ``x (N, 3)`` or ``(N, k, 3)`` (int64).
+
+    Each element of O is a signed permutation, ``(G x)_i = sign_i x[perm_i]``: a gather and a
+    product on the rows whose element is not the identity (most rows of a combed map).
+    """
+    nz = np.nonzero(rot != 0)[0]
+    if not nz.size:
+        return x.copy()
+    perm = np.argmax(G != 0, axis=2)                         # (24, 3)
+    sign = np.take_along_axis(G, perm[:, :, None], axis=2)[:, :, 0]
+    P, Sg = perm[rot[nz]], sign[rot[nz]]
+    out = x.copy()
     if x.ndim == 2:
-        return np.einsum("nij,nj->ni", M, x)
-    return np.einsum("nij,nkj->nki", M, x)
+        out[nz] = np.take_along_axis(x[nz], P, axis=1) * Sg
+    else:
+        out[nz] = np.take_along_axis(x[nz], P[:, None, :], axis=2) * Sg[:, None, :]
+    return out
 
 
 # ----------------------------------------------------------------------------- validation
@@ -281,7 +293,9 @@ class _Lattice:
 
 
 def _bbox_counts(U: np.ndarray, S: int, off: int):
-    mn, mx = U.min(axis=1), U.max(axis=1)
+    # elementwise over the 4 corners: numpy's reduction over a length-4 axis is several times slower
+    mn = np.minimum(np.minimum(U[:, 0], U[:, 1]), np.minimum(U[:, 2], U[:, 3]))
+    mx = np.maximum(np.maximum(U[:, 0], U[:, 1]), np.maximum(U[:, 2], U[:, 3]))
     lo = -((off - mn) // S)          # ceil((mn - off) / S)
     hi = (mx - off) // S             # floor((mx - off) / S)
     dims = np.maximum(hi - lo + 1, 0)
@@ -373,7 +387,8 @@ def _stars(lat: _Lattice, S, G, inv, tet_faces, ft, face_good, face_rot, shiftS,
 
 
 # ----------------------------------------------------------------------------- singular edges
-def _bad_singular_edges(tets, tet_edges, tet_faces, ft, U, G, mult, inv, face_rot, shiftS, usable, seam_ok, S):
+def _bad_singular_edges(tets, tet_edges, tet_faces, ft, face_edges, U, G, mult, inv, face_rot, shiftS, usable,
+                        seam_ok, S):
     """Interior edges whose holonomy is not a valid singularity: ``(K, 2)`` vertex pairs.
 
     Around an interior edge whose ring of tets is usable and seamless, the composed transition
@@ -381,23 +396,28 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, U, G, mult, inv, face_ro
     edge's line. The edge is regular when ``H`` is the identity, a valid singular edge when ``H``
     is a quarter or half turn about a coordinate axis and the edge lies on an integer line along
     that axis (HEXMESH.md step 7), and invalid otherwise (a complex singularity, or a singular
-    edge off its integer line): an invalid map that folds around it. The ring is traversed for
-    all edges at once, one tet per iteration.
+    edge off its integer line): an invalid map that folds around it. Only edges of faces with a
+    non-identity rotation can be singular; their rings are traversed all at once, one tet per
+    iteration.
     """
     from ..mesh.simplex import pair_list
 
+    interior = (ft >= 0).all(axis=1)
+    cand = np.unique(face_edges[interior & (face_rot != 0)].ravel())
+    if not cand.size:
+        return np.zeros((0, 2), np.int64)
     pairs = np.array(pair_list(4))                               # (6, 2) local vertex pairs
     others = np.array([sorted(set(range(4)) - set(p)) for p in pairs.tolist()])
-    _, first = np.unique(tet_edges.ravel(), return_index=True)
+    edge_ids, first = np.unique(tet_edges.ravel(), return_index=True)
+    first = first[np.searchsorted(edge_ids, cand)]
     t_start, p_start = first // 6, first % 6
-    ends = tets[t_start[:, None], pairs[p_start]]                # (E, 2) global endpoint ids
-    k_exit = others[p_start, 0]
+    ends = tets[t_start[:, None], pairs[p_start]]                # (K, 2) global endpoint ids
     t = t_start.copy()
-    f = tet_faces[t, k_exit]
+    f = tet_faces[t, others[p_start, 0]]
     rot = np.zeros(t.size, np.int64)
     b = np.zeros((t.size, 3), np.int64)
     act = np.nonzero(usable[t])[0]
-    singular_bad = np.zeros(t.size, bool)
+    bad = np.zeros(t.size, bool)
     for _ in range(tets.shape[0] + 1):                          # at most the ring length
         if not act.size:
             break
@@ -405,7 +425,7 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, U, G, mult, inv, face_ro
         pair = ft[fa]
         from_t0 = pair[:, 0] == ta
         nbr = np.where(from_t0, pair[:, 1], pair[:, 0])
-        go = (nbr >= 0) & seam_ok[fa]
+        go = (nbr >= 0) & seam_ok[fa]                           # boundary edges are skipped
         go[go] &= usable[nbr[go]]
         act, ta, fa, from_t0, nbr = act[go], ta[go], fa[go], from_t0[go], nbr[go]
         A = rot[act]
@@ -418,24 +438,20 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, U, G, mult, inv, face_ro
         done = act[closed]
         if done.size:
             H = G[rot[done]]
-            nontrivial = rot[done] != 0
             diag = np.einsum("nii->ni", H)
-            axis_ok = (diag == 1).sum(axis=1) == 1
+            axis_ok = (diag == 1).sum(axis=1) == 1                # a quarter or half turn about an axis
             ax = np.argmax(diag == 1, axis=1)
             loc = (tets[t_start[done]] == ends[done, :1]).argmax(axis=1)
             a = U[t_start[done], loc]                            # an endpoint in the start chart
-            on_grid = (a % S == 0) | (np.arange(3)[None, :] == ax[:, None])
-            singular_bad[done] = nontrivial & ~(axis_ok & on_grid.all(axis=1))
+            on_line = ((a % S == 0) | (np.arange(3)[None, :] == ax[:, None])).all(axis=1)
+            bad[done] = (rot[done] != 0) & ~(axis_ok & on_line)
         act = act[~closed]
-        # next face of the ring: the face of the new tet through the edge other than the entry
+        # the next face of the ring: the new tet's other face through the edge
         ta = t[act]
-        loc2 = (tets[ta][:, None, :] == ends[act][:, :, None]).argmax(axis=2)    # (n, 2) local ids
-        rest = np.ones((act.size, 4), bool)
-        rest[np.arange(act.size)[:, None], loc2] = False
-        kk = np.nonzero(rest)[1].reshape(-1, 2)
-        fk = tet_faces[ta[:, None], kk]
+        p_loc = np.argmax(tet_edges[ta] == cand[act][:, None], axis=1)
+        fk = tet_faces[ta[:, None], others[p_loc]]
         f[act] = np.where(fk[:, 0] == f[act], fk[:, 1], fk[:, 0])
-    return ends[singular_bad]
+    return ends[bad]
 
 
 # ----------------------------------------------------------------------------- walks
@@ -609,13 +625,14 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
         fv = faces[fi]
         loc0 = (tets[t0f][:, None, :] == fv[:, :, None]).argmax(axis=2)
         loc1 = (tets[t1f][:, None, :] == fv[:, :, None]).argmax(axis=2)
-        U0 = np.take_along_axis(U[t0f], loc0[:, :, None], axis=1)
-        U1 = np.take_along_axis(U[t1f], loc1[:, :, None], axis=1)
+        U0 = U[t0f[:, None], loc0]                     # (n, 3, 3): the face's corners in t0, t1
+        U1 = U[t1f[:, None], loc1]
         seam_ok[fi] = (_apply(G, face_rot[fi], U0) + shiftS[fi][:, None, :] == U1).all(axis=(1, 2))
     mismatched = interior & ~seam_ok
     face_good = interior & seam_ok & usable[np.maximum(ft[:, 0], 0)] & usable[np.maximum(ft[:, 1], 0)]
-    bad_edges = _bad_singular_edges(tets, mesh.tet_edges.cpu().numpy().astype(np.int64), tet_faces, ft, U, G,
-                                    mult, inv, face_rot, shiftS, usable, seam_ok, S)
+    bad_edges = _bad_singular_edges(tets, mesh.tet_edges.cpu().numpy().astype(np.int64), tet_faces, ft,
+                                    mesh.face_edges.cpu().numpy().astype(np.int64), U, G, mult, inv, face_rot,
+                                    shiftS, usable, seam_ok, S)
     bad_vertex = np.zeros(verts.shape[0], bool)
     bad_vertex[tets[~usable].ravel()] = True
     bad_vertex[faces[mismatched].ravel()] = True

@@ -69,16 +69,25 @@ def _to_numpy(x) -> np.ndarray:
 
 def _float_scale_exponent(x: np.ndarray) -> int | None:
     """Smallest ``k`` with ``x * 2**k`` integral for every (finite) value, or ``None`` if the
-    scaled values would not stay below ``2**62`` (non-dyadic-grid input)."""
+    scaled values would not stay below ``2**62`` (non-dyadic-grid input).
+
+    Read from the IEEE bits: ``x = m * 2**(e - 1075)`` with the 53-bit integer mantissa ``m``
+    (implicit bit included; subnormals have ``e = 1``); its trailing zeros ``tz`` give the
+    lowest set bit ``2**(e - 1075 + tz)``.
+    """
+    x = np.ascontiguousarray(x, dtype=np.float64).ravel()
     x = x[x != 0]
     if x.size == 0:
         return 0
-    m, e = np.frexp(x)                         # x = m * 2**e, 0.5 <= |m| < 1 (53-bit mantissa)
-    mant = np.abs(np.ldexp(m, 53)).astype(np.int64)  # exact integer mantissa
-    low = mant & -mant                          # lowest set bit, a power of two
-    tz = np.frexp(low.astype(np.float64))[1] - 1
-    k = int(np.max(53 - e - tz))               # x = (mant >> tz) * 2**(e - 53 + tz)
-    top = int(np.max(e)) + k                    # |x| * 2**k < 2**top
+    bits = x.view(np.int64)
+    e = (bits >> 52) & 0x7FF
+    mant = bits & ((1 << 52) - 1)
+    full = np.where(e == 0, mant, mant | (1 << 52))
+    e = np.maximum(e, 1)
+    low = (full & -full).astype(np.float64).view(np.int64)      # 2**tz as a float: read its exponent
+    tz = (low >> 52) - 1023
+    k = int(-(e - 1075 + tz).min())
+    top = int((e - 1022).max()) + k                             # |x| < 2**(e - 1022)
     return k if top <= 62 else None
 
 
@@ -128,31 +137,63 @@ def _reduced_small(rows: np.ndarray) -> np.ndarray:
     return (a.max(axis=1) // low) < _SMALL_BITS
 
 
+def _sign_of(d: np.ndarray) -> np.ndarray:
+    return (d > 0).astype(np.int8) - (d < 0).astype(np.int8)
+
+
+def _det3_exact(u: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``sign det[u; v; w]`` in Python integers (object arrays) for int64 rows ``(N, 3)``."""
+    U, V, W = (x.astype(object) for x in (u, v, w))
+    d = (U[:, 0] * (V[:, 1] * W[:, 2] - V[:, 2] * W[:, 1]) + U[:, 1] * (V[:, 2] * W[:, 0] - V[:, 0] * W[:, 2])
+         + U[:, 2] * (V[:, 0] * W[:, 1] - V[:, 1] * W[:, 0]))
+    return _sign_of(d)
+
+
+def _cross_parts(y: np.ndarray, z: np.ndarray):
+    """``y x z`` and ``|y_j z_k| + |y_k z_j|`` per component, float64 ``(N, 3)``."""
+    p0, q0 = y[:, 1] * z[:, 2], y[:, 2] * z[:, 1]
+    p1, q1 = y[:, 2] * z[:, 0], y[:, 0] * z[:, 2]
+    p2, q2 = y[:, 0] * z[:, 1], y[:, 1] * z[:, 0]
+    cross = np.stack([p0 - q0, p1 - q1, p2 - q2], axis=1)
+    absum = np.stack([np.abs(p0) + np.abs(q0), np.abs(p1) + np.abs(q1), np.abs(p2) + np.abs(q2)], axis=1)
+    return cross, absum
+
+
+def _filtered(det: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """Rows whose float determinant's sign is certain (Shewchuk's bound, or all products zero)."""
+    return (np.abs(det) > _O3D_ERR * perm) | (perm == 0)
+
+
 def _det3_sign_int(u: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Exact ``sign det[u; v; w]`` of int64 rows ``(N, 3)`` each -> ``(N,)`` int8."""
+    """Exact ``sign det[u; v; w]`` of int64 rows ``(N, 3)`` each -> ``(N,)`` int8.
+
+    Float evaluation with the certificates of the module docstring; Python integers for the rest.
+    """
     n = u.shape[0]
     out = np.zeros(n, np.int8)
     if n == 0:
         return out
-    rows = np.concatenate([u, v, w], axis=1)
-    fits = np.abs(rows).max(axis=1) < _EXACT_FLOAT
+    big = max(int(np.abs(x).max()) for x in (u, v, w)) >= _EXACT_FLOAT
+    if big:  # rare: entries that do not convert to float exactly are decided exactly
+        fits = np.maximum(np.maximum(np.abs(u).max(1), np.abs(v).max(1)), np.abs(w).max(1)) < _EXACT_FLOAT
     uf, vf, wf = (x.astype(np.float64) for x in (u, v, w))
-    m0a, m0b = vf[:, 1] * wf[:, 2], vf[:, 2] * wf[:, 1]
-    m1a, m1b = vf[:, 2] * wf[:, 0], vf[:, 0] * wf[:, 2]
-    m2a, m2b = vf[:, 0] * wf[:, 1], vf[:, 1] * wf[:, 0]
-    det = uf[:, 0] * (m0a - m0b) + uf[:, 1] * (m1a - m1b) + uf[:, 2] * (m2a - m2b)
-    perm = (np.abs(uf[:, 0]) * (np.abs(m0a) + np.abs(m0b)) + np.abs(uf[:, 1]) * (np.abs(m1a) + np.abs(m1b))
-            + np.abs(uf[:, 2]) * (np.abs(m2a) + np.abs(m2b)))
-    sure = fits & ((np.abs(det) > _O3D_ERR * perm) | (perm == 0))
-    if not sure.all():
-        sure |= fits & _reduced_small(rows)
+    cross, absum = _cross_parts(vf, wf)
+    det = np.einsum("ni,ni->n", uf, cross)
+    perm = np.einsum("ni,ni->n", np.abs(uf), absum)
+    sure = _filtered(det, perm)
+    if big:
+        sure &= fits
+    unsure = np.nonzero(~sure)[0]
+    if unsure.size:
+        rows = np.concatenate([u[unsure], v[unsure], w[unsure]], axis=1)
+        small = _reduced_small(rows)
+        if big:
+            small &= fits[unsure]
+        sure[unsure[small]] = True
     out[sure] = np.sign(det[sure])
     rest = np.nonzero(~sure)[0]
     if rest.size:
-        U, V, W = (x[rest].astype(object) for x in (u, v, w))
-        d = (U[:, 0] * (V[:, 1] * W[:, 2] - V[:, 2] * W[:, 1]) + U[:, 1] * (V[:, 2] * W[:, 0] - V[:, 0] * W[:, 2])
-             + U[:, 2] * (V[:, 0] * W[:, 1] - V[:, 1] * W[:, 0]))
-        out[rest] = (d > 0).astype(np.int8) - (d < 0).astype(np.int8)
+        out[rest] = _det3_exact(u[rest], v[rest], w[rest])
     return out
 
 
@@ -174,14 +215,53 @@ def _det2_sign_int(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -
     rest = np.nonzero(~sure)[0]
     if rest.size:
         A, B, C, D = (x[rest].astype(object) for x in (a, b, c, d))
-        e = A * D - B * C
-        out[rest] = (e > 0).astype(np.int8) - (e < 0).astype(np.int8)
+        out[rest] = _sign_of(A * D - B * C)
     return out
 
 
 def _orient3d_int(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
     """``sign det[b-a, c-a, d-a]`` for int64 ``(N, 3)`` points (``|x| < 2**62``) -> ``(N,)`` int8."""
     return _det3_sign_int(b - a, c - a, d - a)
+
+
+def _barycentric_signs_int(tet: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """int64 ``tet (N, 4, 3)``, ``q (N, 3)`` -> ``(N, 4)`` int8: ``orient3d`` with vertex ``k``
+    replaced by ``q``.
+
+    With ``a_k = v_k - q`` (the point at the origin) the four determinants are
+    ``det[a1,a2,a3]``, ``-det[a0,a2,a3]``, ``det[a0,a1,a3]``, ``-det[a0,a1,a2]``: two cross products
+    (``a2 x a3``, ``a0 x a1``) and four dot products, filtered and certified as in
+    :func:`_det3_sign_int`, exact integers for the uncertain entries.
+    """
+    n = tet.shape[0]
+    out = np.zeros((n, 4), np.int8)
+    if n == 0:
+        return out
+    A = tet - q[:, None, :]
+    big = int(np.abs(A).max()) >= _EXACT_FLOAT
+    Af = A.astype(np.float64)
+    a0, a1, a2, a3 = Af[:, 0], Af[:, 1], Af[:, 2], Af[:, 3]
+    c23, p23 = _cross_parts(a2, a3)
+    c01, p01 = _cross_parts(a0, a1)
+    dot = lambda x, y: np.einsum("ni,ni->n", x, y)  # noqa: E731
+    det = np.stack([dot(a1, c23), -dot(a0, c23), dot(a3, c01), -dot(a2, c01)], axis=1)
+    perm = np.stack([dot(np.abs(a1), p23), dot(np.abs(a0), p23), dot(np.abs(a3), p01), dot(np.abs(a2), p01)], axis=1)
+    sure = _filtered(det, perm)
+    if big:
+        sure &= (np.abs(A).max(axis=(1, 2)) < _EXACT_FLOAT)[:, None]
+    rows_unsure = np.nonzero(~sure.all(axis=1))[0]
+    if rows_unsure.size:
+        small = _reduced_small(A[rows_unsure].reshape(-1, 12))
+        if big:
+            small &= np.abs(A[rows_unsure]).max(axis=(1, 2)) < _EXACT_FLOAT
+        sure[rows_unsure[small]] = True
+    out[sure] = np.sign(det[sure])
+    r, k = np.nonzero(~sure)
+    if r.size:
+        trip = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[k]
+        sgn = np.array([1, -1, 1, -1], np.int8)[k]
+        out[r, k] = sgn * _det3_exact(A[r, trip[:, 0]], A[r, trip[:, 1]], A[r, trip[:, 2]])
+    return out
 
 
 def _orient3d_sos_int(p: np.ndarray, g: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -267,13 +347,6 @@ def orient3d(a, b, c, d):
     else:
         out = _orient3d_float(*(p.astype(np.float64) for p in flat))
     return _wrap(out.reshape(shape), (a, b, c, d))
-
-
-def _barycentric_signs_int(tet: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """int64 ``tet (N, 4, 3)``, ``q (N, 3)`` -> ``(N, 4)`` int8: ``orient3d`` with vertex ``k`` replaced by ``q``."""
-    v0, v1, v2, v3 = tet[:, 0], tet[:, 1], tet[:, 2], tet[:, 3]
-    return np.stack([_orient3d_int(q, v1, v2, v3), _orient3d_int(v0, q, v2, v3),
-                     _orient3d_int(v0, v1, q, v3), _orient3d_int(v0, v1, v2, q)], axis=1)
 
 
 def barycentric_signs(tet, q):
