@@ -369,6 +369,11 @@ def _hanging_vertices(p: np.ndarray, used: np.ndarray, edges: np.ndarray, tol: f
     a, b = p[edges[:, 0]], p[edges[:, 1]]
     mid = 0.5 * (a + b)
     half = 0.5 * np.linalg.norm(b - a, axis=1)
+    # counting first is cheap; only balls holding more than the edge's two ends are listed
+    crowded = np.nonzero(tree.query_ball_point(mid, half + tol, return_length=True) > 2)[0]
+    if crowded.size == 0:
+        return np.zeros(0, np.int64)
+    edges, mid, half = edges[crowded], mid[crowded], half[crowded]
     hits = tree.query_ball_point(mid, half + tol)
     lens = np.fromiter((len(x) for x in hits), dtype=np.int64, count=len(hits))
     if lens.sum() == 0:
@@ -518,25 +523,26 @@ class _Target:
             d[:, k] = np.where(new[:, k, None], d[:, k], d[:, k - 1])
         ub = d.max(axis=2).min(axis=1)  # (M,) single candidates
         fv = self.f[cand]  # (M, J, 3)
+        r = np.arange(M)
         for j in range(J):
             for k in range(j + 1, J):
-                eq = fv[:, j, :, None] == fv[:, k, None, :]  # (M, 3, 3)
-                shared_j = eq.any(axis=2)  # vertices of t_j that t_k has
-                ok = shared_j.sum(axis=1) == 2
-                nj, nk = self.normal[cand[:, j]], self.normal[cand[:, k]]
-                ok &= np.linalg.norm(nj - nk, axis=1) <= _FLAT_NORMAL_TOL
+                eq = fv[:, j, :, None] == fv[:, k, None, :]  # (M, 3, 3): vertex of t_j == vertex of t_k
+                in_k, in_j = eq.any(axis=2), eq.any(axis=1)  # vertices of t_j in t_k, of t_k in t_j
+                nj = self.normal[cand[:, j]]
+                ok = (in_k.sum(axis=1) == 2) & (np.linalg.norm(nj - self.normal[cand[:, k]], axis=1) <= _FLAT_NORMAL_TOL)
                 if not ok.any():
                     continue
-                r = np.arange(M)
-                oj = t[r, j, np.argmin(shared_j, axis=1)]
-                ok_ = eq.any(axis=1)
-                ok_k = t[r, k, np.argmin(ok_, axis=1)]
-                s_idx = np.argsort(~shared_j, axis=1, kind="stable")[:, :2]
-                s0, s1 = t[r, j, s_idx[:, 0]], t[r, j, s_idx[:, 1]]
-                g0 = np.einsum("ij,ij->i", np.cross(ok_k - oj, s0 - oj), nj)
-                g1 = np.einsum("ij,ij->i", np.cross(ok_k - oj, s1 - oj), nj)
-                ok &= g0 * g1 <= 0  # the two triangles form a convex quadrilateral
-                slack = 2.0 * np.abs(np.einsum("ij,ij->i", ok_k - s0, nj))
+                oj, ok_ = t[r, j, np.argmin(in_k, axis=1)], t[r, k, np.argmin(in_j, axis=1)]  # opposite vertices
+                s_idx = np.argsort(~in_k, axis=1, kind="stable")[:, :2]
+                s0, s1 = t[r, j, s_idx[:, 0]], t[r, j, s_idx[:, 1]]  # the shared side
+
+                def side(u, v, x):  # which side of the line u-v (in the plane of t_j) x lies on
+                    return np.einsum("ij,ij->i", np.cross(v - u, x - u), nj)
+
+                # a convex quadrilateral: the opposite vertices on either side of the shared side,
+                # the shared side's ends on either side of the line between the opposite vertices
+                ok &= (side(s0, s1, oj) * side(s0, s1, ok_) < 0) & (side(oj, ok_, s0) * side(oj, ok_, s1) <= 0)
+                slack = 2.0 * np.abs(np.einsum("ij,ij->i", ok_ - s0, nj))  # t_k's tilt out of t_j's plane
                 pair = np.minimum(d[:, j], d[:, k]).max(axis=1) + slack
                 ub = np.where(ok, np.minimum(ub, pair), ub)
         if self.flat_tree is not None:
