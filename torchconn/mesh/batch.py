@@ -129,7 +129,10 @@ class TetMeshBatch(TetMesh):
             kind = _INDEX_OF.get(name)
             if kind is not None:
                 off = self._offsets[kind]
-                parts = [torch.where(p >= 0, p + off[k], p) for k, p in enumerate(parts)]
+                if name == "face_tets":  # -1 marks a boundary face's missing tet: kept
+                    parts = [torch.where(p >= 0, p + off[k], p) for k, p in enumerate(parts)]
+                else:
+                    parts = [p + off[k] for k, p in enumerate(parts)]
             elif name not in _SIGNS:
                 raise AssertionError(f"TetMeshBatch does not know how to join the buffer {name!r}")
             buffers[name] = torch.cat(parts, dim=0)
