@@ -36,12 +36,17 @@ What :func:`hex_quality` measures (every threshold is a module constant below):
   hex / tet (see :func:`hex_volumes`). The distance is computed by adaptive sampling with exact
   point-to-triangle distances (libigl's ``point_mesh_squared_distance``, an AABB tree): for each
   direction the source triangles are evaluated at their vertices and centroids and split 1-to-4
-  where a certified upper bound on the distance over the triangle (the distance to a single
-  target triangle is convex, so its maximum over a source triangle is attained at a vertex)
-  exceeds the largest sampled distance by more than :data:`HAUSDORFF_REL_ACCURACY` of it or
-  :data:`HAUSDORFF_ABS_ACCURACY_REL` of the diagonal. ``hausdorff_rel`` is the largest sampled
-  distance (a lower bound), ``hausdorff_upper_rel`` the certified upper bound: the true value
-  lies between them.
+  where a certified upper bound on the distance over the triangle exceeds the largest sampled
+  distance by more than :data:`HAUSDORFF_REL_ACCURACY` of it or :data:`HAUSDORFF_ABS_ACCURACY_REL`
+  of the diagonal. The bound uses that the distance to a convex target piece is convex, so its
+  maximum over a source triangle is attained at a vertex: a target triangle closest to a vertex
+  or the centroid; two such triangles that share a side, lie in one plane and form a convex
+  quadrilateral; or, where the source triangle projects into the disk a flat vertex fan of the
+  target covers, that fan's plane (where the surfaces coincide, as on planar CAD faces, the
+  refinement then stops at once instead of following every target edge). ``hausdorff_rel`` is the
+  largest sampled distance (a lower bound), ``hausdorff_upper_rel`` the certified upper bound:
+  the true value lies between them; ``hausdorff_evaluations`` counts the point queries (at most
+  :data:`HAUSDORFF_MAX_EVALUATIONS` per direction).
 * **Features** (when ``tet_mesh.cad`` holds CAD tags): the sharp CAD curves and their corners
   are those of the frame-field constraint (:class:`~torchconn.frames.constraints.BoundaryConstraint`
   with ``features="cad"``: CAD curves between different CAD surfaces, and the CAD points and
@@ -50,7 +55,9 @@ What :func:`hex_quality` measures (every threshold is a module constant below):
   tolerance of the curve and its midpoint within ``max(tol, FEATURE_CHORD_REL * length)`` of it
   (a hex edge is a chord of a curved curve); a curve is meshed when every sample of it
   (:data:`FEATURE_CURVE_SAMPLES` interior points per tet feature edge, and the ends) is within
-  that midpoint tolerance of a hex edge lying on it.
+  that midpoint tolerance of a hex edge lying on it. Corners and curves are the tet mesh's own
+  (its vertices and feature polylines): a hex mesh whose vertices were projected onto the exact
+  CAD curves instead may lie farther than the tolerance from the polyline's chords.
 * ``valid``: all of the validity conditions above; ``good`` (issue 22): valid, irregular
   interior edges ``<=`` :data:`GOOD_IRREGULAR_MAX` of the interior edges and Hausdorff
   ``<=`` :data:`GOOD_HAUSDORFF_MAX_REL` of the diagonal (``None`` without ``tet_mesh``).
@@ -121,6 +128,19 @@ _CORNERS = np.array([[0, 1, 3, 4], [1, 2, 0, 5], [2, 3, 1, 6], [3, 0, 2, 7],
 @dataclass
 class HexQuality:
     """The judgement of a hex mesh (see the module docstring for every definition).
+
+    Scalars: ``sj_min``, ``sj_mean`` (scaled Jacobian); the validity counts (``n_inverted``,
+    ``n_degenerate``, ``n_faces_in_more_than_two_hexes``, ``n_same_side_shared_faces``,
+    ``n_coincident_vertex_pairs``, ``n_hanging_vertices``, ``n_open_boundary_edges``,
+    ``n_nonmanifold_boundary_edges``, ``n_nonmanifold_boundary_vertices``) and flags (``all_hex``,
+    ``conforming``, ``closed_boundary``, ``valid`` with ``invalid_reasons``); the structure
+    (``n_interior_edges``, ``n_irregular_interior_edges``, ``irregular_fraction``,
+    ``irregular_valence_counts`` {valence: count}, ``n_boundary_edges_valence_not_2``); with a tet
+    mesh ``diagonal`` (its bounding-box diagonal), ``hausdorff`` (absolute), ``hausdorff_rel``,
+    ``hausdorff_upper_rel``, ``hex_volume``, ``tet_volume``, ``volume_ratio``, ``good`` with
+    ``not_good_reasons``; with CAD tags the corner and curve counts and fractions (a fraction is
+    NaN, ``None`` in :meth:`as_dict`, when there is nothing to count). Fields that need a tet mesh
+    or CAD tags are ``None`` without them.
 
     Per-element arrays (numpy; left out of :meth:`as_dict`): ``scaled_jacobian (H,)``,
     ``inverted (I,)`` and ``degenerate (D,)`` hex indices, ``irregular_edges (S, 2)`` interior
