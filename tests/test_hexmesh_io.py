@@ -56,7 +56,8 @@ def test_hexex_writer_refuses_bad_input_and_writes_nothing(tmp_path):
         ((V, T, U[:-1]), r"uvw must have shape \(%d, 4, 3\)" % T.shape[0]),
         ((V, T[:, [0, 1, 3, 2]], U), r"tets \[0, 1, .*not positively oriented"),
         ((V, np.where(T == 5, 99, T), U), r"tets rows .* outside \[0, %d\)" % V.shape[0]),
-        ((V, T, np.where(np.arange(U.size).reshape(U.shape) == 13, np.nan, U)), r"uvw has NaN/inf entries at rows \[1\]"),
+        ((V, T, np.where(np.arange(U.size).reshape(U.shape) == 13, np.nan, U)),
+         r"uvw has NaN/inf entries at rows \[1\]"),
         ((V, T.astype(float), U), r"tets must hold integer vertex indices"),
     ]
     for args, msg in bad:

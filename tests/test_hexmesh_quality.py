@@ -13,7 +13,7 @@ import torch
 from conftest import data_path
 from torchconn import io
 from torchconn.hexmesh.quality import (COINCIDENT_TOL_REL, GOOD_IRREGULAR_MAX, HAUSDORFF_ABS_ACCURACY_REL,
-                                       HAUSDORFF_REL_ACCURACY, HEX_FACES, _point_triangle_distance, hex_quality,
+                                       HAUSDORFF_REL_ACCURACY, _point_triangle_distance, hex_quality,
                                        hex_volumes, scaled_jacobian)
 from torchconn.mesh.cad import cad_tags_from_elements
 
@@ -148,7 +148,8 @@ def test_scaled_jacobian_hand_computed():
 def _scaled_jacobian_naive(P8):
     """Verdict's hex_scaled_jacobian for one hex, written out: the 8 corners (edge vectors in
     Verdict's order) and the centre (principal axes); returns (value, index of the minimum, 8 = centre)."""
-    nxt = {0: (1, 3, 4), 1: (2, 0, 5), 2: (3, 1, 6), 3: (0, 2, 7), 4: (7, 5, 0), 5: (4, 6, 1), 6: (5, 7, 2), 7: (6, 4, 3)}
+    nxt = {0: (1, 3, 4), 1: (2, 0, 5), 2: (3, 1, 6), 3: (0, 2, 7),
+           4: (7, 5, 0), 5: (4, 6, 1), 6: (5, 7, 2), 7: (6, 4, 3)}
     vals = []
     for k in range(8):
         a, b, c = (P8[j] - P8[k] for j in nxt[k])
@@ -306,7 +307,8 @@ def test_point_triangle_distance_against_libigl():
     c[20:40] = a[20:40]
     q = 2 * rng.normal(size=(400, 3))
     ours = _point_triangle_distance(q, a, b, c)
-    ref = [math.sqrt(igl.point_simplex_squared_distance(q[i], np.stack([a[i], b[i], c[i]]), np.array([[0, 1, 2]]), 0)[0])
+    tri = np.array([[0, 1, 2]])
+    ref = [math.sqrt(igl.point_simplex_squared_distance(q[i], np.stack([a[i], b[i], c[i]]), tri, 0)[0])
            for i in range(400)]
     np.testing.assert_allclose(ours, ref, atol=1e-13)
 
@@ -345,7 +347,8 @@ def test_hausdorff_of_a_curved_surface_against_dense_sampling():
         flip = u + v > 1
         u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
         T = V[F]
-        return (T[:, None, 0] + u * (T[:, None, 1] - T[:, None, 0]) + v * (T[:, None, 2] - T[:, None, 0])).reshape(-1, 3)
+        pts = T[:, None, 0] + u * (T[:, None, 1] - T[:, None, 0]) + v * (T[:, None, 2] - T[:, None, 0])
+        return pts.reshape(-1, 3)
 
     d = max(np.sqrt(igl.point_mesh_squared_distance(sample(P, ht), tv, bf)[0]).max(),
             np.sqrt(igl.point_mesh_squared_distance(sample(tv, bf), P, ht)[0]).max())

@@ -144,7 +144,8 @@ def write_hexex(path, vertices, tets, uvw) -> Path:
     par = list(map(repr, U.reshape(-1).tolist()))
     idx = T.tolist()
     text = (f"{V.shape[0]}\n" + _lines(V, 3) + f"{T.shape[0]}\n"
-            + "".join(f"{a} {b} {c} {d} " + " ".join(par[12 * t:12 * t + 12]) + "\n" for t, (a, b, c, d) in enumerate(idx)))
+            + "".join(f"{a} {b} {c} {d} " + " ".join(par[12 * t:12 * t + 12]) + "\n"
+                      for t, (a, b, c, d) in enumerate(idx)))
     data = text.encode("ascii")
     return _atomic(path, lambda tmp: tmp.write_bytes(data))
 
@@ -206,7 +207,8 @@ def _widths_ok(block: list, width: int) -> bool:
 
 def _count(path: Path, lines: list, numbers: list, i: int, what: str) -> int:
     if i >= len(lines):
-        raise ValueError(f"{path}: the number of {what} is missing (the file ends at line {numbers[-1] if numbers else 0})")
+        end = numbers[-1] if numbers else 0
+        raise ValueError(f"{path}: the number of {what} is missing (the file ends at line {end})")
     tok = lines[i].split()
     if len(tok) != 1 or not tok[0].isdigit():
         raise ValueError(f"{path}, line {numbers[i]}: expected the number of {what} (one non-negative integer), "

@@ -4,8 +4,9 @@ the input, CAD features (``../shared/HEXMESH.md``, "How a hex mesh is judged"; i
 Conventions. A hex mesh is ``points (N, 3)`` float64 and ``hexes (H, 8)`` int64 in VTK order:
 ``0-1-2-3`` one face, ``4-5-6-7`` the opposite one, vertex ``4 + k`` above vertex ``k``, and
 positively oriented (``det(p1 - p0, p3 - p0, p4 - p0) > 0`` for a cube). Its six faces, listed in
-:data:`HEX_FACES`, are oriented outward; its twelve edges are :data:`HEX_EDGES`. numpy arrays or
-torch tensors are accepted; everything is computed in float64 numpy on the CPU.
+:data:`torchconn.hexmesh.extract.HEX_FACES`, are oriented outward; its twelve edges are
+:data:`HEX_EDGES`. numpy arrays or torch tensors are accepted; everything is computed in float64
+numpy on the CPU.
 
 What :func:`hex_quality` measures (every threshold is a module constant below):
 
@@ -70,8 +71,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .extract import HEX_FACES  # the 6 faces, outward: one home for the local hex tables
+
 __all__ = [
-    "HexQuality", "hex_quality", "scaled_jacobian", "hex_volumes", "HEX_EDGES", "HEX_FACES",
+    "HexQuality", "hex_quality", "scaled_jacobian", "hex_volumes", "HEX_EDGES",
     "COINCIDENT_TOL_REL", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "HAUSDORFF_REL_ACCURACY",
     "HAUSDORFF_ABS_ACCURACY_REL", "HAUSDORFF_MAX_EVALUATIONS", "FEATURE_TOL_REL", "FEATURE_CHORD_REL",
     "FEATURE_CURVE_SAMPLES",
@@ -115,10 +118,6 @@ _FLAT_NORMAL_TOL = 1e-9
 #: The 12 edges of a hex, local vertex pairs: bottom ring, top ring, then the 4 verticals.
 HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
                       [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64)
-#: The 6 faces of a hex, local vertex loops oriented outward (right-hand normal points out of a
-#: positively oriented hex): bottom, top, then the sides over the bottom edges 01, 12, 23, 30.
-HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6],
-                      [3, 0, 4, 7]], dtype=np.int64)
 #: Verdict's corner frames: ``(corner, a, b, c)``, Jacobian ``det(p_a - p_k, p_b - p_k, p_c - p_k)``.
 _CORNERS = np.array([[0, 1, 3, 4], [1, 2, 0, 5], [2, 3, 1, 6], [3, 0, 2, 7],
                      [4, 7, 5, 0], [5, 4, 6, 1], [6, 5, 7, 2], [7, 6, 4, 3]], dtype=np.int64)
@@ -549,7 +548,8 @@ class _Target:
                 eq = fv[:, j, :, None] == fv[:, k, None, :]  # (M, 3, 3): vertex of t_j == vertex of t_k
                 in_k, in_j = eq.any(axis=2), eq.any(axis=1)  # vertices of t_j in t_k, of t_k in t_j
                 nj = self.normal[cand[:, j]]
-                ok = (in_k.sum(axis=1) == 2) & (np.linalg.norm(nj - self.normal[cand[:, k]], axis=1) <= _FLAT_NORMAL_TOL)
+                parallel = np.linalg.norm(nj - self.normal[cand[:, k]], axis=1) <= _FLAT_NORMAL_TOL
+                ok = (in_k.sum(axis=1) == 2) & parallel
                 if not ok.any():
                     continue
                 oj, ok_ = t[r, j, np.argmin(in_k, axis=1)], t[r, k, np.argmin(in_j, axis=1)]  # opposite vertices
@@ -579,7 +579,8 @@ class _Target:
         return ub
 
 
-def _one_sided_hausdorff(src_v: np.ndarray, src_f: np.ndarray, dst: _Target, tol_abs: float) -> tuple[float, float, int]:
+def _one_sided_hausdorff(src_v: np.ndarray, src_f: np.ndarray, dst: _Target,
+                         tol_abs: float) -> tuple[float, float, int]:
     """``max over the source surface of the distance to the target surface``, by adaptive
     sampling (module docstring): ``(lower bound, certified upper bound, distance evaluations)``."""
     used = np.unique(src_f)
