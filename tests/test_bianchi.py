@@ -183,3 +183,54 @@ def test_check_bad_input(gen):
     mesh = two_tets()
     with pytest.raises(ValueError, match="edges"):
         bianchi.check(so3.random_rotation(2, generator=gen, dtype=F64), mesh)
+
+
+# ----------------------------------------------------------------------------- input, not identity
+
+def test_non_orthogonal_connection_is_named_not_the_identity(gen):
+    """float32 rotations cast to float64 (orthogonal to ~1e-6): issue 24 reported 'algebraic
+    Bianchi identity violated on 1294 of 1296 tets'. The input is named: its worst edge (index
+    and vertices) and residual, the float64 tolerance, and the remedy; projected, it passes."""
+    from torchconn.nn import BianchiCheck
+
+    mesh = io.box(2)
+    R = haar(mesh, gen, torch.float32).double()
+    err = torch.linalg.matrix_norm(R.transpose(-1, -2) @ R - torch.eye(3, dtype=F64))
+    e = int(err.argmax())
+    i, j = mesh.edges[e].tolist()
+    pattern = (rf"the connection is not a rotation to the float64 tolerance 1e-09 on \d+ of {mesh.edges.shape[0]} "
+               rf"edges; worst edge {e} = \({i}, {j}\): \|\|R_eᵀ R_e − I\|\|_F = {float(err[e]):.2e}.*"
+               r"so3\.project_to_rotation")
+    with pytest.raises(ValueError, match="bianchi.check: " + pattern):
+        bianchi.check(R, mesh)
+    with pytest.raises(ValueError, match="BianchiCheck: " + pattern):
+        BianchiCheck(mesh)(R)
+    res = bianchi.check(so3.project_to_rotation(R), mesh)
+    assert res["algebraic"] < 1e-13 and res["differential"] < 1e-13
+    # the float32 tolerance (1e-4) accepts the same rotations in float32
+    assert bianchi.check(R.float(), mesh)["algebraic"] < 1e-4
+
+
+def test_reflection_and_batch_item_are_named(gen):
+    mesh = two_tets()
+    R = haar(mesh, gen)
+    bad = R.clone()
+    bad[3] = -R[3]  # det -1, orthogonal
+    i, j = mesh.edges[3].tolist()
+    with pytest.raises(ValueError, match=rf"1 of 18 edges; worst edge 3 = \({i}, {j}\) of batch item \(1,\): "
+                                         r"det R_e = −1 \(a reflection\)"):
+        bianchi.check(torch.stack((R, bad)), mesh)
+
+
+def test_identity_failure_within_the_rotation_tolerance_mentions_orthogonality(gen):
+    """Orthogonal to ~6e-10 (inside float64's rotation tolerance 1e-9), checked against a tighter
+    identity tolerance: the BianchiError says how orthogonal the connection is, and the remedy."""
+    mesh = io.box(2)
+    R = haar(mesh, gen)
+    S = torch.randn(R.shape, generator=gen, dtype=F64)
+    S = S + S.transpose(-1, -2)
+    R = R @ (torch.eye(3, dtype=F64) + 3e-10 * S / torch.linalg.matrix_norm(S)[..., None, None])
+    bianchi.check(R, mesh)  # default tolerance: passes
+    with pytest.raises(bianchi.BianchiError, match=r"algebraic Bianchi identity violated.*orthogonal only to "
+                                                   r"\d\.\de-10.*so3\.project_to_rotation"):
+        bianchi.check(R, mesh, atol=1e-13)

@@ -13,12 +13,28 @@
 Residuals are exact identities, so the threshold is ``get_eps("identity", dtype)`` times a
 scale: ``1`` for curvature (rotation entries are O(1)), the tet's largest ``|θ̃|`` for the
 algebraic identity, the tet's largest ``|α_e|`` for the primal-dual one.
+
+The algebraic identity holds for rotations only (``R_ji = R_ijᵀ = R_ij⁻¹``): :func:`check`
+first checks that the connection is orthogonal to its dtype's ``get_eps("rotation")``
+tolerance and otherwise raises ``ValueError`` naming the worst edge and the remedy
+(``so3.project_to_rotation``), rather than a :class:`BianchiError` that would blame the
+identity (float32 rotations cast to float64 are orthogonal only to ~1e-7, and then fail the
+float64 identity tolerance on almost every tet).
+
+:func:`check` is an eager diagnostic: it reads values into Python floats and raises. It runs
+under autograd and inside ``torch.func.grad`` / ``jacrev`` / ``jacfwd`` / ``jvp`` (on the
+primal values), but not on a ``torch.func.vmap`` batch (``RuntimeError``: a vmapped item has
+no Python value; call it on the whole batch, whose every item it checks) nor inside a
+``torch.compile`` graph (it is excluded from compilation, ``torch.compiler.disable``: a graph
+break, which ``fullgraph=True`` refuses with ``torch._dynamo.exc.Unsupported`` quoting the
+reason; call it outside the compiled function).
 """
 from __future__ import annotations
 
 import torch
 
 from . import dnabla
+from ..lie._validate import rotation_defects
 from ..tolerances import get_eps
 
 __all__ = [
@@ -28,6 +44,7 @@ __all__ = [
     "primal_dual_residual",
     "assert_residual",
     "check",
+    "run_check",
 ]
 
 _TET = torch.tensor([[0, 1, 2, 3]], dtype=torch.long)
@@ -141,6 +158,13 @@ def assert_residual(residual: torch.Tensor, name: str, tol: float | torch.Tensor
     return float(residual.max()) if residual.numel() else 0.0
 
 
+def _compile_reason(who: str) -> str:
+    return (f"{who} is an eager diagnostic (it reads values into Python floats and raises BianchiError), "
+            f"so torch.compile runs it outside the graph: a graph break, which fullgraph=True refuses; "
+            f"call {who} outside the compiled function")
+
+
+@torch.compiler.disable(reason=_compile_reason("torchconn.bianchi.check"))
 def check(edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=None, half_rot=None,
           dual=None) -> dict[str, float]:
     """Evaluate the exact Bianchi identities on every tet and raise if one fails.
@@ -160,26 +184,93 @@ def check(edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=Non
 
     Raises:
         BianchiError: naming the worst tets and their residuals, or the NaN/inf tets.
-        ValueError: on ``meta`` tensors (the check needs values; skipped nowhere silently).
+        ValueError: the connection is not orthogonal (or has ``det -1``) to the dtype's
+            ``get_eps("rotation")`` tolerance, naming the worst edge, its residual
+            ``||RᵀR − I||_F`` and ``so3.project_to_rotation`` as the remedy (module doc);
+            ``meta`` tensors (the check needs values; skipped nowhere silently).
+        RuntimeError: inside ``torch.func.vmap`` (module doc).
+        torch._dynamo.exc.Unsupported: inside ``torch.compile(fullgraph=True)`` (module doc).
     """
-    with torch.no_grad():  # a diagnostic: no graph is needed for the returned floats
-        return _check(edge_rot, mesh, atol, frames, half_rot, dual)
+    return run_check("bianchi.check", edge_rot, mesh, atol, frames=frames, half_rot=half_rot, dual=dual)
 
 
-def _check(edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
+def run_check(who: str, edge_rot: torch.Tensor, mesh, atol: float | None = None, *, frames=None, half_rot=None,
+              dual=None) -> dict[str, float]:
+    """:func:`check` with ``who`` (the caller's name, e.g. ``"BianchiCheck"``) leading its messages."""
     if not torch.is_tensor(edge_rot) or not edge_rot.is_floating_point():
-        raise TypeError(f"check: edge_rot must be a floating tensor (..., E, n, n), got "
+        raise TypeError(f"{who}: edge_rot must be a floating tensor (..., E, n, n), got "
                         f"{edge_rot.dtype if torch.is_tensor(edge_rot) else type(edge_rot).__name__}")
+    if _vmapped(edge_rot):
+        raise RuntimeError(
+            f"{who} cannot run inside torch.func.vmap: it is a diagnostic that reads values into Python "
+            f"floats and raises on a failed identity, and a vmapped item has no Python value; call it "
+            f"outside vmap on the whole batch (leading batch dims (..., E, 3, 3): every item is checked)")
+    with torch.no_grad():  # a diagnostic: no graph is needed for the returned floats
+        return _check(who, edge_rot, mesh, atol, frames, half_rot, dual)
+
+
+def _vmapped(t: torch.Tensor) -> bool:
+    """Whether ``t`` is (or wraps, under ``torch.func.grad`` / ``jvp`` levels) a vmap batch."""
+    f = torch._C._functorch
+    while f.is_functorch_wrapped_tensor(t):
+        if f.is_batchedtensor(t):
+            return True
+        t = f.get_unwrapped(t)
+    return False
+
+
+def _check_orthogonal(who: str, edge_rot: torch.Tensor, mesh) -> float:
+    """Raise ``ValueError`` unless every edge rotation is orthogonal with ``det > 0`` to the dtype's
+    ``get_eps("rotation")``; return the largest ``||RᵀR − I||_F`` (NaN/inf entries are left to
+    the residual checks, which name the tets they reach)."""
+    tol = get_eps("rotation", edge_rot.dtype)
+    _, not_orth, refl, err, _ = rotation_defects(edge_rot, tol)
+    bad = not_orth | refl
+    if not bool(bad.any()):
+        return float(err.max()) if err.numel() else 0.0
+    E, batch = edge_rot.shape[-3], tuple(edge_rot.shape[:-3])
+    cast = ""
+    if bool(not_orth.any()):
+        k = int(torch.where(not_orth, err, -1.0).reshape(-1).argmax())
+        worst = float(err.reshape(-1)[k])
+        defect = f"||R_eᵀ R_e − I||_F = {worst:.2e}"
+        if edge_rot.dtype == torch.float64 and worst < 1e-4:
+            cast = " (rotations computed in float32 and cast to float64 are orthogonal only to ~1e-7 to 1e-6)"
+    else:
+        k = int(refl.reshape(-1).nonzero()[0])
+        defect = "det R_e = −1 (a reflection)"
+    item, e = divmod(k, E)
+    i, j = (int(v) for v in mesh.edges[e].tolist())
+    where = f" of batch item {tuple(int(b) for b in torch.unravel_index(torch.tensor(item), batch))}" if batch else ""
+    raise ValueError(
+        f"{who}: the connection is not a rotation to the {str(edge_rot.dtype).replace('torch.', '')} tolerance "
+        f"{tol:.0e} on {int(bad.sum())} of {bad.numel()} edges; worst edge {e} = ({i}, {j}){where}: {defect}. "
+        f"The Bianchi identities hold for rotations; project the connection first, "
+        f"so3.project_to_rotation(edge_rot){cast}")
+
+
+def _check(who, edge_rot, mesh, atol, frames, half_rot, dual) -> dict[str, float]:
+    if edge_rot.device.type == "meta":
+        raise ValueError(f"{who}: meta tensors carry no values to check; run it on a real device")
     eps = get_eps("identity", edge_rot.dtype) if atol is None else float(atol)
     n = edge_rot.shape[-1]
     out = {}
-    T = dnabla.tet_transports(edge_rot, mesh)  # shared by both identities
+    T = dnabla.tet_transports(edge_rot, mesh)  # shared by both identities (checks the shapes first)
+    orth = _check_orthogonal(who, edge_rot, mesh)
     diff = _norm_or_raw(_differential(T, False), True, 2)
     out["differential"] = assert_residual(diff, "differential", eps * n)
     theta = dnabla.tet_solder_sqrt(edge_rot, mesh, frames, half_rot)
     scale = 1.0 + torch.linalg.vector_norm(theta, dim=-1).flatten(-2).amax(-1)
     alg = torch.linalg.vector_norm(dnabla.averaged_dd_tet(T, theta) - dnabla.wedge_curvature_solder_tet(T, theta), dim=-1)
-    out["algebraic"] = assert_residual(alg, "algebraic", eps * n * scale)
+    try:
+        out["algebraic"] = assert_residual(alg, "algebraic", eps * n * scale)
+    except BianchiError as err:
+        if orth > eps:  # orthogonal within the rotation tolerance, but not to round-off
+            raise BianchiError(
+                f"{err} — note: the connection is orthogonal only to {orth:.1e} (||RᵀR − I||_F, within the "
+                f"rotation tolerance {get_eps('rotation', edge_rot.dtype):.0e}); the algebraic identity is "
+                f"exact for rotations: project with so3.project_to_rotation(edge_rot)") from None
+        raise
     if dual is not None:
         tfr, fer, ev = dual
         pd = primal_dual_residual(tfr, fer, ev, mesh)

@@ -271,9 +271,18 @@ class BianchiCheck(nn.Module):
     and the algebraic one ``𝔡∇Alt𝔡∇Alt θ̃ − Ω∧θ = 0`` (explicit Ch. 5 wedge). Raises
     :class:`torchconn.bianchi.BianchiError` naming the worst tets when a residual exceeds
     ``atol`` (default: the dtype's ``identity`` tolerance) or is not finite — a structural bug
-    or a NaN. The check runs on detached rotations (it is a diagnostic, not a loss term). With
-    batch dims every item is checked and the maxima are over the whole batch. Needs values:
-    ``ValueError`` on ``meta`` tensors.
+    or a NaN. A connection that is not orthogonal (or has ``det -1``) to its dtype's
+    ``rotation`` tolerance raises ``ValueError`` naming the worst edge and the remedy,
+    ``so3.project_to_rotation``, instead (the identities hold for rotations; e.g. float32
+    rotations cast to float64 are orthogonal only to ~1e-7). The check runs on detached
+    rotations (it is a diagnostic, not a loss term). With batch dims every item is checked and
+    the maxima are over the whole batch. Needs values: ``ValueError`` on ``meta`` tensors.
+
+    Transforms: it runs under autograd and inside ``torch.func.grad`` / ``jacrev`` / ``jacfwd``
+    / ``jvp`` (on the primal values); inside ``torch.func.vmap`` it raises ``RuntimeError`` (a
+    vmapped item has no Python value: call it on the whole batch); ``torch.compile`` runs it
+    outside the graph (``torch.compiler.disable``), so ``fullgraph=True`` raises
+    ``torch._dynamo.exc.Unsupported`` quoting that reason: call it outside the compiled function.
     """
 
     def __init__(self, mesh: Any, atol: float | None = None):
@@ -283,7 +292,9 @@ class BianchiCheck(nn.Module):
         self.mesh = MeshBuffers(mesh)
         self.atol = atol
 
+    @torch.compiler.disable(reason=_bianchi._compile_reason("BianchiCheck"))
     @torch.no_grad()
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> dict[str, float]:
         R = _rotations(connection, self.mesh, "BianchiCheck", n3=True).detach()
-        return _bianchi.check(R, self.mesh, atol=self.atol, frames=_frames(frames, R, self.mesh, "BianchiCheck"))
+        return _bianchi.run_check("BianchiCheck", R, self.mesh, atol=self.atol,
+                                  frames=_frames(frames, R, self.mesh, "BianchiCheck"))
