@@ -199,7 +199,6 @@ def test_classify_point_on_face_edge_vertex():
     for q, kind, zeros in cases:
         loc = pr.classify_point(tet, q)
         assert loc.kind == kind
-        lam = [Fraction(0)] * 4
         if zeros is not None:
             assert set(np.nonzero(loc.zero)[0]) == zeros
         # against the Fraction reference, both orientations
@@ -207,7 +206,6 @@ def test_classify_point_on_face_edge_vertex():
         np.testing.assert_array_equal(pr.barycentric_signs(tet, q), ref)
         flipped = pr.classify_point(tet[[1, 0, 2, 3]], q)
         assert flipped.kind == kind and flipped.orientation == -1
-        del lam
     flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
     assert pr.classify_point(flat, np.zeros(3)).kind == pr.DEGENERATE
 
@@ -360,31 +358,43 @@ def test_transitions_give_the_same_hex_mesh(mode):
     assert hex_keys(res) == hex_keys(ref) and res.hexes.shape == ref.hexes.shape
     np.testing.assert_allclose(scaled_jacobian_corners(res.points[res.hexes]), 1.0, atol=1e-9)
     check_conforming(res)
-    # the representatives are in the lowest tet, expressed in its (new) chart
-    tets = mesh.tets.numpy()
-    for p, t in zip(res.point_param[::11], res.point_tet[::11]):
-        assert (pr.barycentric_signs(new[t], p) >= 0).all()
+    # each representative is the lowest tet holding the point (found in world space), with the
+    # point's parameter in that tet's (new) chart
+    X = mesh.vertices.numpy()[mesh.tets.numpy()]
+    M = np.linalg.inv(np.concatenate([X, np.ones((len(X), 4, 1))], 2).transpose(0, 2, 1))
+    for x, p, t in zip(res.points[::5], res.point_param[::5], res.point_tet[::5]):
+        lam = M @ np.append(x, 1.0)
+        assert t == np.nonzero((lam > -1e-9).all(1))[0].min()
+        np.testing.assert_allclose(lam[t] @ new[t], p, atol=1e-9)
 
 
-def valence3_map(n=2, m=2):
-    """Parameter domain ([-n, n]^2 minus the quadrant x > 0, y < 0) x [0, m], tets of unit cubes,
-    embedded in 3D by scaling the polar angle by 4/3 so it closes; the faces where the
-    quadrant x > 0, y > 0 meets x < 0, y < 0 carry the quarter turn (x, y) -> (y, -x)."""
+def valence_map(k=3, n=2, m=2):
+    """A valence-``k`` singular edge: ``k`` quadrants ``[0, n]^2 x [0, m]`` of unit-cube tets around
+    the z axis, quadrant ``j`` charted as quadrant 1 turned by ``j`` quarter turns (so the
+    triangulations of every shared face match: Kuhn's is not invariant under sign flips), quadrant
+    ``j``'s side ``y = 0`` glued to quadrant ``j - 1``'s side ``x = 0`` (and the first to the last),
+    embedded in 3D by scaling the polar angle by ``4 / k`` so it closes. For ``k = 3`` the parameter
+    domain is ``([-n, n]^2`` minus the quadrant ``x > 0, y < 0) x [0, m]`` in one chart but for the
+    seam, which carries a quarter turn; for ``k = 5`` the fifth quadrant overlaps the first in
+    parameter space (charts, not one flat domain)."""
     pts, index = [], {}
 
-    def vid(x, y, z):
-        if y == 0 and x > 0:                    # on the seam: identify with (0, -x) of quadrant 3
-            key = (0, -x, z)
+    def vid(j, x, y, z):
+        """Vertex of quadrant ``j`` at local (quadrant-1 frame) coordinates ``(x, y, z)``."""
+        if x == 0 and y == 0:
+            key = (0, 0, 0, z)                  # the axis, shared by every quadrant
+        elif y == 0:                            # side y = 0 of quadrant j = side x = 0 of j - 1
+            key = ((j - 1) % k, 0, x, z)
         else:
-            key = (x, y, z)
+            key = (j, x, y, z)
         if key not in index:
             index[key] = len(pts)
             pts.append(key)
         return index[key]
 
     q1 = []                                     # Kuhn tets of quadrant 1, positively oriented
-    for i, j, k in itertools.product(range(n), range(n), range(m)):
-        c = np.array([i, j, k])
+    for i, j, l in itertools.product(range(n), range(n), range(m)):
+        c = np.array([i, j, l])
         for perm in itertools.permutations(range(3)):
             corners, off = [c.copy()], np.zeros(3, int)
             for ax in perm:
@@ -394,36 +404,40 @@ def valence3_map(n=2, m=2):
                 corners[2], corners[3] = corners[3], corners[2]
             q1.append(corners)
     q1 = np.array(q1)
-    # quadrants 2 and 3 are quadrant 1 turned by 90 and 180 degrees, so the triangulations of
-    # every shared face (the seam included) match (Kuhn's is not invariant under sign flips)
+    quarter = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
     tets, uvw = [], []
-    for quarter in range(3):
-        R = np.linalg.matrix_power(np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]]), quarter)
-        for corners in q1 @ R.T:
-            tets.append([vid(*p) for p in corners])
-            uvw.append(corners.astype(float))
-    P = np.array(pts, float)
-    r = np.hypot(P[:, 0], P[:, 1])
-    theta = np.mod(np.arctan2(P[:, 1], P[:, 0]), 2 * np.pi) * 4 / 3
-    X = np.stack([r * np.cos(theta), r * np.sin(theta), P[:, 2]], 1)
-    mesh = tc.TetMesh(X, np.array(tets))
-    uvw = np.array(uvw)
-    return mesh, uvw
+    for j in range(k):
+        R = np.linalg.matrix_power(quarter, j)
+        for corners in q1:
+            tets.append([vid(j, *p) for p in corners])
+            uvw.append((corners @ R.T).astype(float))
+    P = np.array(pts, float)                   # (quadrant, x, y, z) in the quadrant-1 frame
+    r = np.hypot(P[:, 1], P[:, 2])
+    theta = (P[:, 0] * np.pi / 2 + np.arctan2(P[:, 2], P[:, 1])) * 4 / k
+    X = np.stack([r * np.cos(theta), r * np.sin(theta), P[:, 3]], 1)
+    return tc.TetMesh(X, np.array(tets)), np.array(uvw)
 
 
-def test_valence3_singular_edge():
+def valence3_map(n=2, m=2):
+    return valence_map(3, n, m)
+
+
+@pytest.mark.parametrize("k", [3, 5])
+def test_singular_edge_valence(k):
+    """The hex mesh of the valence-k map: k n^2 m hexes, the m axis edges in exactly k hexes and
+    every other interior edge in 4."""
     n, m = 2, 2
-    mesh, uvw = valence3_map(n, m)
+    mesh, uvw = valence_map(k, n, m)
     rot, shift = fit_transitions(mesh, uvw)
-    quarter = [g for g in range(24) if GROUP[g][2, 2] == 1 and GROUP[g][0, 0] == 0]
-    assert set(np.unique(rot)) - {0} <= set(quarter) and (rot != 0).sum() == 2 * n * m   # the seam's triangles
+    quarter_turns_z = [g for g in range(24) if GROUP[g][2, 2] == 1 and GROUP[g][0, 0] == 0]
+    assert set(np.unique(rot)) - {0} <= set(quarter_turns_z) and (rot != 0).any()
     res = extract_hexes(mesh, uvw, rot, shift)
-    assert res.hexes.shape == (3 * n * n * m, 8) and sum(res.dropped.values()) == 0
+    assert res.hexes.shape == (k * n * n * m, 8) and sum(res.dropped.values()) == 0
+    assert res.counts()["invalid_singular_edges"] == 0
     interior, _ = edge_valences(res)
-    axis = {tuple(sorted(e)) for e in interior
-            if np.allclose(res.points[list(e)][:, :2], 0, atol=1e-9)}
+    axis = {e for e in interior if np.allclose(res.points[list(e)][:, :2], 0, atol=1e-9)}
     assert len(axis) == m
-    assert all(interior[e] == 3 for e in axis)
+    assert all(interior[e] == k for e in axis)
     assert all(v == 4 for e, v in interior.items() if e not in axis)
     # every hex positively oriented in the world too (the embedding preserves orientation)
     assert (scaled_jacobian_corners(res.points[res.hexes]) > 0).all()
@@ -552,3 +566,33 @@ def test_unstructured_ball_matches_brute_force():
     new = _rechart(uvw, range(uvw.shape[0]), np.random.default_rng(6))
     res2 = extract_hexes(mesh, new, *fit_transitions(mesh, new))
     assert hex_keys(res2, 6) == hex_keys(res, 6)
+
+
+def test_limits_empty_maps_and_progress():
+    # hexes larger than the domain: no cube at all, an empty but well-formed result
+    mesh, uvw = box_map(2, 1.0, 4.0)
+    res = extract_hexes(mesh, uvw, *identity_transitions(mesh), progress=True)
+    assert res.hexes.shape == (0, 8) and res.points.shape == (0, 3) and res.counts()["cubes_dropped"] == 0
+    # walks that need a step are cut by max_walk_steps=0 (tets smaller than the cubes)
+    mesh, uvw = box_map(8, 4.0, 1.0)
+    res = extract_hexes(mesh, uvw, *identity_transitions(mesh), max_walk_steps=0)
+    assert res.hexes.shape[0] == 0 and res.dropped["walk_limit"] == 64
+    # tets holding more lattice points than max_tet_points are skipped and reported
+    mesh, uvw = box_map(2, 4.0, 0.5)                   # 4 x 4 x 4 half-cubes per tet bbox
+    res = extract_hexes(mesh, uvw, *identity_transitions(mesh), max_tet_points=8)
+    assert res.counts()["oversized_tets"] == uvw.shape[0] and res.hexes.shape[0] == 0
+
+
+def test_overlap_guard():
+    """``_drop_overlaps``: a quad shared by two hexes with the same orientation (a fold), or by
+    three hexes, marks them; a properly shared face does not."""
+    from torchconn.hexmesh.extract import _OK, _R, _drop_overlaps
+    a = np.arange(8)
+    b = np.array([4, 5, 6, 7, 8, 9, 10, 11])            # on top of a: shares a's top face, reversed
+    c = np.array([8, 9, 10, 11, 4, 5, 6, 7])            # below a's top face: same orientation as a
+    ok = np.full(2, _OK, np.int8)
+    assert (_drop_overlaps(np.stack([a, b]), ok) == _OK).all()
+    assert (_drop_overlaps(np.stack([a, c]), ok) == _R["overlap"]).all()
+    d = np.array([4, 5, 6, 7, 12, 13, 14, 15])
+    out = _drop_overlaps(np.stack([a, b, d]), np.full(3, _OK, np.int8))
+    assert (out == _R["overlap"]).all()

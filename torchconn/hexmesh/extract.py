@@ -86,6 +86,7 @@ REASONS = ("flipped_tet", "oversized_tet", "seam_mismatch", "near_invalid", "lea
            "not_closed", "overlap")
 _R = {name: i for i, name in enumerate(REASONS)}
 _OK = len(REASONS)  # "no reason" sorts after every reason
+_CUBE_CHUNK = 1 << 15  # cubes walked together (8 walkers each; bounds the visit records' memory)
 
 #: VTK hexahedron corner offsets from the cube's min corner.
 HEX_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
@@ -292,19 +293,28 @@ class _Lattice:
         return out
 
 
-def _bbox_counts(U: np.ndarray, S: int, off: int):
-    # elementwise over the 4 corners: numpy's reduction over a length-4 axis is several times slower
+def _bbox(U: np.ndarray):
+    """Per-tet min and max corner ``(T, 3)`` (elementwise over the 4 corners: numpy's reduction
+    over a length-4 axis is several times slower)."""
     mn = np.minimum(np.minimum(U[:, 0], U[:, 1]), np.minimum(U[:, 2], U[:, 3]))
     mx = np.maximum(np.maximum(U[:, 0], U[:, 1]), np.maximum(U[:, 2], U[:, 3]))
-    lo = -((off - mn) // S)          # ceil((mn - off) / S)
-    hi = (mx - off) // S             # floor((mx - off) / S)
+    return mn, mx
+
+
+def _bbox_counts(bbox, g: int, off: int):
+    """Lattice points ``k 2**g + off`` in each tet's bounding box: ``lo (T, 3)``, ``dims (T, 3)``,
+    their product as float64 (no overflow). Shifts are floor divisions by ``S = 2**g``."""
+    mn, mx = bbox
+    lo = -((off - mn) >> g)          # ceil((mn - off) / S)
+    hi = (mx - off) >> g             # floor((mx - off) / S)
     dims = np.maximum(hi - lo + 1, 0)
     return lo, dims, dims.astype(np.float64).prod(axis=1)
 
 
-def _lattice(U: np.ndarray, usable: np.ndarray, S: int, half: bool, chunk: int = 1 << 21) -> _Lattice:
+def _lattice(U: np.ndarray, bbox, usable: np.ndarray, g: int, half: bool, chunk: int = 1 << 21) -> _Lattice:
+    S = 1 << g
     off = S // 2 if half else 0
-    lo, dims, _ = _bbox_counts(U, S, off)
+    lo, dims, _ = _bbox_counts(bbox, g, off)
     dims = np.where(usable[:, None], dims, 0)
     count = dims.prod(axis=1)
     base = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
@@ -348,7 +358,7 @@ def _transport(G, inv, rot_f, shift_f, from_t0, Q):
     return np.where(from_t0[:, None], fwd, back)
 
 
-def _stars(lat: _Lattice, S, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted):
+def _stars(lat: _Lattice, g, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted):
     """Connected components of the occurrences of ``lat`` across good faces.
 
     Returns ``label (M,)``, per component: ``rep (C,)`` occurrence in the lowest tet,
@@ -363,9 +373,9 @@ def _stars(lat: _Lattice, S, G, inv, tet_faces, ft, face_good, face_rot, shiftS,
     from_t0 = pair[:, 0] == t
     nbr = np.where(from_t0, pair[:, 1], pair[:, 0])
     good = face_good[f]
-    Q = lat.k[rows] * S + lat.off
+    Q = (lat.k[rows] << g) + lat.off
     Qn = _transport(G, inv, face_rot[f], shiftS[f], from_t0, Q)
-    kn = (Qn - lat.off) // S
+    kn = (Qn - lat.off) >> g
     j = np.where(good, lat.lookup(np.where(good, nbr, -1), kn), -1)
     linked = j >= 0
     broken_occ = tainted[lat.tet].copy()
@@ -443,7 +453,7 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, face_edges, U, G, mult, 
             ax = np.argmax(diag == 1, axis=1)
             loc = (tets[t_start[done]] == ends[done, :1]).argmax(axis=1)
             a = U[t_start[done], loc]                            # an endpoint in the start chart
-            on_line = ((a % S == 0) | (np.arange(3)[None, :] == ax[:, None])).all(axis=1)
+            on_line = ((a & (S - 1) == 0) | (np.arange(3)[None, :] == ax[:, None])).all(axis=1)
             bad[done] = (rot[done] != 0) & ~(axis_ok & on_line)
         act = act[~closed]
         # the next face of the ring: the new tet's other face through the edge
@@ -597,15 +607,16 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
             off the ``2**-grid_bits`` grid or too large (naming the tets), ``face_rot`` outside
             0..23 or non-integer ``face_shift`` on interior faces (naming the faces).
 
-    Cost (2 cores, numpy): about 0.1 s per 10k hexes on the structured box; see
-    ``tests/test_hexmesh_extract.py`` and the module docstring for the stages.
+    Cost (numpy, one core; 2026-11-25, measured under a load of ~5 on 2 cores): about 0.6 CPU s
+    per 10k hexes when the tets are about the size of the hexes (6 tets per hex) and 1.7 s with 48
+    tets per hex (longer walks); per-stage seconds are in ``timings``.
     """
     timings: dict = {}
     t_start = time.perf_counter()
     bar = _bar(progress)
     tets, U, face_rot, face_shift, ft, interior = _validate(mesh, uvw, face_rot, face_shift, grid_bits)
-    S = 1 << int(grid_bits)
-    T = tets.shape[0]
+    grid_bits = int(grid_bits)
+    S = 1 << grid_bits
     G, mult, inv = _group_tables()
     tet_faces = mesh.tet_faces.cpu().numpy().astype(np.int64)
     faces = mesh.faces.cpu().numpy().astype(np.int64)
@@ -614,8 +625,9 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
 
     # orientation, oversized tets, seams, taint
     tet_sign = _orient3d_int(U[:, 0], U[:, 1], U[:, 2], U[:, 3])
-    n_int = _bbox_counts(U, S, 0)[2]
-    n_half = _bbox_counts(U, S, S // 2)[2]
+    bbox = _bbox(U)
+    n_int = _bbox_counts(bbox, grid_bits, 0)[2]
+    n_half = _bbox_counts(bbox, grid_bits, S // 2)[2]
     oversized = (tet_sign > 0) & (np.maximum(n_int, n_half) > max_tet_points)
     usable = (tet_sign > 0) & ~oversized
     seam_ok = np.ones(faces.shape[0], bool)
@@ -642,14 +654,14 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
     _step(bar, "lattice")
 
     t1 = time.perf_counter()
-    vlat = _lattice(U, usable, S, half=False)
-    clat = _lattice(U, usable, S, half=True)
+    vlat = _lattice(U, bbox, usable, grid_bits, half=False)
+    clat = _lattice(U, bbox, usable, grid_bits, half=True)
     timings["lattice"] = time.perf_counter() - t1
     _step(bar, "stars")
 
     t1 = time.perf_counter()
-    vlabel, vrep, vbroken, vmulti = _stars(vlat, S, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted)
-    clabel, crep, cbroken, cmulti = _stars(clat, S, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted)
+    vlabel, vrep, vbroken, vmulti = _stars(vlat, grid_bits, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted)
+    _, crep, cbroken, cmulti = _stars(clat, grid_bits, G, inv, tet_faces, ft, face_good, face_rot, shiftS, tainted)
     timings["stars"] = time.perf_counter() - t1
     _step(bar, "walk")
 
@@ -661,13 +673,21 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
     reason = np.full(C, _OK, np.int8)
     reason = np.minimum(reason, np.where(cbroken, _R["near_invalid"], _OK).astype(np.int8))
     reason = np.minimum(reason, np.where(cmulti, _R["not_closed"], _OK).astype(np.int8))
-    Pc = kc * S + S // 2
-    corner_k = kc[:, None, :] + HEX_CORNERS[None]   # (C, 8, 3) integer corners
     wt0 = np.repeat(own, 8)
-    wP = np.repeat(Pc, 8, axis=0)
-    wQ = (corner_k * S).reshape(-1, 3)
-    wtet, wrot, wb, wreason, steps, visits = _walk(U, G, mult, inv, tet_faces, ft, face_rot, shiftS, usable, oversized,
-                                           seam_ok, tainted, wt0, wP, wQ, max_walk_steps, bar)
+    wQ = ((kc[:, None, :] + HEX_CORNERS[None]) * S).reshape(-1, 3)   # the 8 integer corners, scaled
+    wtet, wrot = np.empty_like(wt0), np.empty_like(wt0)
+    wb, wreason = np.empty_like(wQ), np.empty(wt0.size, np.int8)
+    wraps = np.zeros(C, bool)
+    steps = 0
+    for c0 in range(0, C, _CUBE_CHUNK):             # chunks bound the memory of the visit records
+        cs = slice(c0, min(C, c0 + _CUBE_CHUNK))
+        ws = slice(8 * cs.start, 8 * cs.stop)
+        P = np.repeat(kc[cs] * S + S // 2, 8, axis=0)
+        wtet[ws], wrot[ws], wb[ws], wreason[ws], n, visits = _walk(
+            U, G, mult, inv, tet_faces, ft, face_rot, shiftS, usable, oversized, seam_ok, tainted,
+            wt0[ws], P, wQ[ws], max_walk_steps, bar)
+        wraps[cs] = _chart_conflicts(visits, cs.stop - cs.start)
+        steps = max(steps, n)
     timings["walk"] = time.perf_counter() - t1
     timings["walk_steps"] = steps
     _step(bar, "assemble")
@@ -679,7 +699,7 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
     wi = np.nonzero(done)[0]
     if wi.size:
         q_t = _apply(G, inv[wrot[wi]], wQ[wi] - wb[wi])        # corner in the final tet's chart
-        occ = vlat.lookup(wtet[wi], q_t // S)
+        occ = vlat.lookup(wtet[wi], q_t >> grid_bits)
         lost = occ < 0                                          # cannot happen: the tet holds it
         wreason[wi[lost]] = _R["not_closed"]
         found = wi[~lost]
@@ -688,8 +708,7 @@ def extract_hexes(mesh, uvw, face_rot, face_shift, *, grid_bits: int = 20, progr
         wreason[found[vmulti[lab]]] = _R["not_closed"]
         wreason[found[vbroken[lab] & (wreason[found] == _OK)]] = _R["near_invalid"]
     reason = np.minimum(reason, wreason.reshape(C, 8).min(axis=1))
-    wraps = _chart_conflicts(visits, C) & (reason == _OK)
-    reason[wraps] = _R["not_closed"]
+    reason[wraps & (reason == _OK)] = _R["not_closed"]
     hv = corner_v.reshape(C, 8)
     srt = np.sort(hv, axis=1)
     repeated = (srt[:, 1:] == srt[:, :-1]).any(axis=1) & (reason == _OK)
