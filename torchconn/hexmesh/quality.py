@@ -113,6 +113,9 @@ FEATURE_CURVE_SAMPLES = 4
 #: Unit normals closer than this count as parallel when the Hausdorff bounds treat adjacent
 #: target triangles as one plane (the residual tilt is added to the bound as slack).
 _FLAT_NORMAL_TOL = 1e-9
+#: Rows per block in the vectorized per-hex and per-triangle computations (bounds the memory:
+#: about 0.3 GB per block for the Hausdorff bounds).
+_CHUNK = 100_000
 
 # ----------------------------------------------------------------------------- local tables (VTK order)
 #: The 12 edges of a hex, local vertex pairs: bottom ring, top ring, then the 4 verticals.
@@ -280,7 +283,13 @@ def scaled_jacobian(points, hexes) -> np.ndarray:
     """
     p = _as_points(points)
     h = _as_hexes(hexes, p.shape[0])
-    P = p[h]  # (H, 8, 3)
+    if h.shape[0] == 0:
+        return np.zeros(0)
+    return np.concatenate([_scaled_jacobian(p[h[i:i + _CHUNK]]) for i in range(0, h.shape[0], _CHUNK)])
+
+
+def _scaled_jacobian(P: np.ndarray) -> np.ndarray:
+    """:func:`scaled_jacobian` of the hexes with corner positions ``P (H, 8, 3)``."""
     base = P[:, _CORNERS[:, 0]]
     a = P[:, _CORNERS[:, 1]] - base
     b = P[:, _CORNERS[:, 2]] - base
@@ -298,7 +307,7 @@ def scaled_jacobian(points, hexes) -> np.ndarray:
         ua, ub, uc = a / la[..., None], b / lb[..., None], c / lc[..., None]
     det = np.einsum("hki,hki->hk", ua, np.cross(ub, uc))
     det = np.where(ok, det, 0.0)
-    return det.min(axis=1) if det.shape[0] else np.zeros(0)
+    return det.min(axis=1)
 
 
 def hex_volumes(points, hexes) -> np.ndarray:
@@ -520,7 +529,7 @@ class _Target:
         sq, idx, _ = igl.point_mesh_squared_distance(np.ascontiguousarray(q, dtype=np.float64), self.v, self.f)
         return np.sqrt(np.maximum(sq, 0.0)), np.asarray(idx, dtype=np.int64).reshape(-1)
 
-    def upper_bound(self, tri: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    def upper_bound(self, tri: np.ndarray, cand: np.ndarray, enough: float = -np.inf) -> np.ndarray:
         """Certified upper bounds ``(M,)`` on the distance to the surface over each source
         triangle ``tri (M, 3, 3)``, given candidate target triangles ``cand (M, J)``.
 
@@ -528,7 +537,8 @@ class _Target:
         distance to one triangle is convex); for two candidates sharing a side, coplanar, whose
         union is convex, the largest vertex distance to the union; where the triangle's vertices
         project into the disk a flat vertex fan covers, the largest distance to the fan's plane
-        (both convex too). The coplanarity tolerance is added as slack.
+        (both convex too). The coplanarity tolerance is added as slack. The pair and fan bounds
+        are only tried on triangles whose bound is still above ``enough``.
         """
         M, J = cand.shape
         cand = np.sort(cand, axis=1)
@@ -541,6 +551,19 @@ class _Target:
         for k in range(1, J):
             d[:, k] = np.where(new[:, k, None], d[:, k], d[:, k - 1])
         ub = d.max(axis=2).min(axis=1)  # (M,) single candidates
+        rows = np.nonzero(ub > enough)[0]
+        if rows.size:
+            ub[rows] = np.minimum(ub[rows], self._pair_bound(cand[rows], t[rows], d[rows]))
+            rows = rows[ub[rows] > enough]
+        if rows.size and self.flat_tree is not None:
+            ub[rows] = np.minimum(ub[rows], self._fan_bound(tri[rows]))
+        return ub
+
+    def _pair_bound(self, cand: np.ndarray, t: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The bound over the union of two candidates ``(M,)`` (``inf`` where no pair qualifies);
+        ``t (M, J, 3, 3)`` the candidates' corners, ``d (M, J, 3)`` the source vertices' distances."""
+        M, J = cand.shape
+        out = np.full(M, np.inf)
         fv = self.f[cand]  # (M, J, 3)
         r = np.arange(M)
         for j in range(J):
@@ -564,19 +587,20 @@ class _Target:
                 ok &= (side(s0, s1, oj) * side(s0, s1, ok_) < 0) & (side(oj, ok_, s0) * side(oj, ok_, s1) <= 0)
                 slack = 2.0 * np.abs(np.einsum("ij,ij->i", ok_ - s0, nj))  # t_k's tilt out of t_j's plane
                 pair = np.minimum(d[:, j], d[:, k]).max(axis=1) + slack
-                ub = np.where(ok, np.minimum(ub, pair), ub)
-        if self.flat_tree is not None:
-            g = tri.mean(axis=1)
-            _, w = self.flat_tree.query(g)
-            c = self.v[self.flat_vertex[w]]
-            n = self.flat_normal[w]
-            rel = tri - c[:, None, :]
-            off = np.einsum("mki,mi->mk", rel, n)  # (M, 3)
-            inplane = np.linalg.norm(rel - off[..., None] * n[:, None, :], axis=2)
-            inside = (inplane <= self.flat_rho[w][:, None]).all(axis=1)
-            fan = np.abs(off).max(axis=1) + self.flat_slack[w]
-            ub = np.where(inside, np.minimum(ub, fan), ub)
-        return ub
+                out = np.where(ok, np.minimum(out, pair), out)
+        return out
+
+    def _fan_bound(self, tri: np.ndarray) -> np.ndarray:
+        """The bound by the flat fan nearest to each triangle's centroid ``(M,)`` (``inf`` where
+        the triangle's vertices do not all project into the fan's disk)."""
+        _, w = self.flat_tree.query(tri.mean(axis=1))
+        c = self.v[self.flat_vertex[w]]
+        n = self.flat_normal[w]
+        rel = tri - c[:, None, :]
+        off = np.einsum("mki,mi->mk", rel, n)  # (M, 3)
+        inplane = np.linalg.norm(rel - off[..., None] * n[:, None, :], axis=2)
+        inside = (inplane <= self.flat_rho[w][:, None]).all(axis=1)
+        return np.where(inside, np.abs(off).max(axis=1) + self.flat_slack[w], np.inf)
 
 
 def _one_sided_hausdorff(src_v: np.ndarray, src_f: np.ndarray, dst: _Target,
@@ -596,8 +620,11 @@ def _one_sided_hausdorff(src_v: np.ndarray, src_f: np.ndarray, dst: _Target,
         dg, ig = dst.dist(tri.mean(axis=1))
         evals += dg.size
         lower = max(lower, float(dg.max()))
-        ub = dst.upper_bound(tri, np.concatenate([iv, ig[:, None]], axis=1))
-        refine = ub > lower + max(HAUSDORFF_REL_ACCURACY * lower, tol_abs)
+        cand = np.concatenate([iv, ig[:, None]], axis=1)
+        enough = lower + max(HAUSDORFF_REL_ACCURACY * lower, tol_abs)
+        ub = np.concatenate([dst.upper_bound(tri[i:i + _CHUNK], cand[i:i + _CHUNK], enough)
+                             for i in range(0, tri.shape[0], _CHUNK)])
+        refine = ub > enough
         if (~refine).any():
             upper_done = max(upper_done, float(ub[~refine].max()))
         if not refine.any():
