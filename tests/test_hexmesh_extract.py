@@ -331,10 +331,10 @@ def test_generic_map_gives_the_grid_topology():
 
 def _rechart(uvw, tets_sel, rng):
     """Apply a random element of O and a random integer shift to the charts of ``tets_sel``."""
+    sel = np.asarray(list(tets_sel))
     out = uvw.copy()
-    for t in tets_sel:
-        g = GROUP[rng.integers(24)]
-        out[t] = out[t] @ g.T + rng.integers(-5, 6, 3)
+    g = GROUP[rng.integers(24, size=sel.size)]
+    out[sel] = np.einsum("nij,nkj->nki", g, uvw[sel]) + rng.integers(-5, 6, (sel.size, 1, 3))
     return out
 
 
@@ -596,3 +596,46 @@ def test_overlap_guard():
     d = np.array([4, 5, 6, 7, 12, 13, 14, 15])
     out = _drop_overlaps(np.stack([a, b, d]), np.full(3, _OK, np.int8))
     assert (out == _R["overlap"]).all()
+
+
+def test_chunking_does_not_change_the_result(monkeypatch):
+    """Lattice points and walks are processed in chunks (memory bounds): tiny chunks give the
+    same extraction as one chunk, on a map with transitions."""
+    import torchconn.hexmesh.extract as ex
+    mesh, uvw = jittered_box_map(3, 3.0, 0.5)
+    new = _rechart(uvw, range(0, uvw.shape[0], 3), np.random.default_rng(7))
+    F = fit_transitions(mesh, new)
+    ref = extract_hexes(mesh, new, *F)
+    monkeypatch.setattr(ex, "_CUBE_CHUNK", 5)
+    monkeypatch.setattr(ex, "_POINT_CHUNK", 7)
+    res = extract_hexes(mesh, new, *F)
+    for name in ("points", "hexes", "point_tet", "point_param", "hex_tet", "hex_param"):
+        np.testing.assert_array_equal(getattr(res, name), getattr(ref, name))
+    assert res.hexes.shape[0] == 216
+
+
+# ----------------------------------------------------------------------------- larger cases
+@pytest.mark.slow
+def test_large_generic_map_with_random_charts():
+    """16^3 hexes over 196,608 generic tets (48 per hex), every tet in its own random chart: the
+    structured topology, and the same hexes as with one chart."""
+    mesh, uvw = jittered_box_map(32, 16.0, 1.0)
+    ref = extract_hexes(mesh, uvw, *identity_transitions(mesh))
+    assert ref.hexes.shape[0] == 16 ** 3 and sum(ref.dropped.values()) == 0
+    interior, _ = edge_valences(ref)
+    assert len(interior) == 3 * 16 * 15 * 15 and set(interior.values()) == {4}
+    new = _rechart(uvw, range(uvw.shape[0]), np.random.default_rng(8))
+    res = extract_hexes(mesh, new, *fit_transitions(mesh, new))
+    assert hex_keys(res) == hex_keys(ref)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("k,n,m", [(3, 6, 4), (5, 4, 3)])
+def test_large_singular_edge(k, n, m):
+    mesh, uvw = valence_map(k, n, m)
+    res = extract_hexes(mesh, uvw, *fit_transitions(mesh, uvw))
+    assert res.hexes.shape == (k * n * n * m, 8) and sum(res.dropped.values()) == 0
+    interior, _ = edge_valences(res)
+    axis = {e for e in interior if np.allclose(res.points[list(e)][:, :2], 0, atol=1e-9)}
+    assert len(axis) == m and all(interior[e] == k for e in axis)
+    assert all(v == 4 for e, v in interior.items() if e not in axis)

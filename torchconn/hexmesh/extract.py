@@ -86,7 +86,8 @@ REASONS = ("flipped_tet", "oversized_tet", "seam_mismatch", "near_invalid", "lea
            "not_closed", "overlap")
 _R = {name: i for i, name in enumerate(REASONS)}
 _OK = len(REASONS)  # "no reason" sorts after every reason
-_CUBE_CHUNK = 1 << 15  # cubes walked together (8 walkers each; bounds the visit records' memory)
+_CUBE_CHUNK = 1 << 15   # cubes walked together (8 walkers each; bounds the visit records' memory)
+_POINT_CHUNK = 1 << 21  # lattice candidates classified together (whole tets per chunk)
 
 #: VTK hexahedron corner offsets from the cube's min corner.
 HEX_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
@@ -311,7 +312,7 @@ def _bbox_counts(bbox, g: int, off: int):
     return lo, dims, dims.astype(np.float64).prod(axis=1)
 
 
-def _lattice(U: np.ndarray, bbox, usable: np.ndarray, g: int, half: bool, chunk: int = 1 << 21) -> _Lattice:
+def _lattice(U: np.ndarray, bbox, usable: np.ndarray, g: int, half: bool) -> _Lattice:
     S = 1 << g
     off = S // 2 if half else 0
     lo, dims, _ = _bbox_counts(bbox, g, off)
@@ -322,8 +323,8 @@ def _lattice(U: np.ndarray, bbox, usable: np.ndarray, g: int, half: bool, chunk:
     slot = np.full(total, -1, np.int64)
     tets_out, k_out, zero_out, slots_out = [], [], [], []
     tids = np.nonzero(count)[0]
-    if tids.size:  # chunks of whole tets with about `chunk` candidate points each
-        cid = (np.cumsum(count[tids]) - 1) // chunk
+    if tids.size:  # chunks of whole tets with about _POINT_CHUNK candidate points each
+        cid = (np.cumsum(count[tids]) - 1) // _POINT_CHUNK
         bounds = np.concatenate([[0], np.nonzero(np.diff(cid))[0] + 1, [tids.size]])
     else:
         bounds = np.zeros(1, np.int64)
