@@ -108,7 +108,8 @@ def _frames_of(mesh, frames) -> torch.Tensor:
     return out
 
 
-def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True, split: bool = True,
+def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
+                     straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
                      features: bool = True,
                      feature_max_deg: float = 30.0, batch_error: float = 0.5, stiffening_iters: int = 10,
                      stiffening_factor: float = 4.0, grid_bits: int = GRID_BITS, backend: str = "auto",
@@ -124,6 +125,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             the mean edge length of ``mesh``).
         straighten: repair the face matchings so that singular edges run along their turn axis
             (:func:`~.straighten.straighten_singular_edges`).
+        straighten_boundary: the search may also change faces with a boundary edge (it can then
+            push a singular curve that runs along the boundary onto it).
+        touch_rounds: rounds of "split the singular edges that touch the boundary about a
+            tangent axis, straighten again" (0: none).
         split: split the edges that would collapse or flatten (:func:`~.split.split_for_map`);
             the map is then of the refined mesh (``result.mesh``).
         features: constrain feature curves and CAD corners (:func:`~.seamless.build_problem`).
@@ -157,16 +162,32 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     splits, sinfo = {}, {}
     face_match = None
     if straighten:
-        from .straighten import straighten_singular_edges
+        from .split import split_pairs
+        from .straighten import straighten_singular_edges, touching_edges
 
-        face_match, sinfo = straighten_singular_edges(mesh, Fr)
+        face_match, sinfo = straighten_singular_edges(mesh, Fr, boundary_moves=straighten_boundary)
+        sinfo["touch_splits"] = 0
+        for _ in range(touch_rounds):
+            bad = touching_edges(mesh, Fr, face_match)
+            if not bad.size:
+                break
+            # split them: the midpoints open routes for the curve off the boundary vertex
+            mesh, Fr, par, face_match = split_pairs(mesh, Fr, mesh.edges[bad].cpu().numpy(), face_match)
+            parent = parent[par]
+            sinfo["touch_splits"] += int(bad.size)
+            face_match, again = straighten_singular_edges(mesh, Fr, face_match, boundary_moves=straighten_boundary)
+            sinfo["moves"] += again["moves"]
+            for key in ("edge_cost_after", "singular_after", "across_after", "complex_after"):
+                sinfo[key] = again[key]
+        sinfo["touching_after"] = int(touching_edges(mesh, Fr, face_match).size)
     timings["straighten_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if split:
         from .split import split_for_map
 
         sr = split_for_map(mesh, Fr, face_match)
-        mesh, Fr, parent, splits, face_match = sr.mesh, sr.tet_frames, sr.parent_tet, sr.splits, sr.face_match
+        mesh, Fr, splits, face_match = sr.mesh, sr.tet_frames, sr.splits, sr.face_match
+        parent = parent[sr.parent_tet]
     timings["split_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     charts = tet_charts(mesh, Fr, face_match)

@@ -160,6 +160,28 @@ def split_edges(mesh, tet_frames: torch.Tensor, edge_ids: np.ndarray, face_match
     return new, Fr, parent, new_match
 
 
+def split_pairs(mesh, tet_frames, pairs: np.ndarray, face_match: np.ndarray | None = None):
+    """Split the edges with vertex pairs ``pairs (K, 2)`` at their midpoints, in rounds of edges
+    that share no tet. Returns ``(mesh, tet_frames, parent (T',), face_match)``."""
+    Fr = torch.as_tensor(tet_frames)
+    parent = np.arange(mesh.n_tets)
+    todo = np.sort(np.asarray(pairs, np.int64).reshape(-1, 2), axis=1)
+    while todo.shape[0]:
+        V = mesh.n_vertices
+        keys = mesh.edges[:, 0].cpu().numpy() * V + mesh.edges[:, 1].cpu().numpy()
+        k = todo[:, 0] * V + todo[:, 1]
+        eid = np.searchsorted(keys, k)
+        ok = (eid < keys.size) & (keys[np.minimum(eid, keys.size - 1)] == k)
+        todo, eid = todo[ok], eid[ok]
+        if not todo.shape[0]:
+            break
+        chosen = _independent(mesh.tet_edges.cpu().numpy(), eid, keys.size)
+        mesh, Fr, par, face_match = split_edges(mesh, Fr, chosen, face_match)
+        parent = parent[par]
+        todo = todo[~np.isin(eid, chosen)]
+    return mesh, Fr, parent, face_match
+
+
 def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rules=SPLIT_RULES,
                   max_rounds: int = 50) -> SplitResult:
     """Split edges by ``rules`` (module docstring) until none applies or ``max_rounds``.

@@ -29,7 +29,7 @@ import torch
 from ..frames.singular import classify_holonomy
 from .cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
 
-__all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS"]
+__all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS", "tangent_axes", "touching_edges"]
 
 DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "tangent": 8.0, "misfit": 2.0}
 
@@ -44,7 +44,7 @@ _ETYPE, _EAXIS = _element_tables()
 
 
 def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = None, *, weights: dict | None = None,
-                              max_moves: int = 10_000) -> tuple[np.ndarray, dict]:
+                              max_moves: int = 10_000, boundary_moves: bool = False) -> tuple[np.ndarray, dict]:
     """Greedy repair of the face matchings so that singular edges run along their axis.
 
     Args:
@@ -123,7 +123,7 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
     # faces with a boundary edge are not moved
     fe = mesh.face_edges.cpu().numpy()
     movable = np.zeros(F, bool)
-    movable[fi] = ~walks.boundary[fe[fi]].any(1)
+    movable[fi] = True if boundary_moves else ~walks.boundary[fe[fi]].any(1)
 
     def prefix_suffix(e_ids):
         """For every step of the walks of edges ``e_ids``: (P, S) products before / after it."""
@@ -230,27 +230,50 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
 
 def tangent_axes(mesh, start_frames: np.ndarray, edges: np.ndarray, boundary_edge: np.ndarray) -> np.ndarray:
     """``(E, 3)`` bool: for each interior edge with an end on the boundary, the parameter axes
-    (frame axes of its start tet) more than 45° from the boundary normal at that end (either end).
+    (frame axes of its start tet) more than 45° from the normal of some boundary face at that end.
 
-    A singular line about such an axis through a boundary vertex lies in the boundary plane of the
-    map there. Edges without a boundary end: all false.
+    A singular line about such an axis through a boundary vertex lies in that face's boundary
+    plane of the map (the tets between collapse); in particular a singular curve cannot end on a
+    feature curve, whose faces have two normals. Edges without a boundary end: all false.
     """
     E = edges.shape[0]
     V = mesh.n_vertices
-    nrm = np.zeros((V, 3))
-    bvi = mesh.boundary_vertices.cpu().numpy()
-    nrm[bvi] = mesh.boundary_vertex_normals.detach().cpu().double().numpy()
-    onb = np.zeros(V, bool)
-    onb[bvi] = True
+    bf = mesh.boundary_faces.cpu().numpy()
+    X = mesh.vertices.detach().cpu().double().numpy()
+    n = np.cross(X[bf[:, 1]] - X[bf[:, 0]], X[bf[:, 2]] - X[bf[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    vv = bf.reshape(-1)
+    nn = np.repeat(n, 3, axis=0)
+    order = np.argsort(vv, kind="stable")
+    ptr = np.searchsorted(vv[order], np.arange(V + 1))
+    nn = nn[order]
     out = np.zeros((E, 3), bool)
     c45 = np.sqrt(0.5)
     for end in (0, 1):
         v = edges[:, end]
-        sel = onb[v] & ~boundary_edge
-        if sel.any():
-            cosk = np.abs(np.einsum("eik,ei->ek", start_frames[sel], nrm[v[sel]]))  # (n, 3): |F[:, k] . n|
-            out[sel] |= cosk < c45
+        cnt = ptr[v + 1] - ptr[v]
+        sel = np.nonzero((cnt > 0) & ~boundary_edge)[0]
+        if not sel.size:
+            continue
+        lens = cnt[sel]
+        rows = np.repeat(sel, lens)
+        offs = np.arange(lens.sum()) - np.repeat(np.cumsum(lens) - lens, lens)
+        normals = nn[np.repeat(ptr[v[sel]], lens) + offs]
+        cosk = np.abs(np.einsum("pik,pi->pk", start_frames[rows], normals))  # |F[:, k] . n_f|
+        np.logical_or.at(out, rows, cosk < c45)
     return out
+
+
+def touching_edges(mesh, tet_frames, face_match: np.ndarray | None = None) -> np.ndarray:
+    """Interior singular edges with an end on the boundary whose turn axis is more than 45° from
+    the boundary normal there (:func:`tangent_axes`): ``(K,)`` edge ids."""
+    from .cut import tet_charts
+
+    ch = tet_charts(mesh, tet_frames, face_match)
+    edges = mesh.edges.cpu().numpy()
+    tang = tangent_axes(mesh, ch.frames[ch.edge_start_tet], edges, ch.edge_holonomy < 0)
+    turn = ch.singular_edge & ch.edge_meshable
+    return np.nonzero(turn & tang[np.arange(edges.shape[0]), np.maximum(ch.edge_axis, 0)])[0]
 
 
 def _holonomy_of(walks, e_ids, face_rot):
