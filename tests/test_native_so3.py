@@ -385,3 +385,103 @@ def test_sqrt_fast_path_of_blocks_below_120_degrees(dtype):
     _, g_fast, _ = _grad(FN["sqrt"], inter[keep], G[keep])
     assert torch.equal(FN["sqrt"](inter)[keep], FN["sqrt"](inter[keep]))
     assert torch.equal(g_full[keep], g_fast)
+
+
+# ---------------------------------------------------------------- written-out sin, cos, atan2
+
+_TRIG_MAX = {torch.float32: 8192.0, torch.float64: 65536.0}  # SO3_TRIG_MAX of csrc/so3.c
+_ULP_BOUND = 3.0  # measured: sin/cos 2.4 ulp, atan2 2.6 ulp (csrc/so3.c)
+
+
+def _trig(name, dtype, *args):
+    """``so3_<name>_<f32|f64>`` of csrc/so3.c on contiguous 1-D tensors: its outputs."""
+    from ctypes import c_long, c_void_p
+
+    suf = {torch.float32: "f32", torch.float64: "f64"}[dtype]
+    nout = 2 if name == "sincos" else 1
+    ins = [a.to(dtype).contiguous() for a in args]
+    outs = [torch.empty_like(ins[0]) for _ in range(nout)]
+    fn = native.function("so3", f"so3_{name}_{suf}", [c_void_p] * (len(ins) + nout) + [c_long])
+    fn(*(native.ptr(t) for t in ins + outs), ins[0].numel())
+    return outs
+
+
+def _ulps(got, ref, dtype):
+    """|got - ref| in units of the spacing of ``dtype`` at ``ref`` (``ref`` exact, as float64 or
+    mpmath-derived)."""
+    import numpy as np
+
+    npd = {torch.float32: np.float32, torch.float64: np.float64}[dtype]
+    r = np.abs(np.asarray(ref, dtype=npd))
+    spacing = np.spacing(np.maximum(r, np.finfo(npd).tiny)).astype(np.float64)
+    return np.abs(got.numpy().astype(np.float64) - np.asarray(ref, dtype=np.float64)) / spacing
+
+
+def _exact(f, *cols):
+    """``f`` of every row evaluated with mpmath (40 digits), rounded to float64 (its error is
+    then <= 0.5 ulp of float64: below 1e-8 ulp of float32, 0.5 ulp of float64)."""
+    import mpmath
+
+    with mpmath.workdps(40):
+        return [float(f(*(mpmath.mpf(float(c)) for c in row))) for row in zip(*cols)]
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_trig_sincos_accuracy(dtype):
+    """sincos within 3 ulp of the exact values on [0, SO3_TRIG_MAX), near multiples of π/2
+    (where the reduction cancels) and at tiny arguments; NaN for NaN and ±inf (cost ~0.5 s)."""
+    g = torch.Generator().manual_seed(11)
+    t = torch.cat([torch.rand(3000, generator=g, dtype=torch.float64) * 4,
+                   torch.rand(3000, generator=g, dtype=torch.float64) * _TRIG_MAX[dtype] * 0.999,
+                   torch.arange(1, 2000, dtype=torch.float64) * (math.pi / 2),
+                   10 ** (-30 * torch.rand(300, generator=g, dtype=torch.float64)),
+                   -torch.rand(300, generator=g, dtype=torch.float64) * 100]).to(dtype)
+    s, c = _trig("sincos", dtype, t)
+    import mpmath
+
+    assert _ulps(s, _exact(mpmath.sin, t), dtype).max() <= _ULP_BOUND
+    assert _ulps(c, _exact(mpmath.cos, t), dtype).max() <= _ULP_BOUND
+    s, c = _trig("sincos", dtype, torch.tensor([math.nan, math.inf, -math.inf]))
+    assert s.isnan().all() and c.isnan().all()
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_trig_atan2_accuracy_and_ieee_cases(dtype):
+    """atan2 within 3 ulp of the exact values over every octant and many magnitudes, and equal
+    to C99's atan2 (here torch.atan2) at signed zeros, infinities and NaN (cost ~0.5 s)."""
+    g = torch.Generator().manual_seed(12)
+    y = torch.cat([torch.randn(4000, generator=g, dtype=torch.float64),
+                   torch.randn(2000, generator=g, dtype=torch.float64) * 10 ** (20 * torch.rand(2000, generator=g) - 10)])
+    x = torch.cat([torch.randn(4000, generator=g, dtype=torch.float64),
+                   torch.randn(2000, generator=g, dtype=torch.float64) * 10 ** (20 * torch.rand(2000, generator=g) - 10)])
+    y, x = y.to(dtype), x.to(dtype)
+    (a,) = _trig("atan2", dtype, y, x)
+    import mpmath
+
+    assert _ulps(a, _exact(mpmath.atan2, y, x), dtype).max() <= _ULP_BOUND
+    sp = torch.tensor([0.0, -0.0, 1.0, -1.0, 3.0, math.inf, -math.inf, math.nan], dtype=dtype)
+    Y, X = torch.meshgrid(sp, sp, indexing="ij")
+    Y, X = Y.reshape(-1), X.reshape(-1)
+    (a,) = _trig("atan2", dtype, Y, X)
+    ref = torch.atan2(Y, X)
+    same = (a == ref) & (torch.signbit(a) == torch.signbit(ref)) | (a.isnan() & ref.isnan())
+    close = (a - ref).abs() <= 2 * torch.finfo(dtype).eps * ref.abs()  # e.g. atan2(1, 3): rounding
+    finite_args = torch.isfinite(Y) & torch.isfinite(X) & ((Y != 0) | (X != 0))
+    assert (same | (close & finite_args)).all(), list(zip(Y[~same].tolist(), X[~same].tolist(), a[~same].tolist()))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exp_beyond_the_reduction_range_matches_torch(dtype):
+    """Blocks holding an angle |ω| >= SO3_TRIG_MAX take libm's sin/cos (the written-out
+    reduction is exact only below): values and gradients still match the torch path."""
+    big = _TRIG_MAX[dtype]
+    w = torch.cat([_rotvecs(300, torch.float64, seed=13),
+                   torch.tensor([[big * 1.5, 0.0, 0.0], [0.0, -3.1 * big, 0.5], [1e8, 2.0, 3.0]],
+                                dtype=torch.float64)]).to(dtype)
+    fn = FN["exp"]
+    torch.testing.assert_close(fn(w), _with(fn, False)(w), atol=VAL_TOL[dtype] * 10, rtol=0)
+    G = torch.randn(w.shape[0], 3, 3, generator=torch.Generator().manual_seed(14), dtype=dtype)
+    _, g_n, out = _grad(fn, w, G)
+    _, g_t, _ = _grad(_with(fn, False), w, G)
+    assert _is_native(out)
+    torch.testing.assert_close(g_n, g_t, atol=VAL_TOL[dtype] * 10, rtol=0)

@@ -27,13 +27,15 @@
  *
  * Speed: as in torch, every branch is evaluated on every element and the result selected
  * (no data-dependent jumps), and elements are processed in blocks of SO3_B, copied to
- * component-major buffers, so that GCC vectorizes the element loop (#pragma omp simd). The
- * trigonometric functions then need vector versions: with GCC on x86-64 glibc >= 2.35 they are
- * declared `simd` below, which makes GCC call glibc's libmvec (pulled in by -lm; glibc
- * documents its vector functions within 4 ulp, torch's SLEEF kernels within 1 ulp; the tests
- * hold the two paths to 1e-6 in float32 and 1e-12 in float64). Elsewhere the scalar libm
- * calls are used (same results to round-off, slower). Unused branches get values that may be inf or
- * NaN; they are discarded by the selects (no floating-point traps are enabled).
+ * component-major buffers, so that the compiler vectorizes the element loop (#pragma omp
+ * simd). sin, cos and atan2 are written out below as branch-free polynomials (sincos,
+ * atan2v) for that: libm calls vectorize only where GCC finds a libmvec variant of the vector
+ * width it picked (with GCC 12 and glibc 2.36, log and sqrt ran scalar on AVX2, exp and sqrt
+ * on AVX-512; glibc < 2.35 has no vector atan2). The results agree with torch's to round-off
+ * (the tests hold the two paths to 1e-6 in float32 and 1e-12 in float64). Unused branches get
+ * values that may be inf or NaN; they are discarded by the selects (no floating-point traps
+ * are enabled).
+ * Also exported for the tests: so3_sincos_SUF(t, s, c, n), so3_atan2_SUF(y, x, out, n).
  *
  * Validation (so3_log_fwd_checked): the residual ||R^T R - I||_F^2 and det R are ~40 more
  * multiply-adds per element on the nine entries already in registers, in the same vectorized
@@ -53,36 +55,27 @@
 #include <math.h>
 
 #if defined(__GNUC__) && !defined(__clang__)
-/* Keep every branch computed on every element: jump threading and sinking would move the
- * trigonometric calls into the branch that uses them (a conditional call stops the
- * vectorizer; the values are the same either way). Restored at the end of this file (pop),
- * so that a file including this one keeps its own options. */
+/* Keep every branch computed on every element, so that the element loops have no control
+ * flow and vectorize: jump threading and sinking would move operations into the branch that
+ * uses them, and an operation under a condition is if-converted (executed on every lane,
+ * its result selected) only if it cannot trap, which for floating-point arithmetic GCC
+ * assumes only under -fno-trapping-math (without it the loops vectorized only with AVX-512's
+ * masked operations). No floating-point traps are enabled here, and the option changes no
+ * value (no reassociation, no contraction). Restored at the end of this file (pop), so that
+ * a file including this one keeps its own options. */
 #pragma GCC push_options
-#pragma GCC optimize("no-thread-jumps", "no-tree-sink")
+#pragma GCC optimize("no-thread-jumps", "no-tree-sink", "no-trapping-math")
 #endif
 
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__)
-#if __GLIBC_PREREQ(2, 35)
-/* the vector variants glibc's <math.h> declares itself only under -ffast-math */
-#define SO3_VEC __attribute__((simd("notinbranch")))
-SO3_VEC float sinf(float);
-SO3_VEC float cosf(float);
-SO3_VEC float atan2f(float, float);
-SO3_VEC double sin(double);
-SO3_VEC double cos(double);
-SO3_VEC double atan2(double, double);
-/* cos behind a call GCC does not see into: sin(t) and cos(t) of one t would otherwise be
- * merged into one scalar sincos() call, which has no vector version */
-SO3_VEC __attribute__((noinline)) static float so3_cosf(float x) { return cosf(x); }
-SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x); }
-#define SO3_COS_F so3_cosf
-#define SO3_COS_D so3_cos
-#endif
-#endif
-#ifndef SO3_COS_F
-#define SO3_COS_F cosf
-#define SO3_COS_D cos
-#endif
+
+/* The trigonometric functions of the element kernels are written out below (FN(sincos),
+ * FN(atan2v)): branch-free polynomials that the vectorizer inlines like any arithmetic, on
+ * every ISA and with any C compiler and libm. Calls to libm's sinf / atan2f in the element
+ * loop would vectorize only where the compiler finds a vector variant for the exact vector
+ * width it chose (glibc >= 2.35 libmvec, GCC, `simd` declarations): with GCC 12 on an
+ * AVX-512 CPU (256-bit vectors preferred) exp did not vectorize, on AVX2 log and sqrt did not,
+ * and glibc < 2.35 has no vector atan2 at all. libm is kept only as the exact path of exp
+ * blocks holding an angle beyond the reduction's range (SO3_TRIG_MAX). */
 
 #define SO3_CAT_(a, b) a##b
 #define SO3_CAT(a, b) SO3_CAT_(a, b)
@@ -192,32 +185,40 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
     } while (0)
 
 #define SO3_T float
+#define SO3_F32 1
 #define SO3_SUF _f32
 #define SO3_SIN sinf
-#define SO3_COS SO3_COS_F
+#define SO3_COS cosf
 #define SO3_SQRT sqrtf
-#define SO3_ATAN2 atan2f
+#define SO3_FABS fabsf
+#define SO3_COPYSIGN copysignf
 #include "so3.c" /* this file, again (quoted includes resolve next to it) */
 #undef SO3_T
+#undef SO3_F32
 #undef SO3_SUF
 #undef SO3_SIN
 #undef SO3_COS
 #undef SO3_SQRT
-#undef SO3_ATAN2
+#undef SO3_FABS
+#undef SO3_COPYSIGN
 
 #define SO3_T double
+#define SO3_F32 0
 #define SO3_SUF _f64
 #define SO3_SIN sin
-#define SO3_COS SO3_COS_D
+#define SO3_COS cos
 #define SO3_SQRT sqrt
-#define SO3_ATAN2 atan2
+#define SO3_FABS fabs
+#define SO3_COPYSIGN copysign
 #include "so3.c" /* this file, again (quoted includes resolve next to it) */
 #undef SO3_T
+#undef SO3_F32
 #undef SO3_SUF
 #undef SO3_SIN
 #undef SO3_COS
 #undef SO3_SQRT
-#undef SO3_ATAN2
+#undef SO3_FABS
+#undef SO3_COPYSIGN
 
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC pop_options
@@ -230,17 +231,168 @@ SO3_VEC __attribute__((noinline)) static double so3_cos(double x) { return cos(x
 #define K(x) ((T)(x))
 typedef T FN(blk_t)[SO3_B];
 
+/* ---------------------------------------------------------------- sin, cos, atan2
+ *
+ * Branch-free (every lane the same instructions, selects, no calls), so the element loops
+ * vectorize whatever the ISA and the libm. Largest errors measured against long-double
+ * references (tests/test_native_so3.py, test_trig_*): sin, cos 2.4 ulp (0.74 eps absolute),
+ * atan2 2.6 ulp, in float32 and float64 (torch's SLEEF kernels: 1 ulp; glibc's libmvec: 4).
+ *
+ * sincos(t), |t| < SO3_TRIG_MAX: t = n pi/2 + r, |r| <= pi/4, n rounded to the nearest
+ * integer by (x + 1.5 2^p) - 1.5 2^p and n mod 4 taken the same way (in floating point: no
+ * integer lanes); r by Cody-Waite subtraction of pi/2 split in parts whose products with n
+ * are exact (float: four parts, three of <= 11 bits, |n| < 2^13; double: three, two of 33
+ * bits, |n| < 2^20); sin r = r + r z S(z), cos r = 1 - z/2 + z^2 C(z), z = r^2, Chebyshev fits
+ * (mpmath) of degree 2 (float) / 5 (double); the quadrant swaps and negates. NaN and inf give
+ * NaN (as libm). Beyond SO3_TRIG_MAX the reduction loses accuracy: exp routes blocks holding
+ * such angles to libm (SO3_LOOP_IF), the other callers never reach it (|angle| <= pi / 2).
+ *
+ * atan2v(y, x): C99's atan2 in every IEEE case (signed zeros, infinities, NaN):
+ * a = min(|x|,|y|) / max(|x|,|y|) in [0, 1], atan a = pi/4 + atan((a-1)/(a+1)) for
+ * a > tan(pi/8), atan b = b + b z P(z) on |b| <= tan(pi/8) (degree 4 (float) / 10 (double));
+ * then the octant: k + s p with k a multiple of pi/4 (in two parts), s = +-1, the sign of y.
+ */
+#if SO3_F32
+#define SO3_RND 0x1.8p23f                  /* (x + RND) - RND: x rounded to an integer, |x| < 2^22 */
+#define SO3_TRIG_MAX 8192.0f               /* |n| <= 5216 < 2^13 */
+#define SO3_2_PI 0x1.45f306p-1f
+#define SO3_PIO2_1 0x1.92p+0f              /* pi/2 = P1 + P2 + P3 + P4 (P1 .. P3: <= 11 bits) */
+#define SO3_PIO2_2 0x1.fb4p-12f
+#define SO3_PIO2_3 0x1.444p-24f
+#define SO3_PIO2_4 0x1.68c234p-39f
+#define SO3_SIN_POLY(z) (-0x1.555552p-3f + (z) * (0x1.110c28p-7f + (z) * -0x1.9ac9bp-13f))
+#define SO3_COS_POLY(z) (0x1.555554p-5f + (z) * (-0x1.6c12d2p-10f + (z) * 0x1.9bd89cp-16f))
+#define SO3_ATAN_POLY(z) (-0x1.555554p-2f + (z) * (0x1.99973p-3f + (z) * (-0x1.242036p-3f \
+        + (z) * (0x1.b8103p-4f + (z) * -0x1.08455ep-4f))))
+#define SO3_TAN_PI8 0x1.a8279ap-2f
+#define SO3_PIO4_HI 0x1.921fb6p-1f
+#define SO3_PIO4_LO -0x1.777a5cp-26f
+#define SO3_PIO2_HI 0x1.921fb6p+0f
+#define SO3_PIO2_LO -0x1.777a5cp-25f
+#define SO3_3PIO4_HI 0x1.2d97c8p+1f
+#define SO3_3PIO4_LO -0x1.99bc5cp-28f
+#define SO3_PI_HI 0x1.921fb6p+1f
+#define SO3_PI_LO -0x1.777a5cp-24f
+#else
+#define SO3_RND 0x1.8p52
+#define SO3_TRIG_MAX 65536.0               /* |n| <= 41723 < 2^20 */
+#define SO3_2_PI 0x1.45f306dc9c883p-1
+#define SO3_PIO2_1 0x1.921fb544p+0         /* pi/2 = P1 + P2 + P3 (P1, P2: 33 bits each) */
+#define SO3_PIO2_2 0x1.0b4611a6p-34
+#define SO3_PIO2_3 0x1.3198a2e037073p-69
+#define SO3_SIN_POLY(z) (-0x1.5555555555555p-3 + (z) * (0x1.1111111110bb2p-7 \
+        + (z) * (-0x1.a01a019e83aaep-13 + (z) * (0x1.71de37968a100p-19 \
+        + (z) * (-0x1.ae600b02b6262p-26 + (z) * 0x1.5e0b19f8b1451p-33)))))
+#define SO3_COS_POLY(z) (0x1.5555555555555p-5 + (z) * (-0x1.6c16c16c16967p-10 \
+        + (z) * (0x1.a01a019f4eb01p-16 + (z) * (-0x1.27e4fa17da09ep-22 \
+        + (z) * (0x1.1eeb68e93b64cp-29 + (z) * -0x1.907da367a37cbp-37)))))
+#define SO3_ATAN_POLY(z) (-0x1.5555555555555p-2 + (z) * (0x1.999999999934cp-3 \
+        + (z) * (-0x1.2492492436201p-3 + (z) * (0x1.c71c71853d7fap-4 \
+        + (z) * (-0x1.745d0b28a7e37p-4 + (z) * (0x1.3b1263064f6b9p-4 \
+        + (z) * (-0x1.10fa77b1a6d57p-4 + (z) * (0x1.dfe6497e96323p-5 \
+        + (z) * (-0x1.a0999c632b6edp-5 + (z) * (0x1.4162c02b1dda3p-5 \
+        + (z) * -0x1.3a31b1c0fd3b7p-6))))))))))
+#define SO3_TAN_PI8 0x1.a827999fcef32p-2
+#define SO3_PIO4_HI 0x1.921fb54442d18p-1
+#define SO3_PIO4_LO 0x1.1a62633145c07p-55
+#define SO3_PIO2_HI 0x1.921fb54442d18p+0
+#define SO3_PIO2_LO 0x1.1a62633145c07p-54
+#define SO3_3PIO4_HI 0x1.2d97c7f3321d2p+1
+#define SO3_3PIO4_LO 0x1.a79394c9e8a0ap-54
+#define SO3_PI_HI 0x1.921fb54442d18p+1
+#define SO3_PI_LO 0x1.1a62633145c07p-53
+#endif
+
+SO3_INLINE void FN(sincos)(T t, T *s, T *c)
+{
+    T n = (t * SO3_2_PI + SO3_RND) - SO3_RND;
+    /* q = n mod 4 in floating point (integer lanes of the width of double need SSE4.1):
+     * n - 4 round(n/4) is in {-2, ..., 2} */
+    T d = n - K(4.0) * ((K(0.25) * n + SO3_RND) - SO3_RND);
+    T q = d + K(4.0) * (T)(d < K(0.0));
+#if SO3_F32
+    T r = (((t - n * SO3_PIO2_1) - n * SO3_PIO2_2) - n * SO3_PIO2_3) - n * SO3_PIO2_4;
+#else
+    T r = ((t - n * SO3_PIO2_1) - n * SO3_PIO2_2) - n * SO3_PIO2_3;
+#endif
+    T z = r * r;
+    T sr = r + r * z * SO3_SIN_POLY(z);
+    T hz = K(0.5) * z, w = K(1.0) - hz;
+    T cr = w + (((K(1.0) - w) - hz) + z * z * SO3_COS_POLY(z));  /* 1 - hz, its rounding added back */
+    int odd = (q == K(1.0)) | (q == K(3.0));
+    T ss = odd ? cr : sr, cc = odd ? sr : cr;
+    *s = q >= K(2.0) ? -ss : ss;                       /* n mod 4 = 2, 3: sin < 0 */
+    *c = (q == K(1.0)) | (q == K(2.0)) ? -cc : cc;     /* n mod 4 = 1, 2: cos < 0 */
+}
+
+SO3_INLINE T FN(atan2v)(T y, T x)
+{
+    T ax = SO3_FABS(x), ay = SO3_FABS(y);
+    int swap = ay > ax;  /* false for a NaN: mx = NaN (ax) or mn = NaN (ay), a = NaN */
+    T mx = swap ? ay : ax, mn = swap ? ax : ay;
+    int inf2 = (ax == (T)INFINITY) & (ay == (T)INFINITY);  /* a = inf/inf: atan a = pi/4 */
+    /* All arithmetic unconditional, only its results selected (an operation under a
+     * condition stops the vectorizer unless it is if-converted, see the pragma above). */
+    T a = mn / (mx + (T)(mx == K(0.0)));  /* (0, 0): 0 / 1 */
+    int big = (a > SO3_TAN_PI8) | inf2;
+    T b_big = (a - K(1.0)) / (a + K(1.0));
+    T b = big ? b_big : a;
+    T z = b * b;
+    T p = b + b * z * SO3_ATAN_POLY(z);
+    p = inf2 ? K(0.0) : p;
+    /* atan2 = k + s p, k in {0, pi/4, pi/2, 3pi/4, pi}, s = +-1 (from big, swap and the sign
+     * of x): atan a = big pi/4 + p; swapped, pi/2 - atan a; x < 0, pi - that. k in two parts,
+     * added last: one rounding, and the exact k at the axes and diagonals */
+    int neg = SO3_COPYSIGN(K(1.0), x) < K(0.0);  /* x < 0 or x = -0 */
+    T k4 = big ? K(1.0) : K(0.0);          /* k in units of pi/4 */
+    k4 = swap ? K(2.0) - k4 : k4;
+    k4 = neg ? K(4.0) - k4 : k4;
+    int minus = swap ^ neg;
+    T k_hi = k4 == K(1.0) ? SO3_PIO4_HI : k4 == K(2.0) ? SO3_PIO2_HI : k4 == K(3.0) ? SO3_3PIO4_HI
+           : k4 == K(4.0) ? SO3_PI_HI : K(0.0);
+    T k_lo = k4 == K(1.0) ? SO3_PIO4_LO : k4 == K(2.0) ? SO3_PIO2_LO : k4 == K(3.0) ? SO3_3PIO4_LO
+           : k4 == K(4.0) ? SO3_PI_LO : K(0.0);
+    T r = k_hi + (k_lo + (minus ? -p : p));
+    return SO3_COPYSIGN(r, y);
+}
+
+#undef SO3_RND
+#undef SO3_2_PI
+#undef SO3_PIO2_1
+#undef SO3_PIO2_2
+#undef SO3_PIO2_3
+#undef SO3_PIO2_4
+#undef SO3_SIN_POLY
+#undef SO3_COS_POLY
+#undef SO3_ATAN_POLY
+#undef SO3_TAN_PI8
+#undef SO3_PIO4_HI
+#undef SO3_PIO4_LO
+#undef SO3_PIO2_HI
+#undef SO3_PIO2_LO
+#undef SO3_3PIO4_HI
+#undef SO3_3PIO4_LO
+#undef SO3_PI_HI
+#undef SO3_PI_LO
+
 /* ---------------------------------------------------------------- exp */
 
 /* A = sin t / t, B = (1 - cos t) / t^2 and, if der, dA/d(t^2), dB/d(t^2) (_so3_formulas.exp_coeffs,
  * whose trigonometric branch gets t^2 = 1 where the Taylor one is used; here t^2 = eps^2) */
-static inline void FN(exp_coeffs)(T t2, T eps2, int der, T *A, T *B, T *dA, T *dB)
+SO3_INLINE void FN(exp_coeffs)(T t2, T eps2, int der, int vm, T *A, T *B, T *dA, T *dB)
 {
     int small = t2 < eps2;
     /* unused trigonometric branch at t^2 = eps^2 (not a constant: GCC would fold sin(1) and
      * split the loop body into two paths, which stops vectorization) */
     T ts2 = small ? eps2 : t2;
-    T t = SO3_SQRT(ts2), s = SO3_SIN(t), c = SO3_COS(t), omc = K(1.0) - c;
+    T t = SO3_SQRT(ts2), s, c;
+    if (vm)  /* a constant where inlined: sincos (vectorized), or libm (|t| > SO3_TRIG_MAX) */
+        FN(sincos)(t, &s, &c);
+    else {
+        s = SO3_SIN(t);
+        c = SO3_COS(t);
+    }
+    T omc = K(1.0) - c;
     /* both branches computed, then selected (a conditional division would stop vectorization) */
     T A_t = s / t, B_t = omc / ts2;
     T A_s = K(1.0) - t2 * (K(1.0 / 6.0) - t2 / K(120.0));
@@ -258,10 +410,10 @@ static inline void FN(exp_coeffs)(T t2, T eps2, int der, T *A, T *B, T *dA, T *d
 }
 
 /* R = I + A K + B K^2, K = hat(x, y, z), entries written out (_so3_formulas.rodrigues) */
-static inline void FN(exp1)(T x, T y, T z, T eps2, T *r)
+SO3_INLINE void FN(exp1)(T x, T y, T z, T eps2, int vm, T *r)
 {
     T A, B;
-    FN(exp_coeffs)(x * x + y * y + z * z, eps2, 0, &A, &B, 0, 0);
+    FN(exp_coeffs)(x * x + y * y + z * z, eps2, 0, vm, &A, &B, 0, 0);
     T Bx = B * x, By = B * y;
     T Ax = A * x, Ay = A * y, Az = A * z;
     T bxy = Bx * y, bxz = Bx * z, byz = By * z;
@@ -272,10 +424,10 @@ static inline void FN(exp1)(T x, T y, T z, T eps2, T *r)
 }
 
 /* dL/dw from G = dL/dR (_so3_formulas.exp_bwd) */
-static inline void FN(exp_bwd1)(T x, T y, T z, const T *G, T eps2, T *gw)
+SO3_INLINE void FN(exp_bwd1)(T x, T y, T z, const T *G, T eps2, int vm, T *gw)
 {
     T t2 = x * x + y * y + z * z, A, B, dA, dB;
-    FN(exp_coeffs)(t2, eps2, 1, &A, &B, &dA, &dB);
+    FN(exp_coeffs)(t2, eps2, 1, vm, &A, &B, &dA, &dB);
     T g00 = G[0], g01 = G[1], g02 = G[2], g10 = G[3], g11 = G[4], g12 = G[5], g20 = G[6],
       g21 = G[7], g22 = G[8];
     T gx = g21 - g12, gy = g02 - g20, gz = g10 - g01;
@@ -292,36 +444,58 @@ static inline void FN(exp_bwd1)(T x, T y, T z, const T *G, T eps2, T *gw)
     gw[2] = A * gz + B * Sz + radial * z;
 }
 
-static inline void FN(exp_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(exp_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2, int vm)
 {
     (void)Bg;
     T r[9];
-    FN(exp1)(A[0][j], A[1][j], A[2][j], eps2, r);
+    FN(exp1)(A[0][j], A[1][j], A[2][j], eps2, vm, r);
 #define SO3_S(k) O[k][j] = r[k];
     SO3_EACH9(SO3_S)
 #undef SO3_S
 }
 
-static inline void FN(exp_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(exp_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2, int vm)
 {
     T G[9], gw[3];
 #define SO3_S(k) G[k] = Bg[k][j];
     SO3_EACH9(SO3_S)
 #undef SO3_S
-    FN(exp_bwd1)(A[0][j], A[1][j], A[2][j], G, eps2, gw);
+    FN(exp_bwd1)(A[0][j], A[1][j], A[2][j], G, eps2, vm, gw);
     O[0][j] = gw[0]; O[1][j] = gw[1]; O[2][j] = gw[2];
 }
 
 #ifndef SO3_KERNELS_ONLY
+/* the exp kernels with the written-out sincos (vm) and with libm's sin and cos (lm) */
+#define SO3_EXP_K(NAME, KERN, VM)                                                             \
+    SO3_INLINE void NAME(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)            \
+    {                                                                                         \
+        KERN(A, Bg, O, j, eps2, VM);                                                          \
+    }
+SO3_EXP_K(FN(exp_fwd_vm_k), FN(exp_fwd_k), 1)
+SO3_EXP_K(FN(exp_fwd_lm_k), FN(exp_fwd_k), 0)
+SO3_EXP_K(FN(exp_bwd_vm_k), FN(exp_bwd_k), 1)
+SO3_EXP_K(FN(exp_bwd_lm_k), FN(exp_bwd_k), 0)
+#undef SO3_EXP_K
+SO3_RUNNER(FN(exp_fwd_vm_run), FN(exp_fwd_vm_k))
+SO3_RUNNER(FN(exp_fwd_lm_run), FN(exp_fwd_lm_k))
+SO3_RUNNER(FN(exp_bwd_vm_run), FN(exp_bwd_vm_k))
+SO3_RUNNER(FN(exp_bwd_lm_run), FN(exp_bwd_lm_k))
+
+/* Blocks whose every angle |w| is below SO3_TRIG_MAX (or NaN) run the vectorized sincos, the
+ * others libm's sin and cos (the reduction is exact only up to there). */
+#define SO3_TRIG_OK(A_, j) (!((A_)[0][j] * (A_)[0][j] + (A_)[1][j] * (A_)[1][j]                 \
+                              + (A_)[2][j] * (A_)[2][j] >= SO3_TRIG_MAX * SO3_TRIG_MAX))
+
 void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(exp_fwd_k), w, 3, w, 0, R, 9);
+    SO3_LOOP_IF(FN(exp_fwd_lm_run), FN(exp_fwd_vm_run), SO3_TRIG_OK, w, 3, w, 0, R, 9);
 }
 
 void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(exp_bwd_k), w, 3, gR, 9, gw, 3);
+    SO3_LOOP_IF(FN(exp_bwd_lm_run), FN(exp_bwd_vm_run), SO3_TRIG_OK, w, 3, gR, 9, gw, 3);
 }
+#undef SO3_TRIG_OK
 #endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- log */
@@ -361,7 +535,7 @@ static inline void FN(log_parts)(const T *r, T eps2, FN(logp_t) *q)
     T sgn = uv < K(0.0) ? K(-1.0) : K(1.0);
     T nv = uv * sgn;
     T s = SO3_SQRT(s2);
-    q->a = SO3_ATAN2(obtuse ? nv : s, c);
+    q->a = FN(atan2v)(obtuse ? nv : s, c);
     q->vx = vx; q->vy = vy; q->vz = vz; q->c = c; q->s2 = s2;
     q->small = small; q->obtuse = obtuse; q->p0 = p0; q->p1 = p1;
     q->ux = ux; q->uy = uy; q->uz = uz; q->uvr = uvr; q->inv = inv; q->sgn = sgn; q->nv = nv;
@@ -541,7 +715,7 @@ SO3_INLINE void FN(sqrt_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j,
     T s = SO3_SQRT(ok ? K(1.0) + tr : K(4.0));
     T inv_s = K(1.0) / s, den = K(1.0) / (K(2.0) + s), diag = K(1.0) + s;
     FN(log1)(r, eps2, w);
-    FN(exp1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], eps2, e);
+    FN(exp1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], eps2, 1, e);
     O[0][j] = ok ? (diag + r[0]) * den : e[0];
     O[1][j] = ok ? (r[1] + (r[1] - r[3]) * inv_s) * den : e[1];
     O[2][j] = ok ? (r[2] + (r[2] - r[6]) * inv_s) * den : e[2];
@@ -563,7 +737,7 @@ SO3_INLINE void FN(sqrt_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j,
     int ok = tr > K(0.0);
     /* tr R <= 0: through exp(h), h = log(R)/2 */
     FN(log1)(r, eps2, w);
-    FN(exp_bwd1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], G, eps2, gh);
+    FN(exp_bwd1)(K(0.5) * w[0], K(0.5) * w[1], K(0.5) * w[2], G, eps2, 1, gh);
     gh[0] = K(0.5) * gh[0]; gh[1] = K(0.5) * gh[1]; gh[2] = K(0.5) * gh[2];
     FN(log_bwd1)(r, gh, eps2, ge);
     /* tr R > 0: out = P den, P_ii = diag + r_ii, P_ij = r_ij + (r_ij - r_ji) inv_s */
@@ -696,6 +870,25 @@ static inline void FN(sqrt_bwd_block)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O,
 
 #undef SO3_POS_TRACE
 
+#ifndef SO3_KERNELS_ONLY
+/* The written-out sin, cos (|t| <= SO3_TRIG_MAX) and atan2 over arrays, for the tests of their
+ * accuracy: so3_sincos_SUF(t, s, c, n), so3_atan2_SUF(y, x, out, n). */
+void FN(so3_sincos)(const T *t, T *s, T *c, long n)
+{
+    _Pragma("omp simd")
+    for (long i = 0; i < n; ++i)
+        FN(sincos)(t[i], &s[i], &c[i]);
+}
+
+void FN(so3_atan2)(const T *y, const T *x, T *out, long n)
+{
+    _Pragma("omp simd")
+    for (long i = 0; i < n; ++i)
+        out[i] = FN(atan2v)(y[i], x[i]);
+}
+#endif /* SO3_KERNELS_ONLY */
+
+#undef SO3_TRIG_MAX
 #undef T
 #undef FN
 #undef K
