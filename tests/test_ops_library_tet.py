@@ -4,8 +4,9 @@ opcheck in float32 and float64 with the compiled kernels on and off; gradcheck a
 in float64 through the public functions, switch on and off; a Hessian-vector product against
 central differences of the gradient; batched calls and vmap against per-item loops; the C
 backward's colored-chunk schedule (many colors) against the generic kernel; meta tensors;
-``torch.compile(fullgraph=True)``. (``torch.func.grad`` / ``jvp`` over the op are not supported by
-torch for ``custom_op`` autograd registrations; see the :mod:`torchconn.ops.tet` doc.)
+``torch.compile(fullgraph=True)``; ``torch.func`` (grad, vmap of grad, jacrev, jacfwd, jvp) over
+the three public functions against autograd, and the tables built first inside a transform or
+a compile trace. (The modules under every transform: ``tests/test_transform_matrix.py``.)
 """
 from __future__ import annotations
 
@@ -445,3 +446,77 @@ def test_tet_dd_rot_gradcheck_and_gradgradcheck(on):
         assert gradgradcheck(fr, rg(R, vec), fast_mode=True)
         # an incoming gradient that depends on the input (square): no path counted twice
         assert gradgradcheck(lambda A: fr(A, vec).square(), rg(R), fast_mode=True)
+
+
+# ---------------------------------------------------------------- torch.func, tables built inside transforms
+
+def _tet_functions(mesh):
+    """The three public functions as functions of ``R`` only (θ̃ / √R and edge vectors fixed)."""
+    from torchconn.ops._cache import edge_vectors
+
+    k = ops_tet.tet_kernel(mesh)
+    _, th = _data(mesh, seed=4)
+    vec = edge_vectors(mesh, "cpu", DT)
+    H = so3.sqrt(_data(mesh, seed=5)[0])
+    return {"tet_dd": lambda R: ops_tet.tet_dd(R, th, k),
+            "tet_dd_sqrt": lambda R: ops_tet_solder.tet_dd_sqrt(R, H, vec, k),
+            "tet_dd_rot": lambda R: ops_tet_solder.tet_dd_rot(R, vec, k)}
+
+
+@pytest.mark.parametrize("fn", ["tet_dd", "tet_dd_sqrt", "tet_dd_rot"])
+@pytest.mark.parametrize("on", SWITCH)
+def test_torch_func_transforms_match_autograd(on, fn):
+    """torch.func.grad, vmap(grad), jacrev, jacfwd and jvp through the eager autograd.Function of
+    each op (the register_autograd Function has no setup_context: grad/jacrev raised) against
+    torch.autograd.grad, in ambient directions (not only along SO(3))."""
+    mesh = _two_tets()
+    f = _tet_functions(mesh)[fn]
+    R, _ = _data(mesh, seed=6)
+    R2, _ = _data(mesh, seed=7)
+    W = torch.randn(mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(8), dtype=DT)
+    V = torch.randn(R.shape, generator=torch.Generator().manual_seed(9), dtype=DT)
+    loss = lambda r: (W * f(r)).sum() + f(r).square().sum()  # noqa: E731
+
+    def ref_grad(r):
+        r = r.clone().requires_grad_()
+        return torch.autograd.grad(loss(r), r)[0]
+
+    def ref_jac(r):
+        r = r.clone().requires_grad_()
+        out = f(r).reshape(-1)
+        return torch.stack([torch.autograd.grad(out[i], r, retain_graph=True)[0] for i in range(out.numel())]
+                           ).reshape(*out.shape, *r.shape).reshape(mesh.tets.shape[0], 3, *r.shape)
+
+    close = lambda a, b: torch.testing.assert_close(a, b, atol=1e-11, rtol=1e-11)  # noqa: E731
+    with _switch(on):
+        close(torch.func.grad(loss)(R), ref_grad(R))
+        close(torch.func.vmap(torch.func.grad(loss))(torch.stack((R, R2))), torch.stack((ref_grad(R), ref_grad(R2))))
+        J = ref_jac(R)
+        close(torch.func.jacrev(f)(R), J)
+        close(torch.func.jacfwd(f)(R), J)
+        close(torch.func.jvp(f, (R,), (V,))[1], (J * V).flatten(-3).sum(-1))
+
+
+@pytest.mark.parametrize("transform", ["grad", "vmap"])
+def test_tables_first_built_inside_a_transform_are_plain_and_reused(transform):
+    """The tet tables and edge vectors asked for first inside torch.func.grad / vmap (whose tensor
+    ops return storage-less wrappers: the NumPy schedule failed) are built on the real mesh:
+    plain tensors, reused by the next eager call. (First asked while torch.compile traces:
+    ``test_transform_matrix.py::test_compile_module_loss_fresh_process``.)"""
+    from torchconn.nn import AveragedCovariantD
+    from torchconn.ops._cache import edge_vectors
+
+    mesh = _two_tets()
+    mod = AveragedCovariantD(mesh)
+    R, _ = _data(mesh, seed=3)
+    f = lambda r: mod(r).square().sum()  # noqa: E731
+    if transform == "grad":
+        torch.func.grad(f)(R)
+    else:
+        torch.func.vmap(f)(torch.stack((R, R)))
+    k = ops_tet.tet_kernel(mod.mesh)
+    plain = lambda t: not torch._C._functorch.is_functorch_wrapped_tensor(t)  # noqa: E731
+    assert all(plain(t) for t in k.tables()) and k.order.numpy().shape == (mesh.tets.shape[0],)
+    assert plain(edge_vectors(mod.mesh, "cpu", DT))
+    torch.testing.assert_close(f(R), (dnabla.averaged_dd_tet(dnabla.tet_transports(R, mesh),
+                                                             dnabla.tet_solder_sqrt(R, mesh))).square().sum())

@@ -15,13 +15,14 @@ with the compiled kernels on and off (``torchconn.ops.compiled``):
 * ``compile_eager``, ``compile_inductor`` (``torch.compile(fullgraph=True)``, value and
   gradient): in a fresh process with empty ``TORCHCONN_CACHE`` and inductor caches, the first
   call of a freshly built case (no warm-up); ``compile_eager_warm``: compiled again after the
-  eager call. The full compile matrix is ``slow``; the default suite runs the researcher's
-  loss (so3.exp, Curvature, Torsion, AveragedCovariantD) cold with ``backend="eager"``, then
-  warm with inductor, in one subprocess (~30 s on 2 cores).
+  eager call. The full compile matrix is ``slow`` (one fresh process per case, ~1 min each on
+  2 cores); the default suite runs issue 24's loss (so3.exp, Curvature, Torsion,
+  AveragedCovariantD) with ``backend="eager"`` cold and warm, then inductor cold, in one
+  subprocess (~20 s CPU), and BianchiCheck's documented compile error in process (~1 s).
 
 A combination either matches eager autograd or raises the documented error listed in
 ``transform_cases.DOCUMENTED_ERRORS`` (``BianchiCheck`` under ``vmap`` and ``torch.compile``: a
-diagnostic that returns Python floats and raises). Cost of the non-compile matrix: ~20 s.
+diagnostic that returns Python floats and raises). Cost of the non-compile matrix: ~16 s CPU.
 """
 from __future__ import annotations
 
