@@ -15,7 +15,10 @@ Method (all stages vectorized over elements; the walk is a loop over *steps*, no
    is an exact sign (:mod:`torchconn.hexmesh.predicates`). Each tet's parametric orientation is
    computed; tets with ``orient3d <= 0`` (flipped or flat) are unusable, so are tets whose
    bounding box holds more than ``max_tet_points`` lattice points (``oversized``). Every interior
-   face is checked against its transition (``seam``).
+   face is checked against its transition (``seam``), and the holonomy around every edge of a
+   face with a non-identity rotation is composed: a singular edge must be a quarter or half turn
+   about its own line, and that line an integer line. Tets sharing a vertex with an unusable
+   tet, a mismatched face or an invalid singular edge are *tainted* (see ``near_invalid``).
 2. **Lattice points.** For every usable tet, the integer points (hex vertices) and the
    half-integer points (cube centres) of its closed image are enumerated from its bounding box
    and classified exactly (inside / on faces).
@@ -40,15 +43,19 @@ Method (all stages vectorized over elements; the walk is a loop over *steps*, no
 5. **Hexes.** A cube whose 8 corners are distinct and whose walks stayed in good tets becomes a
    hex in VTK order (corners ``(0,0,0), (1,0,0), (1,1,0), (0,1,0), (0,0,1), (1,0,1), (1,1,1),
    (0,1,1)`` added to its min corner in the owner tet's chart, which is orientation-preserving).
-   Hexes that share a quad face with two or more others, or a face with the same orientation
+   Hexes with a quad face shared by three or more hexes, or by two with the same orientation
    (a fold of an invalid map), are dropped as ``overlap``. World positions of hex vertices are
    barycentric interpolation in ``point_tet``.
 
-What is and is not checked: each emitted hex's centre and corners are points of the map joined
-by straight paths through positively oriented tets and exact transitions, away from flipped
-tets and broken seams. Hex edges and faces are not traced (HexEx traces edges): on an invalid
-map, a cube whose centre and corners are inside the domain but part of whose faces are not
-(a boundary bent inwards between corners) is still emitted.
+What is and is not checked: on a valid map every unit cube of the parameter domain becomes one
+hex, and neighbouring hexes share their vertices. On an invalid map, each emitted hex's centre
+and corners are points of the map joined by straight paths through positively oriented,
+untainted tets across exact transitions, and no tet is met under two charts. Hex edges and
+faces are not traced (HexEx traces edges), so a cube of an invalid map is still emitted when the
+defect lies inside it but away from its 8 walks by more than a ring of tets (possible where tets
+are much smaller than hexes), or when a boundary bends inwards between its corners. Every cube is
+found once per component of its centre's star: on a broken seam, a centre lying on the seam is
+found (and dropped) once from each side.
 
 Drop reasons (:data:`REASONS`, in priority order; a cube gets the first that applies):
 
@@ -58,7 +65,9 @@ Drop reasons (:data:`REASONS`, in priority order; a cube gets the first that app
 - ``near_invalid``: the centre, a corner or a walk lies in a tet that shares a vertex with a
   flipped / flat / oversized tet, a mismatched face or an invalid singular edge (a complex
   singularity, or a singular edge off its integer line): where an invalid map can fold over
-  itself, so about two rings of tets around each such element are not trusted.
+  itself, so about two rings of tets around each such element are not trusted. (Why: on
+  quantized maps of tetgen balls with flipped and flat tets, extraction without this rule emitted
+  hexes with inverted corners next to the folds; with it, none.)
 - ``leaves_domain``: a walk crossed a boundary face (a boundary off its integer plane).
 - ``walk_limit``: a walk took more than ``max_walk_steps`` steps.
 - ``not_closed``: two of the 8 corners are the same vertex, or the walks met one tet under two
@@ -120,7 +129,7 @@ class HexExtraction:
             (half-integer centre in ``dropped_tet``'s chart) and ``(D,)`` int8 index into
             :data:`REASONS`: every cube that was found and not emitted.
         timings: seconds per stage (``validate``, ``lattice``, ``stars``, ``walk``, ``assemble``,
-            ``total``) and ``walk_steps`` (iterations of the batched walk).
+            ``total``) and ``walk_steps`` (the most iterations of a batched walk).
     """
 
     points: np.ndarray
