@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "torchconn", "training", "configs")
 SCRIPTS = {
     "torchconn-frames": "torchconn.training.train_frames:main",
+    "torchconn-hex": "torchconn.training.hex_mesh:main",
     "torchconn-convergence": "torchconn.training.convergence:main",
     "torchconn-demo": "torchconn.training.demo:main",
 }
@@ -132,3 +133,6 @@ def test_installed_wheel_runs_its_commands_outside_the_checkout(wheel, tmp_path)
     assert (work / "conv" / "slopes.csv").is_file() and (work / "conv" / "summary.md").is_file()
     frames = run(bindir / "torchconn-frames", "mesh=box", "steps=2", "polish.steps=0", f"output_dir={work / 'frames'}")
     assert "[train_frames]" in frames and (work / "frames" / "metrics.json").is_file()
+    hexes = run(bindir / "torchconn-hex", "mesh=box", "edge_length=0.5", "method=sh_baseline", "hex.edge_length=0.25",
+                "progress=false", f"output_dir={work / 'hex'}")
+    assert "[hex_mesh] map valid" in hexes and (work / "hex" / "hex_metrics.json").is_file()
