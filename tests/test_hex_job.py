@@ -112,3 +112,15 @@ def test_console_command(tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "[hex_mesh] map valid; 64 hexes" in r.stdout and "good hex mesh: True" in r.stdout
+
+
+def test_schema_lists_exactly_the_keys_of_the_config_files():
+    import yaml
+
+    def keys(name):
+        raw = yaml.safe_load((ROOT / "configs" / name).read_text())
+        raw.pop("hydra", None)
+        raw.pop("defaults", None)
+        return set(config_check._flatten(raw))
+
+    assert keys("train_frames.yaml") | keys("hex_mesh.yaml") == set(config_check.HEX_MESH)
