@@ -2,9 +2,12 @@
 
 Constructed maps whose hex mesh is known by hand (STYLE "Combinatorial geometry"): the box with
 the identity map (the structured grid), the rotated box, the same maps re-charted by random
-transitions (the same hexes), a valence-3 singular edge (three quadrants glued by a quarter
-turn), maps broken on purpose (flipped tets, a boundary off its integer plane, a broken seam),
-and the predicates against a slow exact reference in :class:`fractions.Fraction`.
+transitions (the same hexes), a generic (jittered) map of the box, a tetgen ball against a
+brute-force count, valence-3 and valence-5 singular edges (quadrants glued by quarter turns),
+maps broken on purpose (flipped tets, a boundary off its integer plane, a broken seam, a
+singular edge off its integer line), and the predicates against a slow exact reference in
+:class:`fractions.Fraction`. Default cases cost about 3 s in all (2 cores under load); the
+larger ones are ``slow``.
 """
 from __future__ import annotations
 
@@ -84,8 +87,16 @@ def check_conforming(res):
     quads = res.hexes[:, HEX_FACES].reshape(-1, 4)
     key = np.sort(quads, 1)
     _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
     assert cnt.max(initial=0) <= 2
-    return quads, inv.ravel(), cnt
+    # orientation of each quad: its smallest vertex first, is the next one smaller than the last?
+    m = np.argmin(quads, 1)
+    rows = np.arange(len(quads))
+    turn = quads[rows, (m + 1) % 4] < quads[rows, (m + 3) % 4]
+    shared = cnt[inv] == 2
+    n_turn = np.bincount(inv[shared], weights=turn[shared], minlength=cnt.size)
+    assert (n_turn[cnt == 2] == 1).all()            # a shared face is seen from both sides
+    return quads, inv, cnt
 
 
 def edge_valences(res):
