@@ -192,7 +192,7 @@ def test_feature_sources():
 
 
 def test_frames_vtu_with_tet_frames_round_trip(tmp_path):
-    from torchconn.frames.export import read_frames_vtu, write_frames_vtu
+    from torchconn.frames import FramesVTU, read_frames_vtu, write_frames_vtu  # the public names (README)
 
     m = io.box(2)
     gen = torch.Generator().manual_seed(3)
@@ -202,7 +202,11 @@ def test_frames_vtu_with_tet_frames_round_trip(tmp_path):
     V, T, Fv2, Ft2 = read_frames_vtu(tmp_path / "f.vtu")
     assert np.array_equal(V, m.vertices.numpy()) and np.array_equal(T, m.tets.numpy())
     assert np.array_equal(Fv2, Fv.numpy()) and np.array_equal(Ft2, Ft.numpy())
+    back = read_frames_vtu(tmp_path / "f.vtu")  # a named tuple: the same arrays by name
+    assert isinstance(back, FramesVTU) and back._fields == ("vertices", "tets", "vertex_frames", "tet_frames")
+    assert np.array_equal(back.vertex_frames, Fv.numpy()) and np.array_equal(back.tet_frames, Ft.numpy())
+    assert back.vertices.shape == (m.n_vertices, 3) and back.tets.shape == (m.n_tets, 4)
     write_frames_vtu(tmp_path / "g.vtu", m, Fv)  # per-vertex only
-    assert read_frames_vtu(tmp_path / "g.vtu")[3] is None
+    assert read_frames_vtu(tmp_path / "g.vtu")[3] is None and read_frames_vtu(tmp_path / "g.vtu").tet_frames is None
     with pytest.raises(ValueError, match=r"tet_frames must have shape \(T, 3, 3\)"):
         write_frames_vtu(tmp_path / "h.vtu", m, Fv, Ft[:-1])

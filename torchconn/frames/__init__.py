@@ -5,10 +5,11 @@ Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built o
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
 :mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.structure`
-(the singular-structure search over edge matchings), :mod:`.polish`
-(the guarded polishes), :mod:`.metrics`, :mod:`.singular` (the
-singular graph), :mod:`.export` (VTU), :mod:`.formats` (``.fra``, mouette's ``.frame``),
-:mod:`.design` (the whole method in one call: :func:`design` -> :class:`FrameFieldResult`).
+(the singular-structure search over edge matchings), :mod:`.polish` (the guarded polishes),
+:mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.export` (VTU files:
+:func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces and curves),
+:mod:`.formats` (``.fra``, mouette's ``.frame``), :mod:`.design` (the whole method in one call:
+:func:`design` -> :class:`FrameFieldResult`).
 
 >>> from torchconn import io
 >>> from torchconn.frames import sh_frame_field, frame_metrics
@@ -30,7 +31,14 @@ from . import propagate
 from .constraints import BoundaryConstraint, feature_edges, feature_vertices
 from .design import FrameFieldResult, design
 from .metrics import METRIC_KEYS, axis_alignment_angle, face_closure, frame_metrics
-from .export import read_singular_curves_vtk, write_singular_curves_vtk
+from .export import (
+    FramesVTU,
+    read_frames_vtu,
+    read_singular_curves_vtk,
+    write_frames_vtu,
+    write_singular_curves_vtk,
+    write_singular_faces_vtu,
+)
 from .formats import read_fra, read_mouette_frame, write_fra, write_mouette_frame
 from .sh import (
     boundary_constraint,
@@ -66,6 +74,10 @@ __all__ = [
     "SingularGraph",
     "SingularCurve",
     "face_closure",
+    "write_frames_vtu",
+    "read_frames_vtu",
+    "FramesVTU",
+    "write_singular_faces_vtu",
     "write_singular_curves_vtk",
     "read_singular_curves_vtk",
     "write_fra",

@@ -13,12 +13,31 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-__all__ = ["write_frames_vtu", "read_frames_vtu", "write_singular_faces_vtu", "write_singular_curves_vtk",
-           "read_singular_curves_vtk"]
+__all__ = ["write_frames_vtu", "read_frames_vtu", "FramesVTU", "write_singular_faces_vtu",
+           "write_singular_curves_vtk", "read_singular_curves_vtk"]
+
+
+class FramesVTU(NamedTuple):
+    """A frame field read back from a ``frames.vtu`` file (:func:`read_frames_vtu`), as numpy arrays.
+
+    A named tuple: ``vertices, tets, vertex_frames, tet_frames = read_frames_vtu(path)`` unpacks it
+    in this order, and the fields read by name (``read_frames_vtu(path).vertex_frames``).
+    """
+
+    vertices: np.ndarray
+    """``(V, 3)`` float64 vertex positions."""
+    tets: np.ndarray
+    """``(T, 4)`` int64 vertex indices of the tets."""
+    vertex_frames: np.ndarray
+    """``(V, 3, 3)`` float64 per-vertex frames, axes as columns (point data ``axis0..2``)."""
+    tet_frames: np.ndarray | None
+    """``(T, 3, 3)`` float64 per-tet frames, axes as columns (cell data ``tet_axis0..2``), or
+    ``None`` when the file has none."""
 
 
 def _write(path, mesh) -> None:
@@ -51,9 +70,10 @@ def write_frames_vtu(path, mesh, frames: torch.Tensor, tet_frames: torch.Tensor 
                              cell_data=cell_data))
 
 
-def read_frames_vtu(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """Read a file of :func:`write_frames_vtu`: ``(vertices (V,3), tets (T,4), frames (V,3,3),
-    tet_frames (T,3,3) or None)`` as numpy arrays."""
+def read_frames_vtu(path) -> FramesVTU:
+    """Read a file of :func:`write_frames_vtu` as a :class:`FramesVTU` of numpy arrays:
+    ``(vertices (V, 3), tets (T, 4), vertex_frames (V, 3, 3), tet_frames (T, 3, 3) or None)``,
+    a named tuple that unpacks in that order."""
     import meshio
 
     m = meshio.read(path)
@@ -62,7 +82,7 @@ def read_frames_vtu(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     Ft = None
     if "tet_axis0" in m.cell_data:
         Ft = np.stack([np.concatenate(m.cell_data[f"tet_axis{k}"]).astype(np.float64) for k in range(3)], axis=-1)
-    return np.asarray(m.points, dtype=np.float64), T, F, Ft
+    return FramesVTU(np.asarray(m.points, dtype=np.float64), T, F, Ft)
 
 
 def write_singular_faces_vtu(path, mesh, singular_faces: torch.Tensor) -> None:
