@@ -22,9 +22,9 @@ and raises ``ValueError`` there.
 All modules compute exactly what the functional operators compute (they call them):
 
 * :class:`Curvature` -- ``(*batch, F, n, n)`` per face, two-prong or holonomy (Sec. 3.2, (3.2.1));
-* :class:`Torsion` -- ``(*batch, F, n)`` per face, √R or naive (Def. 3.2);
-* :class:`AveragedCovariantD` -- ``(*batch, T, n)``, ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2, end of Ch. 5);
-* :class:`CovariantD` -- ``(*batch, T, n)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
+* :class:`Torsion` -- ``(*batch, F, 3)`` per face, √R or naive (Def. 3.2);
+* :class:`AveragedCovariantD` -- ``(*batch, T, 3)``, ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2, end of Ch. 5);
+* :class:`CovariantD` -- ``(*batch, T, 3)``, ``d∇d∇θ`` with variant averaged / behs21 / wedge (Ch. 4,
   Defs. 5.1-5.2);
 * :class:`BianchiCheck` -- dict of max residuals; raises ``BianchiError`` (Sec. 2.4, 3.6, Ch. 5).
 
@@ -190,6 +190,18 @@ class Curvature(nn.Module):
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any) -> torch.Tensor:
+        """Curvature of every face.
+
+        Args:
+            connection: a ``Connection``, a ``ConnectionField`` or a tensor of edge rotations
+                ``(*batch, E, n, n)`` (any rank ``n``), ``R_ij`` of the canonical edges ``i<j``.
+
+        Returns:
+            ``(*batch, F, n, n)``, dtype and device of the rotations, faces in the mesh's global
+            face order: ``kind="two_prong"`` maps the cut fiber to the evaluation fiber (first
+            loop vertex; on a tet mesh ``R_ab R_bc − R_ac``), ``kind="holonomy"`` gives the loop
+            product minus the identity.
+        """
         R = _rotations(connection, self.mesh, "Curvature")
         return _curvature.face_curvature(R, self.mesh, cut=self.cut, kind=self.kind)
 
@@ -202,8 +214,8 @@ class Torsion(nn.Module):
         kind: ``"sqrt"`` (θ̃_ij = √R_ij θ_ij, convergent) or ``"naive"`` (plain θ, divergent).
         cut: cut position (default ``-1``: last loop vertex).
 
-    Forward: ``(connection, frames=None)`` → ``(*batch, F, n)`` in the fiber of each face's evaluation
-    vertex; ``frames (V, n, n)`` reads the rotations in a frame field (same convention as
+    Forward: ``(connection (*batch, E, 3, 3), frames=None)`` → ``(*batch, F, 3)`` in the fiber of each
+    face's evaluation vertex; ``frames (V, 3, 3)`` reads the rotations in a frame field (same convention as
     :func:`torchconn.torsion.face_torsion` and :func:`torchconn.dnabla.tet_solder_sqrt`:
     computed with ``F_i R_ij F_jᵀ`` in the ambient frame, returned in ``F_{x0}``, exactly gauge
     covariant); ``None`` means the global coordinate frame.
@@ -217,13 +229,25 @@ class Torsion(nn.Module):
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
+        """Torsion of the solder form on every face.
+
+        Args:
+            connection: a ``Connection``, a ``ConnectionField`` or edge rotations
+                ``(*batch, E, 3, 3)``.
+            frames: ``None`` (the global coordinate frame) or a frame field ``(V, 3, 3)`` /
+                ``(*batch, V, 3, 3)``, axes as columns.
+
+        Returns:
+            ``(*batch, F, 3)``, dtype and device of the rotations: per face, a vector in the
+            fiber (frame) of its evaluation vertex.
+        """
         R = _rotations(connection, self.mesh, "Torsion", n3=True)
         frames = _frames(frames, R, self.mesh, "Torsion")
         return _torsion.face_torsion(R, self.mesh, kind=self.kind, cut=self.cut, frames=frames)
 
 
 class CovariantD(nn.Module):
-    """Per-tet second covariant exterior derivative of the solder form, ``(T, n)``.
+    """Per-tet second covariant exterior derivative of the solder form, ``(*batch, T, 3)``.
 
     Args:
         mesh: ``TetMesh``.
@@ -231,8 +255,8 @@ class CovariantD(nn.Module):
             ``"behs21"`` — BEHS21 twice on the plain θ, ``(R_ab R_bc − R_ac) θ_cd`` (Ch. 4,
             divergent); ``"wedge"`` — the explicit end-of-Ch. 5 discrete ``Ω∧θ``.
 
-    Forward: ``(connection, frames=None)`` → ``(*batch, T, n)`` in the fiber of ``tets[t, 0]``; divide
-    by the tet volume to compare with the smooth ``Ω∧θ``.
+    Forward: ``(connection (*batch, E, 3, 3), frames=None)`` → ``(*batch, T, 3)`` in the fiber of
+    ``tets[t, 0]``; divide by the tet volume to compare with the smooth ``Ω∧θ``.
     """
 
     _FUNCS = {
@@ -251,13 +275,36 @@ class CovariantD(nn.Module):
         self.variant = variant
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
+        """The chosen ``d∇d∇θ`` on every tet.
+
+        Args:
+            connection: a ``Connection``, a ``ConnectionField`` or edge rotations
+                ``(*batch, E, 3, 3)``.
+            frames: ``None`` (the global coordinate frame) or a frame field ``(V, 3, 3)`` /
+                ``(*batch, V, 3, 3)``, axes as columns.
+
+        Returns:
+            ``(*batch, T, 3)``, dtype and device of the rotations: per tet, a vector in the fiber
+            of its first vertex ``tets[t, 0]``; divide by the tet volume to compare with the
+            smooth ``Ω∧θ``.
+        """
         who = type(self).__name__
         R = _rotations(connection, self.mesh, who, n3=True)
         return self._FUNCS[self.variant](R, self.mesh, _frames(frames, R, self.mesh, who))
 
 
 class AveragedCovariantD(CovariantD):
-    """The averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2): ``CovariantD(mesh, "averaged")``."""
+    """The averaged ``d∇d∇θ = 𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (Def. 5.2): ``CovariantD(mesh, "averaged")``.
+
+    Args:
+        mesh: ``TetMesh`` (or a ``TetMeshBatch`` of several meshes).
+
+    Forward: ``(connection (*batch, E, 3, 3), frames=None)`` → ``(*batch, T, 3)``: per tet, a
+    vector in the fiber of its first vertex ``tets[t, 0]``, of the dtype and device of the
+    rotations (:meth:`CovariantD.forward`). Divide by the tet volume to compare with the smooth
+    ``Ω∧θ``, to which it converges (the discrete algebraic Bianchi identity: it equals the
+    explicit wedge ``CovariantD(mesh, "wedge")`` to round-off).
+    """
 
     def __init__(self, mesh: Any):
         super().__init__(mesh, variant="averaged")
@@ -295,6 +342,21 @@ class BianchiCheck(nn.Module):
     @torch.compiler.disable(reason=_bianchi._compile_reason("BianchiCheck"))
     @torch.no_grad()
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> dict[str, float]:
+        """Check both identities on every tet (and every batch item).
+
+        Args:
+            connection: a ``Connection``, a ``ConnectionField`` or edge rotations
+                ``(*batch, E, 3, 3)``.
+            frames: ``None`` or a frame field ``(V, 3, 3)`` / ``(*batch, V, 3, 3)``.
+
+        Returns:
+            ``{"differential": float, "algebraic": float}``, the maximum residuals.
+
+        Raises:
+            BianchiError: a residual above ``atol`` or not finite.
+            ValueError: the rotations are not orthogonal to their dtype's tolerance, or are on
+                ``meta``.
+        """
         R = _rotations(connection, self.mesh, "BianchiCheck", n3=True).detach()
         return _bianchi.run_check("BianchiCheck", R, self.mesh, atol=self.atol,
                                   frames=_frames(frames, R, self.mesh, "BianchiCheck"))
