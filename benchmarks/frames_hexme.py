@@ -31,8 +31,15 @@ edge length 0.08) and ``fandisk`` (0.2).
 Jobs: one per (model, method). Each runs in a child process (``--threads`` torch threads), which
 writes ``DIR/jobs/<set>__<model>__<method>.json``: every metric of
 :func:`torchconn.frames.metrics.frame_metrics`, the mesh size, the times (``mesh_s`` meshing,
-``method_s`` the method, ``metrics_s`` the metrics, ``wall_s`` their sum: end to end) and the
-child's peak resident memory (``peak_rss_mb``, ``getrusage`` max RSS). A job that raises, dies or
+``method_s`` the method, ``metrics_s`` the metrics, ``wall_s`` their sum) and the
+child's peak resident memory (``peak_rss_mb``, ``getrusage`` max RSS); then the **hex stage**
+(:func:`torchconn.hexmesh.hex_mesh` of the field, ``--hex-opt KEY=VALUE`` options; ``--no-hex``
+skips it): ``hex_valid`` (the map) and ``hex_reason`` (which checks fail, and where),
+``hex_inverted_tets``, ``hex_degenerate_tets``, ``hex_n`` hexes, ``hex_sj_min``/``hex_sj_mean``
+(scaled Jacobian), ``hex_irregular`` (fraction of interior edges not in four hexes),
+``hex_hausdorff`` (relative to the bounding-box diagonal), CAD corners and curves meshed,
+``hex_good`` (a valid map and a good hex mesh: HEXMESH.md / issue 22), ``hex_s`` and
+``end_to_end_s`` (field + hex stage). A failing hex stage is the row's ``hex_error``. A job that raises, dies or
 runs past ``--timeout`` is a row with its ``error``, never a stop. A job whose result file exists
 is skipped (resumption; ``--force`` reruns). The options of the run are in ``DIR/options.json``.
 
@@ -222,7 +229,50 @@ def evaluate(set_name: str, case: str, method: str, opts: dict) -> dict:
     except Exception as exc:  # noqa: BLE001 - a failing run is a row with its error
         rec["error"] = f"{type(exc).__name__}: {exc}".replace("\n", " ")[:500]
         rec["traceback"] = traceback.format_exc()[-4000:]
+        return rec
+    if opts.get("hex", True):
+        rec.update(hex_stage(mesh, F, opts.get("hex_options") or {}))
+        rec["end_to_end_s"] = rec["wall_s"] + rec.get("hex_s", 0.0)
     return rec
+
+
+def hex_stage(mesh, frames, options: dict) -> dict:
+    """The hex stage (:func:`torchconn.hexmesh.hex_mesh`) of one field: the ``hex_*`` columns.
+
+    A failure of the stage is a row's ``hex_error``, never a lost field row.
+    """
+    out = {"hex_error": ""}
+    t0 = time.perf_counter()
+    try:
+        from torchconn.hexmesh import hex_mesh
+
+        r = hex_mesh(mesh, frames, **options)
+        v, q, ex = r.validity, r.quality, r.extraction
+        out.update(hex_valid=bool(v.valid), hex_reason="; ".join(v.reasons)[:300],
+                   hex_first_check=next((k for k in v.counts if v.counts[k] and k in _VALIDITY_ORDER), ""),
+                   hex_inverted_tets=v.counts.get("inverted_tets", 0), hex_degenerate_tets=v.counts.get("degenerate_tets", 0),
+                   hex_complex_edges=v.counts.get("unmeshable_singular_edges", 0),
+                   hex_checks=dict(v.counts), hex_n=int(r.hexes.shape[0]),
+                   hex_dropped=int(ex.counts()["cubes_dropped"]) if ex is not None else 0,
+                   hex_good=bool(r.good), hex_edge_length=float(r.map.edge_length),
+                   hex_map_tets=int(r.map.mesh.n_tets), hex_singular_edges=int(r.map.charts.counts()["singular_edges"]),
+                   hex_stats={k: val for k, val in r.map.stats.items() if k != "timings"},
+                   hex_times={**{f"map_{k}": val for k, val in r.map.stats["timings"].items()}, **r.timings})
+        if q is not None:
+            out.update(hex_sj_min=q.sj_min, hex_sj_mean=q.sj_mean, hex_valid_mesh=bool(q.valid),
+                       hex_irregular=q.irregular_fraction, hex_hausdorff=q.hausdorff_rel,
+                       hex_volume_ratio=q.volume_ratio, hex_corners=q.n_corners, hex_corners_meshed=q.n_corners_meshed,
+                       hex_curves=q.n_curves, hex_curves_meshed=q.n_curves_meshed,
+                       hex_not_good="; ".join(q.not_good_reasons)[:300])
+    except Exception as exc:  # noqa: BLE001 - a failing stage is a row with its error
+        out["hex_error"] = f"{type(exc).__name__}: {exc}".replace("\n", " ")[:500]
+        out["hex_traceback"] = traceback.format_exc()[-4000:]
+    out["hex_s"] = time.perf_counter() - t0
+    return out
+
+
+_VALIDITY_ORDER = ("unmeshable_singular_edges", "contradictory_constraints", "inverted_tets", "degenerate_tets",
+                   "broken_transitions", "singular_edges_off_integer_lines", "boundary_faces_off_integer_planes")
 
 
 def _write(path: Path, rec: dict) -> None:
@@ -302,6 +352,21 @@ def parse_opts(items: list[str]) -> dict:
     return res
 
 
+def parse_hex_opts(items: list[str]) -> dict:
+    """``["edge_length=0.1", "straighten=false"]`` -> options of :func:`torchconn.hexmesh.hex_mesh`."""
+    import yaml
+
+    from torchconn.hexmesh import MAP_OPTIONS
+
+    res = {}
+    for it in items or []:
+        key, sep, val = it.partition("=")
+        if not sep or key not in MAP_OPTIONS:
+            raise ValueError(f"--hex-opt {it!r}: expected KEY=VALUE with KEY in {list(MAP_OPTIONS)}")
+        res[key] = yaml.safe_load(val)
+    return res
+
+
 def plugins_available() -> dict:
     found = {}
     for name, mod in (("joblib", "hydra_plugins.hydra_joblib_launcher"),
@@ -363,6 +428,9 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--in-process", action="store_true", help="with --launcher none: no child process per job")
     ap.add_argument("--hydra-arg", action="append", default=[], help="extra Hydra override (repeatable)")
     ap.add_argument("--opt", action="append", default=[], help="METHOD.KEY=VALUE method option (repeatable)")
+    ap.add_argument("--no-hex", action="store_true", help="skip the hex stage (map, extraction, hex quality)")
+    ap.add_argument("--hex-opt", action="append", default=[],
+                    help="KEY=VALUE option of torchconn.hexmesh.hex_mesh (repeatable; YAML values)")
     ap.add_argument("--force", action="store_true", help="rerun jobs whose result file exists")
     ap.add_argument("--aggregate-only", action="store_true", help="only read the job files and write the report")
     args = ap.parse_args(argv)
@@ -386,6 +454,7 @@ def main(argv: list[str] | None = None) -> Path:
             methods = ["sh", "mbo", "connection"] + (["mouette"] if mouette_available() else [])
         opts = {"set": args.set, "cases": cases, "methods": methods, "threads": args.threads,
                 "timeout_s": args.timeout, "max_tets": args.max_tets, "method_options": parse_opts(args.opt),
+                "hex": not args.no_hex, "hex_options": parse_hex_opts(args.hex_opt),
                 "data_dir": str(Path(args.data_dir).resolve()) if args.data_dir else None,
                 "command": "python -m benchmarks.frames_hexme " + " ".join(argv if argv is not None else sys.argv[1:]),
                 "started": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}

@@ -27,7 +27,19 @@ from torchconn.frames.metrics import METRIC_KEYS
 BASELINE = "sh"
 ID_COLUMNS = ("set", "model", "kind", "method", "n_vertices", "n_tets")
 TIME_COLUMNS = ("mesh_s", "method_s", "metrics_s", "wall_s", "peak_rss_mb")
-CSV_COLUMNS = ID_COLUMNS + tuple(METRIC_KEYS) + TIME_COLUMNS + ("error",)
+#: The hex stage's columns (benchmarks.frames_hexme.hex_stage).
+HEX_COLUMNS = ("hex_valid", "hex_good", "hex_first_check", "hex_inverted_tets", "hex_degenerate_tets",
+               "hex_complex_edges", "hex_n", "hex_dropped", "hex_sj_min", "hex_sj_mean", "hex_irregular", "hex_hausdorff",
+               "hex_volume_ratio", "hex_corners_meshed", "hex_corners", "hex_curves_meshed", "hex_curves",
+               "hex_edge_length", "hex_map_tets", "hex_s", "end_to_end_s", "hex_reason", "hex_not_good", "hex_error")
+CSV_COLUMNS = ID_COLUMNS + tuple(METRIC_KEYS) + TIME_COLUMNS + HEX_COLUMNS + ("error",)
+#: HexMe categories by the model name's first letter.
+CATEGORIES = {"s": "simple", "n": "nasty", "i": "industrial"}
+#: The anchors of HEXMESH.md: valid integer-grid maps of Locally Meshable Frame Fields (Liu & Bommes
+#: 2023) per category, counted from the published meshes; features meshed by the HexMe paper's
+#: pipeline (SH field, greedy rounding, HexEx) over all 189 inputs.
+ANCHOR_LMFF_VALID = {"simple": 0.94, "nasty": 0.60, "industrial": 0.37}
+ANCHOR_HEXME_FEATURES = {"corners": 0.709, "curves": 0.485}
 #: Metrics compared as ratios to the baseline (lower is better): key -> label.
 RATIO_METRICS = {
     "smoothness_mean_deg": "mean angle",
@@ -205,6 +217,92 @@ def targets(rows: list[dict], figs: dict, method: str) -> list[tuple[str, bool |
     return out
 
 
+def category(model: str) -> str:
+    return CATEGORIES.get(model[:1], "other")
+
+
+def hex_figures(rows: list[dict]) -> dict:
+    """Per method and category: models, valid maps, good hex meshes, features meshed, times."""
+    models, methods, t = by_model(rows)
+    out = {}
+    for m in methods:
+        per = {}
+        for x in models:
+            r = t.get((x, m))
+            if r is None or "hex_s" not in r and not r.get("error"):
+                continue
+            c = per.setdefault(category(x), {"models": 0, "valid": 0, "good": 0, "corners": 0, "corners_meshed": 0,
+                                             "curves": 0, "curves_meshed": 0, "hex_s_max": 0.0, "end_to_end_s_max": 0.0,
+                                             "errors": 0})
+            c["models"] += 1
+            if not ok(r) or r.get("hex_error"):
+                c["errors"] += 1
+                continue
+            c["valid"] += bool(r.get("hex_valid"))
+            c["good"] += bool(r.get("hex_good"))
+            for k in ("corners", "corners_meshed", "curves", "curves_meshed"):
+                v = r.get(f"hex_{k}")
+                c[k] += int(v) if v is not None else 0
+            c["hex_s_max"] = max(c["hex_s_max"], _f(r.get("hex_s")))
+            c["end_to_end_s_max"] = max(c["end_to_end_s_max"], _f(r.get("end_to_end_s")))
+        out[m] = per
+    return out
+
+
+def hex_markdown(rows: list[dict]) -> list[str]:
+    models, methods, t = by_model(rows)
+    hf = hex_figures(rows)
+    if not any(hf[m] for m in methods):
+        return []
+    cats = [c for c in ("simple", "nasty", "industrial", "other") if any(c in hf[m] for m in methods)]
+
+    def frac(a, b):
+        return f"{a}/{b} ({100 * a / b:.0f}%)" if b else "–"
+
+    L = ["", "### Hex meshes (the hex stage of every field: torchconn.hexmesh.hex_mesh, default options)", "",
+         "A *good* hex mesh: a valid map, and the hex mesh valid (all hexes, none inverted, conforming, closed "
+         "boundary), irregular interior edges ≤ 5%, Hausdorff distance ≤ 1% of the bounding-box diagonal.", "",
+         "| method | " + " | ".join(f"valid maps: {c}" for c in cats) + " | "
+         + " | ".join(f"good hex meshes: {c}" for c in cats) + " | CAD corners meshed | CAD curves meshed | "
+         "hex stage max s | end to end max s |", "|---|" + "---|" * (2 * len(cats) + 4)]
+    for m in methods:
+        per = hf[m]
+        cells = [frac(per[c]["valid"], per[c]["models"]) if c in per else "–" for c in cats]
+        cells += [frac(per[c]["good"], per[c]["models"]) if c in per else "–" for c in cats]
+        cm = sum(v["corners_meshed"] for v in per.values())
+        cn = sum(v["corners"] for v in per.values())
+        km = sum(v["curves_meshed"] for v in per.values())
+        kn = sum(v["curves"] for v in per.values())
+        cells += [frac(cm, cn), frac(km, kn), _fmt(max((v["hex_s_max"] for v in per.values()), default=float("nan"))),
+                  _fmt(max((v["end_to_end_s_max"] for v in per.values()), default=float("nan")))]
+        L.append(f"| {m} | " + " | ".join(cells) + " |")
+    anchor = [f"{100 * ANCHOR_LMFF_VALID[c]:.0f}%" if c in ANCHOR_LMFF_VALID else "–" for c in cats]
+    L.append("| anchor: LMFF (2023) valid maps | " + " | ".join(anchor) + " | " + " | ".join("–" for _ in cats)
+             + f" | – | – | – | – |")
+    L.append("| anchor: HexMe paper pipeline, features meshed (all 189 inputs) | " + " | ".join("–" for _ in cats)
+             + " | " + " | ".join("–" for _ in cats)
+             + f" | {100 * ANCHOR_HEXME_FEATURES['corners']:.1f}% | {100 * ANCHOR_HEXME_FEATURES['curves']:.1f}% | – | – |")
+    L += ["", "### Hex meshes per model", "",
+          "| model | method | map | first failing check | inverted / flat tets | hexes | SJ min | SJ mean | irregular % "
+          "| Hausdorff % | corners | curves | good | hex s | why not good |", "|---|---|" + "---|" * 13]
+    for x in models:
+        for m in methods:
+            r = t.get((x, m))
+            if r is None or ("hex_s" not in r):
+                continue
+            if r.get("hex_error"):
+                L.append(f"| {x} | {m} | error | {r['hex_error'][:120]} |" + " |" * 11)
+                continue
+            pct = lambda v: _fmt(100 * _f(v), 3) if v is not None else "–"  # noqa: E731
+            L.append(f"| {x} | {m} | {'valid' if r.get('hex_valid') else 'invalid'} | {r.get('hex_first_check') or ''} | "
+                     f"{r.get('hex_inverted_tets', 0)} / {r.get('hex_degenerate_tets', 0)} | {r.get('hex_n', 0)} | "
+                     f"{_fmt(r.get('hex_sj_min'))} | {_fmt(r.get('hex_sj_mean'))} | {pct(r.get('hex_irregular'))} | "
+                     f"{pct(r.get('hex_hausdorff'))} | {r.get('hex_corners_meshed', '–')}/{r.get('hex_corners', '–')} | "
+                     f"{r.get('hex_curves_meshed', '–')}/{r.get('hex_curves', '–')} | {'yes' if r.get('hex_good') else 'no'} | "
+                     f"{_fmt(r.get('hex_s'))} | {(r.get('hex_not_good') or '')[:100]} |")
+    return L
+
+
 def markdown(rows: list[dict], options: dict | None = None) -> str:
     options = options or {}
     models, methods, t = by_model(rows)
@@ -259,8 +357,9 @@ def markdown(rows: list[dict], options: dict | None = None) -> str:
                 rs = [r for r in rs if math.isfinite(r[0])]
                 cells.append(f"{max(rs)[1]} ({max(rs)[0]:.3g})" if rs else "–")
             L.append(f"| {label} | " + " | ".join(cells) + " |")
+    L += hex_markdown(rows)
     # per-model rows
-    L += ["", "### Per model", "", "| model | method | " + " | ".join(TABLE.values()) + " | error |",
+    L += ["", "### Per model (frame-field proxies)", "", "| model | method | " + " | ".join(TABLE.values()) + " | error |",
           "|---|---|" + "---|" * (len(TABLE) + 1)]
     for x in models:
         for m in methods:

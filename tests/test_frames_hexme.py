@@ -95,7 +95,13 @@ def test_end_to_end_in_process_on_s02c(tmp_path):
         assert r["error"] == "" and r["model"] == "s02c_prism" and r["kind"] == "c"
         assert int(r["n_tets"]) > 100 and float(r["wall_s"]) > 0
         assert math.isfinite(float(r["smoothness_mean_deg"])) and float(r["alignment_mean_deg"]) < 1e-6
+        # the hex stage ran on the field: a map with its verdict, hexes, their quality, times
+        assert r["hex_error"] == "" and r["hex_valid"] in ("True", "False") and int(r["hex_n"]) > 0
+        assert float(r["hex_s"]) > 0 and float(r["end_to_end_s"]) >= float(r["wall_s"])
+        assert -1 <= float(r["hex_sj_min"]) <= 1 and int(r["hex_corners"]) == 6  # the prism's CAD points
+    assert by["mbo"]["hex_n"] == ""  # no field, no hex stage
     md = (out / "results.md").read_text()
+    assert "### Hex meshes" in md and "| anchor: LMFF (2023) valid maps | 94% |" in md
     assert "Set-level figures" in md and "Targets of the issue" in md and "Per model" in md
     assert "| s02c_prism | mbo |" in md and "laplacian" in md
     assert "every model finishes (no crash, no NaN) | not held (0/1; failed: s02c_prism)" in md
