@@ -109,6 +109,24 @@ def test_hex_mesh_files_read_back_by_meshio(tmp_path, suffix, cell):
     assert hex_quality(P2, H2).irregular_valence_counts == {3: 2}
 
 
+def test_vtu_opens_in_vtk(tmp_path):
+    """ParaView's reader: VTK's own XML reader sees hexahedra (cell type 12), positively oriented."""
+    vtk_io = pytest.importorskip("vtkmodules.vtkIOXML", reason="vtk is not installed (pip install vtk)")
+    from vtkmodules.vtkFiltersVerdict import vtkMeshQuality
+
+    P, H, _ = three_around_an_axis(layers=2)
+    path = write_hex_mesh(tmp_path / "hex.vtu", P, H)
+    reader = vtk_io.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    grid_ = reader.GetOutput()
+    assert grid_.GetNumberOfCells() == H.shape[0] and grid_.GetNumberOfPoints() == P.shape[0]
+    assert {grid_.GetCellType(i) for i in range(H.shape[0])} == {12}  # VTK_HEXAHEDRON
+    sj = [vtkMeshQuality.HexScaledJacobian(grid_.GetCell(i)) for i in range(H.shape[0])]
+    np.testing.assert_allclose(sj, scaled_jacobian(P, H), atol=1e-12)
+    assert min(sj) > 0
+
+
 def test_medit_file_with_boundary_quads_reads_its_hexahedra(tmp_path):
     P, H = grid(2)
     q = hex_quality(P, H)
