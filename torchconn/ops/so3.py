@@ -95,15 +95,17 @@ def _register(kind: str):
     """Declare ``torchconn::so3_<kind>`` and ``torchconn::so3_<kind>_backward`` (see module doc)."""
     fwd_f, bwd_f = _FWD[kind], _BWD_F[kind]
 
+    # the generic kernels return contiguous tensors, as the fake kernels say (inductor checks the
+    # strides of an op's outputs against its fake kernel; the formulas can return transposed ones)
     @torch.library.custom_op(qualname(f"so3_{kind}_backward"), mutates_args=())
     def bwd_op(x: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
-        return bwd_f(x, grad)
+        return bwd_f(x, grad).contiguous()
 
     @bwd_op.register_kernel("cpu")
     def _(x, grad):
         if can_use_compiled("so3", x, grad):
             return _bwd_c(kind, x, grad)
-        return bwd_f(x, grad)
+        return bwd_f(x, grad).contiguous()
 
     @bwd_op.register_fake
     def _(x, grad):
@@ -122,13 +124,13 @@ def _register(kind: str):
 
     @torch.library.custom_op(qualname(f"so3_{kind}"), mutates_args=())
     def op(x: torch.Tensor) -> torch.Tensor:
-        return fwd_f(x)
+        return fwd_f(x).contiguous()
 
     @op.register_kernel("cpu")
     def _(x):
         if can_use_compiled("so3", x):
             return _map_c(kind, x)
-        return fwd_f(x)
+        return fwd_f(x).contiguous()
 
     @op.register_fake
     def _(x):
