@@ -149,7 +149,7 @@ class _Src:
         self.batch_nd, self.L, self.s, self.fn = batch_nd, L, s, fn
         if isinstance(form, ListForm):
             tup = form.tuples
-            if tup.numel() and (tup.min() < 0 or tup.max() >= s):
+            if tup.numel() and not torch.compiler.is_compiling() and (tup.min() < 0 or tup.max() >= s):
                 raise ValueError(f"{fn}: ListForm labels must lie in [0, {s})")
             M = tup.shape[0]
             if form.values.shape[batch_nd] != M:
@@ -167,7 +167,7 @@ class _Src:
         flat = _flat(cols, self.s)
         if self.lookup is not None:
             flat = self.lookup[flat]
-            if (flat < 0).any():
+            if not torch.compiler.is_compiling() and (flat < 0).any():
                 missing = [tuple(int(c[i]) for c in cols) for i in torch.nonzero(flat < 0).flatten()[:5]]
                 raise ValueError(f"{self.fn}: the ListForm lacks the entries {missing} needed here")
         # index_select on one flattened label dim: much faster than multi-dim advanced indexing
@@ -219,7 +219,8 @@ def _resolve_tuples(tuples, s: int, m: int, device, fn: str) -> tuple[torch.Tens
     tuples = torch.as_tensor(tuples, dtype=torch.long).cpu()
     if tuples.ndim != 2 or tuples.shape[1] != m:
         raise ValueError(f"{fn}: tuples must have shape (M, {m}), got {tuple(tuples.shape)}")
-    if tuples.numel() and (tuples.min() < 0 or tuples.max() >= s):
+    # a check of values: not while torch.compile traces (the label tables are then the library's own)
+    if tuples.numel() and not torch.compiler.is_compiling() and (tuples.min() < 0 or tuples.max() >= s):
         raise ValueError(f"{fn}: tuple labels must lie in [0, {s}), got range "
                          f"[{int(tuples.min())}, {int(tuples.max())}]")
     return tuples, False

@@ -31,6 +31,7 @@ __all__ = [
 # ----------------------------------------------------------------------------- tet formulas
 
 _TET = torch.tensor([[0, 1, 2, 3]], dtype=torch.long)
+_TET_FACES = faces_of(_TET)  # once, not per call: torch.unique has a data-dependent size under torch.compile
 
 
 def _check_tet(T: torch.Tensor, theta: torch.Tensor, fn: str) -> None:
@@ -102,8 +103,7 @@ def behs21_dd_tet(T: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     ``T (..., 4, 4, n, n)``, ``theta (..., 4, 4, n)`` -> ``(..., n)`` in the fiber of vertex 0.
     """
     _check_tet(T, theta, "behs21_dd_tet")
-    faces = faces_of(_TET)
-    return behs21(T, ListForm(behs21(T, theta, faces), faces), _TET).squeeze(-2)
+    return behs21(T, ListForm(behs21(T, theta, _TET_FACES), _TET_FACES), _TET).squeeze(-2)
 
 
 # ----------------------------------------------------------------------------- mesh wrappers
