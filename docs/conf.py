@@ -12,6 +12,7 @@ from pathlib import Path
 # Document the checkout this file belongs to, whether or not torchconn is installed.
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent / "_ext"))
 
 import torchconn  # noqa: E402
 
@@ -23,6 +24,7 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.napoleon",  # Google-style Args:/Returns:/Raises: sections of the docstrings
     "myst_parser",  # the pages are Markdown (README-style), autodoc runs inside {eval-rst} blocks
+    "public_api",  # _ext/public_api.py: each object documented once, under the name users import
 ]
 source_suffix = {".md": "markdown"}
 root_doc = "index"
@@ -32,6 +34,9 @@ exclude_patterns = ["_build", "README.md"]
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 autodoc_default_options = {"members": True, "show-inheritance": True}
+# A method without a docstring of its own is left out rather than shown with its base class's
+# text (torch's "Define the computation performed at every call" on every nn.Module.forward).
+autodoc_inherit_docstrings = False
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 myst_heading_anchors = 3  # "conventions.md#2-errata-in-the-report"-style links between pages
