@@ -1,4 +1,5 @@
-"""The README is executable documentation: its commands match CI and its snippets run."""
+"""The README's quick start is CI: exactly two commands, the second run verbatim by ``.ci/run``
+(the README's Python blocks, names and other commands: ``tests/test_readme_code.py``)."""
 from __future__ import annotations
 
 import re
@@ -30,13 +31,3 @@ def test_ci_runs_the_readme_test_command_verbatim():
     test_cmd = _quick_start_commands()[1]
     ci_lines = [l.strip() for l in ci.splitlines() if l.strip() and not l.strip().startswith("#")]
     assert test_cmd in ci_lines, f"README test command {test_cmd!r} not found verbatim in .ci/run"
-
-
-def test_api_tour_snippets_run():
-    text = _readme()
-    tour = text.split("## API tour", 1)[1].split("\n## ", 1)[0]
-    snippets = re.findall(r"```python\n(.*?)```", tour, flags=re.S)
-    assert snippets, "the API tour has no python snippet"
-    for code in snippets:
-        namespace: dict = {}
-        exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102 - documentation under test
