@@ -90,7 +90,7 @@ def build_ctypes(tmp: Path):
     cc = native._compiler()
     out = tmp / "so3_bench.so"
     t0 = time.perf_counter()
-    subprocess.run([cc, *native._FLAGS, str(SRC), "-o", str(out), "-lm"], check=True, capture_output=True)
+    subprocess.run([cc, *native._flags(), str(SRC), "-o", str(out), "-lm"], check=True, capture_output=True)
     secs = time.perf_counter() - t0
     return secs, ctypes.CDLL(str(out))
 

@@ -134,3 +134,62 @@ def test_cache_key_covers_included_sources(tmp_path):
     b.write_text("int g(void) { return 3; }\n")
     assert native._source_bytes(a) != before
     assert b"so3_sqrt_fwd" in native._source_bytes(native.CSRC / "tet.c")
+
+
+# ---------------------------------------------------------------- the kernels' thread pool
+
+
+def _pool_workers() -> int:
+    lib = native.library("pool")
+    lib.tc_pool_workers.restype = __import__("ctypes").c_int
+    return int(lib.tc_pool_workers())
+
+
+def _exp_threads(w, nt):
+    """so3_exp_fwd (compiled) of w (n, 3) with nt threads: R (n, 9)."""
+    out = torch.empty(w.shape[0], 9, dtype=w.dtype)
+    fn = native.function("so3", "so3_exp_fwd_f64", [__import__("ctypes").c_void_p] * 2
+                         + [__import__("ctypes").c_long, __import__("ctypes").c_int, __import__("ctypes").c_double])
+    fn(native.ptr(w), native.ptr(out), w.shape[0], nt, 1e-4)
+    return out
+
+
+def test_pool_runs_kernels_on_several_threads_with_the_same_results():
+    """The kernel libraries get the pool (csrc/pool.c) when loaded: a loop with 4 threads
+    creates workers and gives bitwise the one-thread values (cost ~0.1 s)."""
+    if native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    w = torch.randn(50_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    one = _exp_threads(w, 1)
+    assert torch.equal(_exp_threads(w, 4), one)
+    assert _pool_workers() >= 1
+
+
+def test_pool_from_two_python_threads_and_after_fork():
+    """Two Python threads calling kernels at once (one runs its loop on its own thread), and a
+    forked child (no workers survive a fork: the pool starts again) get the right values."""
+    import os
+    import threading
+
+    if native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    w = torch.randn(40_000, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    ref = _exp_threads(w, 1)
+    _exp_threads(w, 2)  # workers exist before the fork
+    results = []
+    ts = [threading.Thread(target=lambda: results.append(torch.equal(_exp_threads(w, 2), ref))) for _ in range(2)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert results == [True, True]
+    ref_bytes = ref.numpy().tobytes()
+    pid = os.fork()
+    if pid == 0:  # child: exit status 0 iff the pooled loop is right
+        ok = False
+        try:  # compared in numpy: torch's own OpenMP regions hang in a forked child
+            ok = _exp_threads(w, 2).numpy().tobytes() == ref_bytes
+        finally:
+            os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0

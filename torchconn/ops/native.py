@@ -2,21 +2,29 @@
 
 The fused torch kernels are limited by what eager torch can express: every 3x3 product over a
 million edges is a separate pass over memory. The hottest loops (the frame-field loss, the
-SO(3) maps) are therefore also written as plain C loops over elements, OpenMP-parallel,
-computing values *and* their gradients in one sweep. They are compiled on first use with
-``cc -O3 -fopenmp -march=native`` (no torch headers, no Python headers: the shared library
-takes raw pointers and is loaded with :mod:`ctypes`), cached under ``$TORCHCONN_CACHE``
-(default ``~/.cache/torchconn``) by a hash of the source (with the files it includes), the
-compiler command and the CPU, and written atomically (compiled to a temporary name, then
-renamed), so concurrent processes never load a half-written library.
+SO(3) maps) are therefore also written as plain C loops over elements, computing values *and*
+their gradients in one sweep. They are compiled on first use with ``cc -O3 -march=native``
+(no torch headers, no Python headers: the shared library takes raw pointers and is loaded with
+:mod:`ctypes`; ``-fopenmp-simd`` honours the ``omp simd`` loop hints without an OpenMP
+runtime), cached under ``$TORCHCONN_CACHE`` (default ``~/.cache/torchconn``) by a hash of the
+source (with the files it includes), the compiler command and the CPU, and written
+atomically (compiled to a temporary name, then renamed), so concurrent processes never load a
+half-written library. ``$TORCHCONN_MARCH`` replaces ``native`` (``x86-64-v3``, for code that
+runs on every AVX2 CPU, e.g. in a cache shared by different machines; ``none``: no ``-march``).
 
 :func:`library` returns ``None`` (after one :class:`RuntimeWarning` naming the reason) when no
 C compiler is found (``$CC``, ``cc``, ``gcc``, ``clang``) or the build fails; whether an op
 uses a library at all is decided by :func:`torchconn.ops.backend.can_use_compiled` (the
 global switch, devices and dtypes). The torch kernels are the reference and the fallback.
 
-Threads: each call passes ``torch.get_num_threads()`` to OpenMP's ``num_threads`` clause, so
-``torch.set_num_threads`` governs both.
+Threads: the kernels' parallel loops run on one thread pool of their own, ``csrc/pool.c``
+(built like the kernels and handed to every kernel library when it is loaded), with up to
+``torch.get_num_threads()`` threads per call (the caller included), so ``torch.set_num_threads``
+governs both. Unlike OpenMP's fork-join, a loop never waits for a thread that has not
+started: tasks are claimed from a shared counter by the caller too, and waiting threads sleep
+after a short spin (a core held by another process costs a loop at most the tasks already
+running there; see ``pool.c`` and ``benchmarks/under_load.py``). No OpenMP runtime is loaded
+by the kernels, so none competes with torch's.
 
 Outputs: the kernels write into tensors from :func:`empty`, which advises the kernel to back
 large ones with transparent huge pages (see there).
@@ -42,8 +50,9 @@ __all__ = ["library", "declare", "CFunction", "ptr", "empty", "CSRC"]
 
 #: Folder of the C sources.
 CSRC = Path(__file__).resolve().parent / "csrc"
-_FLAGS = ["-O3", "-fopenmp", "-march=native", "-fPIC", "-shared", "-std=c99", "-fno-math-errno"]
-_LOCK = threading.Lock()
+_BASE_FLAGS = ["-O3", "-fopenmp-simd", "-pthread", "-fPIC", "-shared", "-std=c99", "-fno-math-errno",
+               "-ffp-contract=off"]
+_LOCK = threading.RLock()  # library() of a kernel loads the pool library inside it
 _LIBS: dict[str, ctypes.CDLL | None] = {}
 _WARNED: set[str] = set()
 
@@ -58,6 +67,13 @@ def _compiler() -> str | None:
         if shutil.which(cand):
             return shutil.which(cand)
     return None
+
+
+def _flags() -> list[str]:
+    """The compiler flags: the fixed ones and ``-march=`` from ``$TORCHCONN_MARCH`` (default
+    ``native``; ``none`` leaves the compiler's default target)."""
+    march = os.environ.get("TORCHCONN_MARCH", "").strip() or "native"
+    return _BASE_FLAGS + ([] if march.lower() == "none" else [f"-march={march}"])
 
 
 def _cpu_key() -> str:
@@ -113,7 +129,8 @@ def _build(name: str) -> ctypes.CDLL | None:
                    else "no C compiler found ($CC, cc, gcc, clang)")
         return None
     code = _source_bytes(src)
-    key = hashlib.sha256(code + cc.encode() + " ".join(_FLAGS).encode() + _cpu_key().encode()).hexdigest()[:16]
+    flags = _flags()
+    key = hashlib.sha256(code + cc.encode() + " ".join(flags).encode() + _cpu_key().encode()).hexdigest()[:16]
     out_dir = _cache_dir()
     lib_path = out_dir / f"{name}-{key}.so"
     if not lib_path.exists():
@@ -121,7 +138,7 @@ def _build(name: str) -> ctypes.CDLL | None:
             out_dir.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
             os.close(fd)
-            proc = subprocess.run([cc, *_FLAGS, str(src), "-o", tmp, "-lm"], capture_output=True, text=True)
+            proc = subprocess.run([cc, *flags, str(src), "-o", tmp, "-lm"], capture_output=True, text=True)
             if proc.returncode != 0:
                 os.unlink(tmp)
                 _warn_once(name, f"building {src.name} failed ({cc} exit {proc.returncode}): "
@@ -139,10 +156,21 @@ def _build(name: str) -> ctypes.CDLL | None:
 
 
 def library(name: str) -> ctypes.CDLL | None:
-    """The compiled ``csrc/<name>.c`` (built on first use, cached), or ``None`` (see module doc)."""
+    """The compiled ``csrc/<name>.c`` (built on first use, cached), or ``None`` (see module doc).
+
+    A kernel library that includes the client part of ``pool.c`` gets the thread pool
+    (``library("pool")``) when it is loaded; without it (the pool failed to build) its loops
+    run on the calling thread.
+    """
     with _LOCK:
         if name not in _LIBS:
-            _LIBS[name] = _build(name)
+            lib = _build(name)
+            if lib is not None and name != "pool" and hasattr(lib, "tc_pool_attach"):
+                pool = library("pool")
+                if pool is not None:
+                    lib.tc_pool_attach.argtypes, lib.tc_pool_attach.restype = [ctypes.c_void_p], None
+                    lib.tc_pool_attach(ctypes.cast(pool.tc_pool_run, ctypes.c_void_p))
+            _LIBS[name] = lib
         return _LIBS[name]
 
 

@@ -15,7 +15,7 @@
  *   kind 1: g_ab = G, g_bc = -G^T R_ac, g_ac = -G R_bc
  *   kind 0: g_ab = (G R_ac) R_bc^T, g_bc = R_ab^T (G R_ac), g_ac = G^T (R_ab R_bc)
  * summed over the faces incident to each edge. The sum is race-free without atomics: the loop
- * runs over *edges* (OpenMP), each reading its incident (face, slot) pairs from a CSR table
+ * runs over *edges* (tasks of the pool, pool.c), each reading its incident (face, slot) pairs from a CSR table
  * built once per mesh (inc_ptr (E + 1), inc (3F) = 3 f + slot, slot 0 = ab, 1 = bc, 2 = ac, in
  * increasing order), and computes only the slot's term. Every face term is thus computed once
  * (3F slot terms in all, as a face loop would), each edge is written once, and the sum over a
@@ -32,11 +32,16 @@
 
 #define CURV_CAT_(a, b) a##b
 #define CURV_CAT(a, b) CURV_CAT_(a, b)
-/* loops smaller than this run on the calling thread (no OpenMP team start-up): torch's own
- * grain size (at::internal::GRAIN_SIZE), so that small meshes are not slower than the generic
- * kernel, whose loops run single-threaded below it (measured on a loaded 2-core machine:
- * 2048 made box(8) ~4x slower than the torch kernel there) */
+/* loops smaller than this run on the calling thread (no pool wake-up): torch's own grain
+ * size (at::internal::GRAIN_SIZE), so that small meshes are not slower than the generic
+ * kernel, whose loops run single-threaded below it (measured with OpenMP on a loaded 2-core
+ * machine: 2048 made box(8) ~4x slower than the torch kernel there) */
 #define CURV_PAR_MIN 32768L
+/* faces / edges per task of the pool */
+#define CURV_TASK 2048L
+
+#define TC_POOL_CLIENT
+#include "pool.c" /* tc_parallel */
 
 #define CURV_T float
 #define CURV_SUF _f32
@@ -77,31 +82,49 @@ static inline void FN(mtm)(const T *A, const T *B, T *C)
             C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
 }
 
+/* the arguments of one item of a curvature loop (a task covers CURV_TASK faces or edges) */
+typedef struct {
+    const T *R, *G;
+    const long *face_index;
+    const int *inc_ptr, *inc;
+    T *out;
+    long E, F;
+    int kind;
+} FN(curv_t);
+
+static void FN(fwd_task)(void *vc, long task)
+{
+    const FN(curv_t) *c = (const FN(curv_t) *)vc;
+    const long F = c->F, f1 = (task + 1) * CURV_TASK < F ? (task + 1) * CURV_TASK : F;
+    const long *iab = c->face_index, *ibc = c->face_index + F, *iac = c->face_index + 2 * F;
+    const T *R = c->R;
+    const int kind = c->kind;
+    for (long f = task * CURV_TASK; f < f1; ++f) {
+        const T *ab = R + iab[f] * 9, *bc = R + ibc[f] * 9, *ac = R + iac[f] * 9;
+        T *h = c->out + f * 9, P[9];
+        if (kind == 2) {
+            FN(mm)(ab, bc, P);
+            for (int q = 0; q < 9; ++q)
+                h[q] = P[q] - ac[q];
+        } else if (kind == 1) {
+            FN(mmt)(ac, bc, P);
+            for (int q = 0; q < 9; ++q)
+                h[q] = ab[q] - P[q];
+        } else {
+            FN(mm)(ab, bc, P);
+            FN(mmt)(P, ac, h);
+            h[0] -= (T)1; h[4] -= (T)1; h[8] -= (T)1;
+        }
+    }
+}
+
 void FN(curv_fwd)(const T *edge_rot, const long *face_index, T *out, long B, long E, long F, int kind,
                   int nt)
 {
-    const long *iab = face_index, *ibc = face_index + F, *iac = face_index + 2 * F;
     for (long b = 0; b < B; ++b) {
-        const T *R = edge_rot + b * E * 9;
-        T *H = out + b * F * 9;
-#pragma omp parallel for num_threads(nt) schedule(static) if (F >= CURV_PAR_MIN)
-        for (long f = 0; f < F; ++f) {
-            const T *ab = R + iab[f] * 9, *bc = R + ibc[f] * 9, *ac = R + iac[f] * 9;
-            T *h = H + f * 9, P[9];
-            if (kind == 2) {
-                FN(mm)(ab, bc, P);
-                for (int q = 0; q < 9; ++q)
-                    h[q] = P[q] - ac[q];
-            } else if (kind == 1) {
-                FN(mmt)(ac, bc, P);
-                for (int q = 0; q < 9; ++q)
-                    h[q] = ab[q] - P[q];
-            } else {
-                FN(mm)(ab, bc, P);
-                FN(mmt)(P, ac, h);
-                h[0] -= (T)1; h[4] -= (T)1; h[8] -= (T)1;
-            }
-        }
+        FN(curv_t) c = {.R = edge_rot + b * E * 9, .face_index = face_index, .out = out + b * F * 9,
+                        .E = E, .F = F, .kind = kind};
+        tc_parallel(tc_tasks(F, CURV_TASK), F >= CURV_PAR_MIN ? nt : 1, FN(fwd_task), &c);
     }
 }
 
@@ -131,23 +154,30 @@ static inline void FN(slot_term)(int kind, int s, const T *R, const long *face_i
 }
 #undef CURV_ROT
 
+static void FN(bwd_task)(void *vc, long task)
+{
+    const FN(curv_t) *c = (const FN(curv_t) *)vc;
+    const long e1 = (task + 1) * CURV_TASK < c->E ? (task + 1) * CURV_TASK : c->E;
+    for (long e = task * CURV_TASK; e < e1; ++e) {
+        T g[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+        for (int k = c->inc_ptr[e]; k < c->inc_ptr[e + 1]; ++k) {
+            const long f = c->inc[k] / 3;
+            const int s = c->inc[k] - 3 * (int)f;
+            FN(slot_term)(c->kind, s, c->R, c->face_index, c->F, f, c->G + f * 9, g);
+        }
+        for (int q = 0; q < 9; ++q)
+            c->out[e * 9 + q] = g[q];
+    }
+}
+
 void FN(curv_bwd)(const T *edge_rot, const T *grad, const long *face_index, const int *inc_ptr,
                   const int *inc, T *grad_edge, long B, long E, long F, int kind, int nt)
 {
     for (long b = 0; b < B; ++b) {
-        const T *R = edge_rot + b * E * 9, *Gb = grad + b * F * 9;
-        T *gE = grad_edge + b * E * 9;
-#pragma omp parallel for num_threads(nt) schedule(static) if (E >= CURV_PAR_MIN)
-        for (long e = 0; e < E; ++e) {
-            T g[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-            for (int k = inc_ptr[e]; k < inc_ptr[e + 1]; ++k) {
-                const long f = inc[k] / 3;
-                const int s = inc[k] - 3 * (int)f;
-                FN(slot_term)(kind, s, R, face_index, F, f, Gb + f * 9, g);
-            }
-            for (int q = 0; q < 9; ++q)
-                gE[e * 9 + q] = g[q];
-        }
+        FN(curv_t) c = {.R = edge_rot + b * E * 9, .G = grad + b * F * 9, .face_index = face_index,
+                        .inc_ptr = inc_ptr, .inc = inc, .out = grad_edge + b * E * 9, .E = E, .F = F,
+                        .kind = kind};
+        tc_parallel(tc_tasks(E, CURV_TASK), E >= CURV_PAR_MIN ? nt : 1, FN(bwd_task), &c);
     }
 }
 

@@ -5,7 +5,9 @@
  * One sweep over the edges, one over the faces, one more over the edges: every per-element
  * 3x3 product is formed in registers, gradients are computed in the same sweep as the values
  * (the terms are scalar means, so their gradients are known in the forward pass), and scatters
- * go to per-thread buffers that are summed at the end (no atomics).
+ * go to buffers, one per stripe of the elements (nt contiguous stripes, each a task of the pool,
+ * pool.c; stripe 0 writes the outputs), summed in stripe order at the end (no atomics; the
+ * same result for any schedule of the stripes among the threads).
  *
  * Conventions (docs/architecture.md): R (E,3,3) maps coordinates at v_j to v_i for canonical
  * edges (i<j); frames (V,3,3) have the axes as columns; faces [a<b<c] with canonical edges
@@ -25,10 +27,15 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#include <omp.h>
+
+#define TC_POOL_CLIENT
+#include "pool.c" /* tc_parallel */
 
 #ifndef TC_BODY
 #define TC_BODY
+
+/* entries per task of the buffer sums */
+#define FL_TASK 65536L
 
 /* group table -> (perm, sign): g[perm[c]][c] = sign[c] */
 static void group_perm(const double* g, int perm[24][3], double sign[24][3]) {
@@ -127,13 +134,227 @@ static inline void SFX(sqrt_rot_back)(const T* A, T c, const T* gS, T* gA) {
             gA[3 * i + j] = a * (gS[3 * i + j] - gS[3 * j + i]) + b * (gS[3 * i + j] + gS[3 * j + i]) + (i == j ? gt : (T)0);
 }
 
+/* out[k] += priv[1][k] + ... + priv[nt - 1][k] (in that order) */
+typedef struct {
+    T* out;
+    T* const* priv;
+    int nt;
+    long n;
+} SFX(sum_t);
+
+static void SFX(sum_task)(void* vc, long task) {
+    const SFX(sum_t)* c = (const SFX(sum_t)*)vc;
+    const long k1 = (task + 1) * FL_TASK < c->n ? (task + 1) * FL_TASK : c->n;
+    for (long k = task * FL_TASK; k < k1; ++k) {
+        T s = c->out[k];
+        for (int t = 1; t < c->nt; ++t) s += c->priv[t][k];
+        c->out[k] = s;
+    }
+}
+
 static void SFX(reduce_into)(T* out, T* const* priv, int nt, long n) {
     if (nt <= 1) return;
-#pragma omp parallel for num_threads(nt) schedule(static)
-    for (long k = 0; k < n; ++k) {
-        T s = out[k];
-        for (int t = 1; t < nt; ++t) s += priv[t][k];
-        out[k] = s;
+    SFX(sum_t) c = {out, priv, nt, n};
+    tc_parallel(tc_tasks(n, FL_TASK), nt, SFX(sum_task), &c);
+}
+
+/* the arguments of frame_loss_one's passes; stripe t of n elements: n t / nt .. n (t + 1) / nt */
+typedef struct {
+    long E, V, F;
+    int nt;
+    const T *R, *Fr;
+    const int64_t *edges, *fidx;
+    const T *vec, *area;
+    const int (*perm)[3];
+    const T (*sign)[3];
+    int do_s, do_t, do_f, do_q, grad, match, tor;
+    double power, eps;
+    T ws, wt, kf, kq;
+    T *gR, *gF, *theta, *gtheta;
+    unsigned char* unrel;
+    T* bR[64];
+    T* bTh[64];
+    T* bF[64];
+    double part[64][4];  /* per-stripe partial sums, added in stripe order afterwards */
+    long n_ok;
+} SFX(fl_t);
+
+/* pass 1, stripe t of the edges: smooth, tie, match, solder form; gR rows written here */
+static void SFX(pass1)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    const long E = c->E, V = c->V;
+    const int grad = c->grad, do_s = c->do_s, do_t = c->do_t, do_q = c->do_q;
+    const int (*perm)[3] = c->perm;
+    const T (*sign)[3] = c->sign;
+    double s_smooth = 0, s_tie = 0;
+    if (grad) {
+        if (t > 0) memset(c->bR[t], 0, sizeof(T) * (size_t)(12 * E + 9 * V));
+        else { memset(c->gF, 0, sizeof(T) * (size_t)(9 * V)); if (do_q) memset(c->gtheta, 0, sizeof(T) * (size_t)(3 * E)); }
+    }
+    T* gFb = c->bF[t];
+    const long lo = E * t / c->nt, hi = E * (t + 1) / c->nt;
+    for (long e = lo; e < hi; ++e) {
+        const T* Re = c->R + 9 * e;
+        T G[9];
+        for (int q = 0; q < 9; ++q) G[q] = 0;
+        if (do_s) {
+            T D[9], d2 = 0;
+            for (int q = 0; q < 9; ++q) { D[q] = Re[q] - ((q % 4) == 0 ? (T)1 : (T)0); d2 += D[q] * D[q]; }
+            s_smooth += SFX(rho)(d2, c->power, c->eps);
+            if (grad) {
+                T k = c->ws * (T)SFX(drho)(d2, c->power, c->eps);
+                for (int q = 0; q < 9; ++q) G[q] = k * D[q];
+            }
+        }
+        if (c->match) {
+            long i = c->edges[2 * e], j = c->edges[2 * e + 1];
+            const T *Fi = c->Fr + 9 * i, *Fj = c->Fr + 9 * j;
+            T FiR[9], M[9];
+            SFX(mm)(Fi, Re, FiR);
+            SFX(mtm)(Fj, FiR, M);
+            int h = SFX(best)(M);
+            c->unrel[e] = (unsigned char)(h == 0);
+            if (do_t) {
+                T D[9], d2 = 0;
+                for (int r = 0; r < 3; ++r)
+                    for (int cc = 0; cc < 3; ++cc) {
+                        T v = FiR[3 * r + cc] - sign[h][cc] * Fj[3 * r + perm[h][cc]];
+                        D[3 * r + cc] = v;
+                        d2 += v * v;
+                    }
+                s_tie += SFX(rho)(d2, c->power, c->eps);
+                if (grad) {
+                    T k = c->wt * (T)SFX(drho)(d2, c->power, c->eps), t1[9];
+                    for (int q = 0; q < 9; ++q) D[q] *= k;  /* dL/d(F_i R) */
+                    SFX(mtm)(Fi, D, t1);                    /* F_i^T G -> R */
+                    for (int q = 0; q < 9; ++q) G[q] += t1[q];
+                    SFX(mmt)(D, Re, t1);                    /* G R^T -> F_i */
+                    T* bi = gFb + 9 * i;
+                    T* bj = gFb + 9 * j;
+                    for (int q = 0; q < 9; ++q) bi[q] += t1[q];
+                    /* -(G h^T)[r][k] = -G[r][c] sign[c] for perm[c] = k  -> F_j */
+                    for (int r = 0; r < 3; ++r)
+                        for (int cc = 0; cc < 3; ++cc) bj[3 * r + perm[h][cc]] -= D[3 * r + cc] * sign[h][cc];
+                }
+            }
+            if (do_q) {
+                T* th = c->theta + 3 * e;
+                if (h == 0) {
+                    T A[9], S[9], u[3];
+                    SFX(mmt)(FiR, Fj, A);
+                    SFX(sqrt_rot)(A, S);
+                    const T* v = c->vec + 3 * e;
+                    for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
+                    for (int k = 0; k < 3; ++k) th[k] = Fi[k] * u[0] + Fi[3 + k] * u[1] + Fi[6 + k] * u[2];
+                } else {
+                    th[0] = th[1] = th[2] = 0;
+                }
+            }
+        }
+        if (grad) for (int q = 0; q < 9; ++q) c->gR[9 * e + q] = G[q];
+    }
+    c->part[t][0] = s_smooth;
+    c->part[t][1] = s_tie;
+}
+
+/* faces with all three edges unrelabeled (the torsion mean's count), stripe t */
+static void SFX(count_ok)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    const long lo = c->F * t / c->nt, hi = c->F * (t + 1) / c->nt;
+    long n_ok = 0;
+    for (long f = lo; f < hi; ++f)
+        n_ok += c->unrel[c->fidx[3 * f]] && c->unrel[c->fidx[3 * f + 1]] && c->unrel[c->fidx[3 * f + 2]];
+    __atomic_add_fetch(&c->n_ok, n_ok, __ATOMIC_RELAXED);
+}
+
+/* pass 2, stripe t of the faces: flat, torsion */
+static void SFX(pass2)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    const int grad = c->grad, do_f = c->do_f, tor = c->tor;
+    const int (*perm)[3] = c->perm;
+    const T (*sign)[3] = c->sign;
+    const unsigned char* unrel = c->unrel;
+    const T* R = c->R;
+    double s_flat = 0, s_tor = 0;
+    T* gRb = c->bR[t];
+    T* gTb = c->bTh[t];
+    const long lo = c->F * t / c->nt, hi = c->F * (t + 1) / c->nt;
+    for (long f = lo; f < hi; ++f) {
+        long ab = c->fidx[3 * f], bc = c->fidx[3 * f + 1], ac = c->fidx[3 * f + 2];
+        const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
+        if (do_f) {
+            T P[9], H[9], d2 = 0;
+            SFX(mm)(Rab, Rbc, P);
+            SFX(mmt)(P, Rac, H);
+            int g = SFX(best)(H);
+            for (int cc = 0; cc < 3; ++cc) H[3 * perm[g][cc] + cc] -= sign[g][cc];  /* H - g */
+            for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
+            s_flat += d2;
+            if (grad) {
+                T GR[9], t1[9];
+                for (int q = 0; q < 9; ++q) H[q] *= c->kf;  /* G = dL/dH */
+                SFX(mm)(H, Rac, GR);                        /* G R_ac */
+                SFX(mmt)(GR, Rbc, t1);                      /* -> R_ab */
+                for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
+                SFX(mtm)(Rab, GR, t1);                      /* -> R_bc */
+                for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
+                SFX(mtm)(H, P, t1);                         /* G^T P -> R_ac */
+                for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
+            }
+        }
+        if (tor && unrel[ab] && unrel[bc] && unrel[ac]) {
+            const T *tab = c->theta + 3 * ab, *tbc = c->theta + 3 * bc, *tac = c->theta + 3 * ac;
+            T Th[3], n2 = 0;
+            for (int r = 0; r < 3; ++r) {
+                Th[r] = tab[r] + Rab[3 * r] * tbc[0] + Rab[3 * r + 1] * tbc[1] + Rab[3 * r + 2] * tbc[2] - tac[r];
+                n2 += Th[r] * Th[r];
+            }
+            s_tor += n2 / c->area[f];
+            if (grad) {
+                T k = c->kq / c->area[f], gT[3];
+                for (int r = 0; r < 3; ++r) gT[r] = k * Th[r];
+                for (int r = 0; r < 3; ++r) {
+                    gTb[3 * ab + r] += gT[r];
+                    gTb[3 * ac + r] -= gT[r];
+                    gTb[3 * bc + r] += Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
+                    for (int cc = 0; cc < 3; ++cc) gRb[9 * ab + 3 * r + cc] += gT[r] * tbc[cc];
+                }
+            }
+        }
+    }
+    c->part[t][2] = s_flat;
+    c->part[t][3] = s_tor;
+}
+
+/* pass 3, stripe t of the edges: backward of the solder form t_ij = F_i^T sqrt(F_i R F_j^T) v */
+static void SFX(pass3)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    T* gFb = c->bF[t];
+    const long lo = c->E * t / c->nt, hi = c->E * (t + 1) / c->nt;
+    for (long e = lo; e < hi; ++e) {
+        const T* gt = c->gtheta + 3 * e;
+        if (!c->unrel[e] || (gt[0] == 0 && gt[1] == 0 && gt[2] == 0)) continue;
+        long i = c->edges[2 * e], j = c->edges[2 * e + 1];
+        const T *Fi = c->Fr + 9 * i, *Fj = c->Fr + 9 * j, *Re = c->R + 9 * e, *v = c->vec + 3 * e;
+        T FiR[9], A[9], S[9], u[3], gu[3], gS[9], gA[9], gFiR[9], t1[9];
+        SFX(mm)(Fi, Re, FiR);
+        SFX(mmt)(FiR, Fj, A);
+        T cs = SFX(sqrt_rot)(A, S);
+        for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
+        for (int r = 0; r < 3; ++r) gu[r] = Fi[3 * r] * gt[0] + Fi[3 * r + 1] * gt[1] + Fi[3 * r + 2] * gt[2];
+        for (int r = 0; r < 3; ++r)
+            for (int q = 0; q < 3; ++q) gS[3 * r + q] = gu[r] * v[q];
+        SFX(sqrt_rot_back)(A, cs, gS, gA);
+        SFX(mm)(gA, Fj, gFiR);                       /* dA = d(FiR) Fj^T */
+        T* bi = gFb + 9 * i;
+        T* bj = gFb + 9 * j;
+        SFX(mtm)(gA, FiR, t1);                       /* gF_j += gA^T FiR */
+        for (int q = 0; q < 9; ++q) bj[q] += t1[q];
+        SFX(mmt)(gFiR, Re, t1);                      /* gF_i += gFiR R^T + u gt^T */
+        for (int r = 0; r < 3; ++r)
+            for (int q = 0; q < 3; ++q) bi[3 * r + q] += t1[3 * r + q] + u[r] * gt[q];
+        SFX(mtm)(Fi, gFiR, t1);                      /* gR += F_i^T gFiR (own row) */
+        for (int q = 0; q < 9; ++q) c->gR[9 * e + q] += t1[q];
     }
 }
 
@@ -142,7 +363,7 @@ static void SFX(reduce_into)(T* out, T* const* priv, int nt, long n) {
  * of sum_k wts[k] term_k. sums (out, 5): smooth, tie, flat, torsion values (0 for a term that is
  * off); n_ok (faces in the torsion mean). With grad: gR (E,9) = sum_k wts[k] dterm_k/dR and
  * gF (V,9) = sum_k wts[k] dterm_k/dframes (overwritten). work: (nt - 1) * (9E + 3E + 9V)
- * per-thread scatter buffers (zeroed here); theta, gtheta (E,3) and unrel (E) are workspaces.
+ * stripe scatter buffers (zeroed here); theta, gtheta (E,3) and unrel (E) are workspaces.
  * perm/sign: the group table as signed permutations (group_perm). */
 static void SFX(frame_loss_one)(long E, long V, long F, int nt,
                      const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
@@ -151,209 +372,46 @@ static void SFX(frame_loss_one)(long E, long V, long F, int nt,
                      const double* wts, double* sums, T* gR, T* gF, T* work,
                      T* theta, T* gtheta, unsigned char* unrel) {
     grad = grad != 0;
-    const int match = do_t || do_q;
-    /* per-thread partial sums, added in thread order afterwards (deterministic for a given nt,
-     * unlike an OpenMP reduction clause) */
-    double part[64][4];
-    memset(part, 0, sizeof(part));
-    /* per-thread buffers: thread 0 writes the outputs, thread t > 0 its slice of work */
-    T* bR[64];
-    T* bTh[64];
-    T* bF[64];
-    bR[0] = gR; bTh[0] = gtheta; bF[0] = gF;
+    SFX(fl_t) c = {.E = E, .V = V, .F = F, .nt = nt, .R = R, .Fr = Fr, .edges = edges, .fidx = fidx,
+                   .vec = vec, .area = area, .perm = perm, .sign = sign, .do_s = do_s, .do_t = do_t,
+                   .do_f = do_f, .do_q = do_q, .grad = grad, .match = do_t || do_q, .power = power,
+                   .eps = eps, .gR = gR, .gF = gF, .theta = theta, .gtheta = gtheta, .unrel = unrel};
+    memset(c.part, 0, sizeof(c.part));
+    /* stripe buffers: stripe 0 writes the outputs, stripe t > 0 its slice of work */
+    c.bR[0] = gR; c.bTh[0] = gtheta; c.bF[0] = gF;
     for (int t = 1; t < nt; ++t) {
         T* base = work + (size_t)(t - 1) * (size_t)(12 * E + 9 * V);
-        bR[t] = base; bTh[t] = base + 9 * E; bF[t] = base + 12 * E;
+        c.bR[t] = base; c.bTh[t] = base + 9 * E; c.bF[t] = base + 12 * E;
     }
-    const T ws = (T)(grad ? wts[0] * 2.0 / (double)(E > 0 ? E : 1) : 0);
-    const T wt = (T)(grad ? wts[1] * 2.0 / (double)(E > 0 ? E : 1) : 0);
+    c.ws = (T)(grad ? wts[0] * 2.0 / (double)(E > 0 ? E : 1) : 0);
+    c.wt = (T)(grad ? wts[1] * 2.0 / (double)(E > 0 ? E : 1) : 0);
 
     /* ---- pass 1: edges (smooth, tie, match, solder form); gR rows written here */
-#pragma omp parallel num_threads(nt)
-    {
-        int tid = omp_get_thread_num();
-        double s_smooth = 0, s_tie = 0;
-        if (grad) {
-            if (tid > 0) memset(bR[tid], 0, sizeof(T) * (size_t)(12 * E + 9 * V));
-            else { memset(gF, 0, sizeof(T) * (size_t)(9 * V)); if (do_q) memset(gtheta, 0, sizeof(T) * (size_t)(3 * E)); }
-        }
-        T* gFb = bF[tid];
-#pragma omp barrier
-#pragma omp for schedule(static)
-        for (long e = 0; e < E; ++e) {
-            const T* Re = R + 9 * e;
-            T G[9];
-            for (int q = 0; q < 9; ++q) G[q] = 0;
-            if (do_s) {
-                T D[9], d2 = 0;
-                for (int q = 0; q < 9; ++q) { D[q] = Re[q] - ((q % 4) == 0 ? (T)1 : (T)0); d2 += D[q] * D[q]; }
-                s_smooth += SFX(rho)(d2, power, eps);
-                if (grad) {
-                    T k = ws * (T)SFX(drho)(d2, power, eps);
-                    for (int q = 0; q < 9; ++q) G[q] = k * D[q];
-                }
-            }
-            if (match) {
-                long i = edges[2 * e], j = edges[2 * e + 1];
-                const T *Fi = Fr + 9 * i, *Fj = Fr + 9 * j;
-                T FiR[9], M[9];
-                SFX(mm)(Fi, Re, FiR);
-                SFX(mtm)(Fj, FiR, M);
-                int h = SFX(best)(M);
-                unrel[e] = (unsigned char)(h == 0);
-                if (do_t) {
-                    T D[9], d2 = 0;
-                    for (int r = 0; r < 3; ++r)
-                        for (int c = 0; c < 3; ++c) {
-                            T v = FiR[3 * r + c] - sign[h][c] * Fj[3 * r + perm[h][c]];
-                            D[3 * r + c] = v;
-                            d2 += v * v;
-                        }
-                    s_tie += SFX(rho)(d2, power, eps);
-                    if (grad) {
-                        T k = wt * (T)SFX(drho)(d2, power, eps), t1[9];
-                        for (int q = 0; q < 9; ++q) D[q] *= k;  /* dL/d(F_i R) */
-                        SFX(mtm)(Fi, D, t1);                    /* F_i^T G -> R */
-                        for (int q = 0; q < 9; ++q) G[q] += t1[q];
-                        SFX(mmt)(D, Re, t1);                    /* G R^T -> F_i */
-                        T* bi = gFb + 9 * i;
-                        T* bj = gFb + 9 * j;
-                        for (int q = 0; q < 9; ++q) bi[q] += t1[q];
-                        /* -(G h^T)[r][k] = -G[r][c] sign[c] for perm[c] = k  -> F_j */
-                        for (int r = 0; r < 3; ++r)
-                            for (int c = 0; c < 3; ++c) bj[3 * r + perm[h][c]] -= D[3 * r + c] * sign[h][c];
-                    }
-                }
-                if (do_q) {
-                    T* th = theta + 3 * e;
-                    if (h == 0) {
-                        T A[9], S[9], u[3];
-                        SFX(mmt)(FiR, Fj, A);
-                        SFX(sqrt_rot)(A, S);
-                        const T* v = vec + 3 * e;
-                        for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
-                        for (int k = 0; k < 3; ++k) th[k] = Fi[k] * u[0] + Fi[3 + k] * u[1] + Fi[6 + k] * u[2];
-                    } else {
-                        th[0] = th[1] = th[2] = 0;
-                    }
-                }
-            }
-            if (grad) for (int q = 0; q < 9; ++q) gR[9 * e + q] = G[q];
-        }
-        part[tid][0] = s_smooth;
-        part[tid][1] = s_tie;
-    }
+    tc_parallel(nt, nt, SFX(pass1), &c);
 
     /* ---- pass 2: faces (flat, torsion) */
-    long n_ok = 0;
-    if (do_q) {
-#pragma omp parallel for num_threads(nt) schedule(static) reduction(+ : n_ok)
-        for (long f = 0; f < F; ++f)
-            n_ok += unrel[fidx[3 * f]] && unrel[fidx[3 * f + 1]] && unrel[fidx[3 * f + 2]];
-    }
+    c.n_ok = 0;
+    if (do_q) tc_parallel(nt, nt, SFX(count_ok), &c);
+    const long n_ok = c.n_ok;
     sums[4] = (double)n_ok;
-    const int tor = do_q && n_ok > 0;
-    if (do_f || tor) {
-        const T kf = (T)(grad ? wts[2] * 2.0 / (double)F : 0);
-        const T kq = (T)(grad && n_ok ? wts[3] * 2.0 / (double)n_ok : 0);
-#pragma omp parallel num_threads(nt)
-        {
-            int tid = omp_get_thread_num();
-            double s_flat = 0, s_tor = 0;
-            T* gRb = bR[tid];
-            T* gTb = bTh[tid];
-#pragma omp for schedule(static)
-            for (long f = 0; f < F; ++f) {
-                long ab = fidx[3 * f], bc = fidx[3 * f + 1], ac = fidx[3 * f + 2];
-                const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
-                if (do_f) {
-                    T P[9], H[9], d2 = 0;
-                    SFX(mm)(Rab, Rbc, P);
-                    SFX(mmt)(P, Rac, H);
-                    int g = SFX(best)(H);
-                    for (int c = 0; c < 3; ++c) H[3 * perm[g][c] + c] -= sign[g][c];  /* H - g */
-                    for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
-                    s_flat += d2;
-                    if (grad) {
-                        T GR[9], t1[9];
-                        for (int q = 0; q < 9; ++q) H[q] *= kf;  /* G = dL/dH */
-                        SFX(mm)(H, Rac, GR);                     /* G R_ac */
-                        SFX(mmt)(GR, Rbc, t1);                   /* -> R_ab */
-                        for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
-                        SFX(mtm)(Rab, GR, t1);                   /* -> R_bc */
-                        for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
-                        SFX(mtm)(H, P, t1);                      /* G^T P -> R_ac */
-                        for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
-                    }
-                }
-                if (tor && unrel[ab] && unrel[bc] && unrel[ac]) {
-                    const T *tab = theta + 3 * ab, *tbc = theta + 3 * bc, *tac = theta + 3 * ac;
-                    T Th[3], n2 = 0;
-                    for (int r = 0; r < 3; ++r) {
-                        Th[r] = tab[r] + Rab[3 * r] * tbc[0] + Rab[3 * r + 1] * tbc[1] + Rab[3 * r + 2] * tbc[2] - tac[r];
-                        n2 += Th[r] * Th[r];
-                    }
-                    s_tor += n2 / area[f];
-                    if (grad) {
-                        T k = kq / area[f], gT[3];
-                        for (int r = 0; r < 3; ++r) gT[r] = k * Th[r];
-                        for (int r = 0; r < 3; ++r) {
-                            gTb[3 * ab + r] += gT[r];
-                            gTb[3 * ac + r] -= gT[r];
-                            gTb[3 * bc + r] += Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
-                            for (int c = 0; c < 3; ++c) gRb[9 * ab + 3 * r + c] += gT[r] * tbc[c];
-                        }
-                    }
-                }
-            }
-            part[tid][2] = s_flat;
-            part[tid][3] = s_tor;
-        }
+    c.tor = do_q && n_ok > 0;
+    if (do_f || c.tor) {
+        c.kf = (T)(grad ? wts[2] * 2.0 / (double)F : 0);
+        c.kq = (T)(grad && n_ok ? wts[3] * 2.0 / (double)n_ok : 0);
+        tc_parallel(nt, nt, SFX(pass2), &c);
         if (grad) {
-            SFX(reduce_into)(gR, bR, nt, 9 * E);
-            if (tor) SFX(reduce_into)(gtheta, bTh, nt, 3 * E);
+            SFX(reduce_into)(gR, c.bR, nt, 9 * E);
+            if (c.tor) SFX(reduce_into)(gtheta, c.bTh, nt, 3 * E);
         }
     }
 
     /* ---- pass 3: edges, backward of the solder form t_ij = F_i^T sqrt(F_i R F_j^T) v */
-    if (grad && tor) {
-#pragma omp parallel num_threads(nt)
-        {
-            int tid = omp_get_thread_num();
-            T* gFb = bF[tid];
-#pragma omp for schedule(static)
-            for (long e = 0; e < E; ++e) {
-                const T* gt = gtheta + 3 * e;
-                if (!unrel[e] || (gt[0] == 0 && gt[1] == 0 && gt[2] == 0)) continue;
-                long i = edges[2 * e], j = edges[2 * e + 1];
-                const T *Fi = Fr + 9 * i, *Fj = Fr + 9 * j, *Re = R + 9 * e, *v = vec + 3 * e;
-                T FiR[9], A[9], S[9], u[3], gu[3], gS[9], gA[9], gFiR[9], t1[9];
-                SFX(mm)(Fi, Re, FiR);
-                SFX(mmt)(FiR, Fj, A);
-                T c = SFX(sqrt_rot)(A, S);
-                for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
-                for (int r = 0; r < 3; ++r) gu[r] = Fi[3 * r] * gt[0] + Fi[3 * r + 1] * gt[1] + Fi[3 * r + 2] * gt[2];
-                for (int r = 0; r < 3; ++r)
-                    for (int q = 0; q < 3; ++q) gS[3 * r + q] = gu[r] * v[q];
-                SFX(sqrt_rot_back)(A, c, gS, gA);
-                SFX(mm)(gA, Fj, gFiR);                       /* dA = d(FiR) Fj^T */
-                T* bi = gFb + 9 * i;
-                T* bj = gFb + 9 * j;
-                SFX(mtm)(gA, FiR, t1);                       /* gF_j += gA^T FiR */
-                for (int q = 0; q < 9; ++q) bj[q] += t1[q];
-                SFX(mmt)(gFiR, Re, t1);                      /* gF_i += gFiR R^T + u gt^T */
-                for (int r = 0; r < 3; ++r)
-                    for (int q = 0; q < 3; ++q) bi[3 * r + q] += t1[3 * r + q] + u[r] * gt[q];
-                SFX(mtm)(Fi, gFiR, t1);                      /* gR += F_i^T gFiR (own row) */
-                for (int q = 0; q < 9; ++q) gR[9 * e + q] += t1[q];
-            }
-        }
-    }
-    if (grad) SFX(reduce_into)(gF, bF, nt, 9 * V);
+    if (grad && c.tor) tc_parallel(nt, nt, SFX(pass3), &c);
+    if (grad) SFX(reduce_into)(gF, c.bF, nt, 9 * V);
 
     double s_smooth = 0, s_tie = 0, s_flat = 0, s_tor = 0;
     for (int t = 0; t < nt; ++t) {
-        s_smooth += part[t][0]; s_tie += part[t][1]; s_flat += part[t][2]; s_tor += part[t][3];
+        s_smooth += c.part[t][0]; s_tie += c.part[t][1]; s_flat += c.part[t][2]; s_tor += c.part[t][3];
     }
     sums[0] = s_smooth / (double)(E > 0 ? E : 1);
     sums[1] = s_tie / (double)(E > 0 ? E : 1);

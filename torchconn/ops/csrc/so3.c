@@ -40,8 +40,10 @@
  * Validation (so3_log_fwd_checked): the residual ||R^T R - I||_F^2 and det R are ~40 more
  * multiply-adds per element on the nine entries already in registers, in the same vectorized
  * loop, with one flag per element written to a spare row of the block buffer and summed per
- * block (OpenMP reductions give the count and the first index): +15-25% over so3_log_fwd on
- * 10^6 matrices; a separate torch check (more passes over memory) costs 10-20x the op.
+ * block (per task a count and a first index, combined with atomics: neither depends on the
+ * order); a separate torch check (more passes over memory) costs 10-20x the op.
+ *
+ * Threads: the loops run as tasks of SO3_TASK_BLOCKS blocks on the pool of pool.c (pool.c).
  *
  * The two dtypes are instantiated by including this file into itself with T = float, double.
  *
@@ -79,110 +81,42 @@
 
 #define SO3_CAT_(a, b) a##b
 #define SO3_CAT(a, b) SO3_CAT_(a, b)
-/* loops smaller than this run on the calling thread (no OpenMP team start-up) */
+/* loops smaller than this run on the calling thread (no pool wake-up) */
 #define SO3_PAR_MIN 4096L
 /* elements per block (component-major buffers of 3 x 9 x SO3_B values stay in L1) */
 #define SO3_B 128
+/* blocks per task of the pool (2048 elements, ~5-50 us of work) */
+#define SO3_TASK_BLOCKS 16L
 /* the nine statements S(0) ... S(8), written out: a loop inside the vectorized element loop
  * would be control flow that stops GCC's vectorizer */
 #define SO3_EACH9(S) S(0) S(1) S(2) S(3) S(4) S(5) S(6) S(7) S(8)
 
-/* One block of the blocked loop: rows of `a` (na components) and `b` (nb) are copied into
- * component-major buffers, KERN(A, Bg, O, j, eps2) runs on element j of the block
- * (vectorized), the nout components of O are copied back into the rows of `out`, and POST
- * (a statement, or nothing) runs on the finished block (it may read O_, i0 and m). */
-#define SO3_BLOCK_IN(a, na, b, nb)                                                            \
-        T A_[9][SO3_B], B_[9][SO3_B], O_[9][SO3_B];                                           \
-        const long i0 = blk * SO3_B;                                                          \
-        const int m = (int)(n - i0 < SO3_B ? n - i0 : SO3_B);                                 \
-        for (int j = 0; j < m; ++j)                                                           \
-            for (int k = 0; k < (na); ++k)                                                    \
-                A_[k][j] = (a)[(i0 + j) * (na) + k];                                          \
-        for (int j = 0; j < m; ++j)                                                           \
-            for (int k = 0; k < (nb); ++k)                                                    \
-                B_[k][j] = (b)[(i0 + j) * (nb) + k];
-#define SO3_BLOCK_OUT(out, nout)                                                              \
-        for (int j = 0; j < m; ++j)                                                           \
-            for (int k = 0; k < (nout); ++k)                                                  \
-                (out)[(i0 + j) * (nout) + k] = O_[k][j];
-#define SO3_BLOCK(KERN, a, na, b, nb, out, nout, POST)                                        \
-    {                                                                                         \
-        SO3_BLOCK_IN(a, na, b, nb)                                                            \
-        _Pragma("omp simd")                                                                   \
-        for (int j = 0; j < m; ++j)                                                           \
-            KERN(A_, B_, O_, j, eps2);                                                        \
-        SO3_BLOCK_OUT(out, nout)                                                              \
-        POST                                                                                  \
-    }
-
-/* Blocked loop over n elements (SO3_BLOCK on every block, blocks spread over the threads). */
-#define SO3_LOOP(KERN, a, na, b, nb, out, nout)                                               \
-    do {                                                                                      \
-        const T eps2 = (T)(eps * eps);                                                        \
-        const long nblk = (n + SO3_B - 1) / SO3_B;                                            \
-        _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN)")    \
-        for (long blk = 0; blk < nblk; ++blk)                                                 \
-            SO3_BLOCK(KERN, a, na, b, nb, out, nout, )                                        \
-    } while (0)
-
 /* kernels run by SO3_RUNNER: inlined there whatever their size (a call stops the vectorizer) */
 #define SO3_INLINE __attribute__((always_inline)) static inline
 
-/* The vectorized element loop of KERN on the m elements of a block, as a function of its own
- * (SO3_LOOP_IF: with two such loops in one function GCC 12 vectorizes only one of them) */
+/* The vectorized element loop of KERN(A, Bg, O, j, eps2) on the m elements of a block, as a
+ * function of its own (a runner: with two such loops in one function GCC 12 vectorizes only
+ * one of them). SO3_RUNNER_TOL: KERN also takes tol2. */
 #define SO3_RUNNER(NAME, KERN)                                                                \
     __attribute__((noinline)) static void NAME(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O,   \
-                                               int m, T eps2)                                 \
+                                               int m, T eps2, T tol2)                         \
     {                                                                                         \
+        (void)tol2;                                                                           \
         _Pragma("omp simd")                                                                   \
         for (int j = 0; j < m; ++j)                                                           \
             KERN(A, Bg, O, j, eps2);                                                          \
     }
-
-/* SO3_LOOP with a fast path: the runner FAST instead of KERN on a block where FAST_IF(A_, j)
- * holds for every element; FAST computes only the branch that KERN selects for such elements,
- * with the same expressions (the same values, bitwise), without evaluating the others. */
-#define SO3_LOOP_IF(KERN, FAST, FAST_IF, a, na, b, nb, out, nout)                             \
-    do {                                                                                      \
-        const T eps2 = (T)(eps * eps);                                                        \
-        const long nblk = (n + SO3_B - 1) / SO3_B;                                            \
-        _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN)")    \
-        for (long blk = 0; blk < nblk; ++blk) {                                               \
-            SO3_BLOCK_IN(a, na, b, nb)                                                        \
-            int fast_ = 1;                                                                    \
-            for (int j = 0; j < m; ++j)                                                       \
-                fast_ &= FAST_IF(A_, j);                                                      \
-            (fast_ ? FAST : KERN)(A_, B_, O_, m, eps2);                                       \
-            SO3_BLOCK_OUT(out, nout)                                                          \
-        }                                                                                     \
-    } while (0)
-
-/* The same loop where KERN also writes a flag (0 or 1, as T) into row `nout` of O: counts the
- * flagged elements into `nbad` and the smallest flagged index into `first` (OpenMP reductions;
- * the flag row of a block is scanned once more only if it holds a flag). KERN reads the
- * threshold `tol2` from the enclosing function's scope. */
-#define SO3_FLAG_SCAN(nout)                                                                   \
+#define SO3_RUNNER_TOL(NAME, KERN)                                                            \
+    __attribute__((noinline)) static void NAME(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O,   \
+                                               int m, T eps2, T tol2)                         \
     {                                                                                         \
-        int c_ = 0;                                                                           \
+        _Pragma("omp simd")                                                                   \
         for (int j = 0; j < m; ++j)                                                           \
-            c_ += O_[nout][j] != (T)0;                                                        \
-        if (c_) {                                                                             \
-            nbad += c_;                                                                       \
-            for (int j = 0; j < m; ++j)                                                       \
-                if (O_[nout][j] != (T)0) {                                                    \
-                    if (i0 + j < first) first = i0 + j;                                       \
-                    break;                                                                    \
-                }                                                                             \
-        }                                                                                     \
+            KERN(A, Bg, O, j, eps2, tol2);                                                    \
     }
-#define SO3_LOOP_FLAG(KERN, a, na, b, nb, out, nout)                                          \
-    do {                                                                                      \
-        const T eps2 = (T)(eps * eps);                                                        \
-        const long nblk = (n + SO3_B - 1) / SO3_B;                                            \
-        _Pragma("omp parallel for num_threads(nt) schedule(static) if (n >= SO3_PAR_MIN) reduction(+: nbad) reduction(min: first)") \
-        for (long blk = 0; blk < nblk; ++blk)                                                 \
-            SO3_BLOCK(KERN, a, na, b, nb, out, nout, SO3_FLAG_SCAN(nout))                     \
-    } while (0)
+
+#define TC_POOL_CLIENT
+#include "pool.c" /* tc_parallel */
 
 #define SO3_T float
 #define SO3_F32 1
@@ -375,6 +309,102 @@ SO3_INLINE T FN(atan2v)(T y, T x)
 #undef SO3_PI_HI
 #undef SO3_PI_LO
 
+/* ---------------------------------------------------------------- the blocked loop */
+
+typedef void (*FN(run_t))(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int m, T eps2, T tol2);
+typedef int (*FN(if_t))(FN(blk_t) *A, int m);
+
+#ifndef SO3_KERNELS_ONLY
+/* One blocked loop over n elements: per block of SO3_B elements, the rows of `a` (na = 3 or 9
+ * components) and `b` (nb = 0, 3 or 9) are copied into component-major buffers, a runner
+ * computes O (`fast` on a block where fast_if holds, else `kern`) and its nout rows go back
+ * into the rows of `out`. With flag >= 0, row `flag` of O holds a 0/1 flag per element:
+ * nbad counts them, first is the smallest flagged index (n if none). The tasks of the pool
+ * are runs of SO3_TASK_BLOCKS blocks; every element is computed the same way whichever thread
+ * runs it, and count and minimum do not depend on the order. */
+typedef struct {
+    const T *a, *b;
+    T *out;
+    long n;
+    int na, nb, nout, flag;
+    FN(run_t) kern, fast;
+    FN(if_t) fast_if;
+    T eps2, tol2;
+    long nbad, first;
+} FN(loop_t);
+
+/* the m rows of K components at src into the columns of D (K a constant where inlined) */
+SO3_INLINE void FN(rows_in)(FN(blk_t) *D, const T *src, int m, int K)
+{
+    for (int j = 0; j < m; ++j)
+        for (int k = 0; k < K; ++k)
+            D[k][j] = src[(long)j * K + k];
+}
+
+SO3_INLINE void FN(rows_out)(T *dst, FN(blk_t) *D, int m, int K)
+{
+    for (int j = 0; j < m; ++j)
+        for (int k = 0; k < K; ++k)
+            dst[(long)j * K + k] = D[k][j];
+}
+
+static void FN(loop_task)(void *vc, long task)
+{
+    FN(loop_t) *c = (FN(loop_t) *)vc;
+    T A_[9][SO3_B], B_[9][SO3_B], O_[9][SO3_B];
+    const long nblk = (c->n + SO3_B - 1) / SO3_B;
+    const long b0 = task * SO3_TASK_BLOCKS;
+    const long b1 = b0 + SO3_TASK_BLOCKS < nblk ? b0 + SO3_TASK_BLOCKS : nblk;
+    long nbad = 0, first = c->n;
+    for (long blk = b0; blk < b1; ++blk) {
+        const long i0 = blk * SO3_B;
+        const int m = (int)(c->n - i0 < SO3_B ? c->n - i0 : SO3_B);
+        if (c->na == 9)
+            FN(rows_in)(A_, c->a + i0 * 9, m, 9);
+        else
+            FN(rows_in)(A_, c->a + i0 * 3, m, 3);
+        if (c->nb == 9)
+            FN(rows_in)(B_, c->b + i0 * 9, m, 9);
+        else if (c->nb == 3)
+            FN(rows_in)(B_, c->b + i0 * 3, m, 3);
+        (c->fast && c->fast_if(A_, m) ? c->fast : c->kern)(A_, B_, O_, m, c->eps2, c->tol2);
+        if (c->nout == 9)
+            FN(rows_out)(c->out + i0 * 9, O_, m, 9);
+        else
+            FN(rows_out)(c->out + i0 * 3, O_, m, 3);
+        if (c->flag >= 0) {
+            int cnt = 0;
+            for (int j = 0; j < m; ++j)
+                cnt += O_[c->flag][j] != K(0.0);
+            if (cnt) {
+                nbad += cnt;
+                for (int j = 0; j < m; ++j)
+                    if (O_[c->flag][j] != K(0.0)) {
+                        if (i0 + j < first)
+                            first = i0 + j;
+                        break;
+                    }
+            }
+        }
+    }
+    if (nbad) {
+        __atomic_add_fetch(&c->nbad, nbad, __ATOMIC_RELAXED);
+        long cur = __atomic_load_n(&c->first, __ATOMIC_RELAXED);
+        while (first < cur && !__atomic_compare_exchange_n(&c->first, &cur, first, 0, __ATOMIC_RELAXED,
+                                                           __ATOMIC_RELAXED))
+            ;
+    }
+}
+
+static void FN(loop)(FN(loop_t) *c, int nt)
+{
+    c->nbad = 0;
+    c->first = c->n;
+    tc_parallel(tc_tasks((c->n + SO3_B - 1) / SO3_B, SO3_TASK_BLOCKS), c->n >= SO3_PAR_MIN ? nt : 1,
+                FN(loop_task), c);
+}
+#endif /* SO3_KERNELS_ONLY */
+
 /* ---------------------------------------------------------------- exp */
 
 /* A = sin t / t, B = (1 - cos t) / t^2 and, if der, dA/d(t^2), dB/d(t^2) (_so3_formulas.exp_coeffs,
@@ -483,19 +513,29 @@ SO3_RUNNER(FN(exp_bwd_lm_run), FN(exp_bwd_lm_k))
 
 /* Blocks whose every angle |w| is below SO3_TRIG_MAX (or NaN) run the vectorized sincos, the
  * others libm's sin and cos (the reduction is exact only up to there). */
-#define SO3_TRIG_OK(A_, j) (!((A_)[0][j] * (A_)[0][j] + (A_)[1][j] * (A_)[1][j]                 \
-                              + (A_)[2][j] * (A_)[2][j] >= SO3_TRIG_MAX * SO3_TRIG_MAX))
+static int FN(trig_ok)(FN(blk_t) *A, int m)
+{
+    int ok = 1;
+    for (int j = 0; j < m; ++j)
+        ok &= !(A[0][j] * A[0][j] + A[1][j] * A[1][j] + A[2][j] * A[2][j] >= SO3_TRIG_MAX * SO3_TRIG_MAX);
+    return ok;
+}
 
 void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
 {
-    SO3_LOOP_IF(FN(exp_fwd_lm_run), FN(exp_fwd_vm_run), SO3_TRIG_OK, w, 3, w, 0, R, 9);
+    FN(loop_t) c = {.a = w, .b = w, .out = R, .n = n, .na = 3, .nb = 0, .nout = 9, .flag = -1,
+                    .kern = FN(exp_fwd_lm_run), .fast = FN(exp_fwd_vm_run), .fast_if = FN(trig_ok),
+                    .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
 }
 
 void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps)
 {
-    SO3_LOOP_IF(FN(exp_bwd_lm_run), FN(exp_bwd_vm_run), SO3_TRIG_OK, w, 3, gR, 9, gw, 3);
+    FN(loop_t) c = {.a = w, .b = gR, .out = gw, .n = n, .na = 3, .nb = 9, .nout = 3, .flag = -1,
+                    .kern = FN(exp_bwd_lm_run), .fast = FN(exp_bwd_vm_run), .fast_if = FN(trig_ok),
+                    .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
 }
-#undef SO3_TRIG_OK
 #endif /* SO3_KERNELS_ONLY */
 
 /* ---------------------------------------------------------------- log */
@@ -617,7 +657,7 @@ static inline void FN(log_bwd1)(const T *r, const T *gw, T eps2, T *gr)
     gr[5] = K(0.5) * go12 - K(0.5) * gvx; gr[7] = K(0.5) * go12 + K(0.5) * gvx;
 }
 
-static inline void FN(log_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(log_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
 {
     (void)Bg;
     T r[9], w[3];
@@ -628,7 +668,7 @@ static inline void FN(log_fwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
     O[0][j] = w[0]; O[1][j] = w[1]; O[2][j] = w[2];
 }
 
-static inline void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
+SO3_INLINE void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2)
 {
     T r[9], gw[3] = {Bg[0][j], Bg[1][j], Bg[2][j]}, gr[9];
 #define SO3_S(k) r[k] = A[k][j];
@@ -641,9 +681,14 @@ static inline void FN(log_bwd_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
 }
 
 #ifndef SO3_KERNELS_ONLY
+SO3_RUNNER(FN(log_fwd_run), FN(log_fwd_k))
+SO3_RUNNER(FN(log_bwd_run), FN(log_bwd_k))
+
 void FN(so3_log_fwd)(const T *R, T *w, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(log_fwd_k), R, 9, R, 0, w, 3);
+    FN(loop_t) c = {.a = R, .b = R, .out = w, .n = n, .na = 9, .nb = 0, .nout = 3, .flag = -1,
+                    .kern = FN(log_fwd_run), .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
 }
 #endif /* SO3_KERNELS_ONLY */
 
@@ -666,7 +711,7 @@ static inline int FN(not_rotation)(const T *r, T tol2)
 }
 
 /* log_fwd_k plus the flag of not_rotation in row 3 of O (w is computed exactly as there) */
-static inline void FN(log_chk_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2, T tol2)
+SO3_INLINE void FN(log_chk_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int j, T eps2, T tol2)
 {
     (void)Bg;
     T r[9], w[3];
@@ -682,20 +727,22 @@ static inline void FN(log_chk_k)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int 
  * not rotations within tol (Frobenius norm of R^T R - I, det < 0, NaN/inf) and writes the
  * smallest such index to *first (n if there is none). */
 #ifndef SO3_KERNELS_ONLY
+SO3_RUNNER_TOL(FN(log_chk_run), FN(log_chk_k))
+
 long FN(so3_log_fwd_checked)(const T *R, T *w, long n, int nt, double eps, double tol, long *first_out)
 {
-    const T tol2 = (T)(tol * tol);
-    long nbad = 0, first = n;
-#define SO3_LOGCHK_K(A, Bg, O, j, e2) FN(log_chk_k)(A, Bg, O, j, e2, tol2)
-    SO3_LOOP_FLAG(SO3_LOGCHK_K, R, 9, R, 0, w, 3);
-#undef SO3_LOGCHK_K
-    *first_out = first;
-    return nbad;
+    FN(loop_t) c = {.a = R, .b = R, .out = w, .n = n, .na = 9, .nb = 0, .nout = 3, .flag = 3,
+                    .kern = FN(log_chk_run), .eps2 = (T)(eps * eps), .tol2 = (T)(tol * tol)};
+    FN(loop)(&c, nt);
+    *first_out = c.first;
+    return c.nbad;
 }
 
 void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps)
 {
-    SO3_LOOP(FN(log_bwd_k), R, 9, gw, 3, gR, 9);
+    FN(loop_t) c = {.a = R, .b = gw, .out = gR, .n = n, .na = 9, .nb = 3, .nout = 9, .flag = -1,
+                    .kern = FN(log_bwd_run), .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
 }
 #endif /* SO3_KERNELS_ONLY */
 
@@ -835,21 +882,8 @@ SO3_RUNNER(FN(sqrt_fwd_pos_run), FN(sqrt_fwd_pos_k))
 SO3_RUNNER(FN(sqrt_bwd_run), FN(sqrt_bwd_k))
 SO3_RUNNER(FN(sqrt_bwd_pos_run), FN(sqrt_bwd_pos_k))
 
-#ifndef SO3_KERNELS_ONLY
-void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
-{
-    SO3_LOOP_IF(FN(sqrt_fwd_run), FN(sqrt_fwd_pos_run), SO3_POS_TRACE, R, 9, R, 0, S, 9);
-}
-
-void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps)
-{
-    SO3_LOOP_IF(FN(sqrt_bwd_run), FN(sqrt_bwd_pos_run), SO3_POS_TRACE, R, 9, gS, 9, gR, 9);
-}
-#else
-/* For the including file: sqrt (and its backward for the gradient Bg) of the m <= SO3_B
- * matrices of a component-major block A, into O; the same runners, chosen the same way, as
- * so3_sqrt_fwd / so3_sqrt_bwd (so the same values, bitwise). */
-static inline int FN(sqrt_block_pos)(FN(blk_t) *A_, int m)
+/* whether every matrix of the block has tr R > 0 (the runners ..._pos_run apply) */
+static int FN(sqrt_block_pos)(FN(blk_t) *A_, int m)
 {
     int fast_ = 1;
     for (int j = 0; j < m; ++j)
@@ -857,14 +891,34 @@ static inline int FN(sqrt_block_pos)(FN(blk_t) *A_, int m)
     return fast_;
 }
 
+#ifndef SO3_KERNELS_ONLY
+void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
+{
+    FN(loop_t) c = {.a = R, .b = R, .out = S, .n = n, .na = 9, .nb = 0, .nout = 9, .flag = -1,
+                    .kern = FN(sqrt_fwd_run), .fast = FN(sqrt_fwd_pos_run),
+                    .fast_if = FN(sqrt_block_pos), .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
+}
+
+void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps)
+{
+    FN(loop_t) c = {.a = R, .b = gS, .out = gR, .n = n, .na = 9, .nb = 9, .nout = 9, .flag = -1,
+                    .kern = FN(sqrt_bwd_run), .fast = FN(sqrt_bwd_pos_run),
+                    .fast_if = FN(sqrt_block_pos), .eps2 = (T)(eps * eps)};
+    FN(loop)(&c, nt);
+}
+#else
+/* For the including file: sqrt (and its backward for the gradient Bg) of the m <= SO3_B
+ * matrices of a component-major block A, into O; the same runners, chosen the same way, as
+ * so3_sqrt_fwd / so3_sqrt_bwd (so the same values, bitwise). */
 static inline void FN(sqrt_fwd_block)(FN(blk_t) *A, FN(blk_t) *O, int m, T eps2)
 {
-    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_fwd_pos_run) : FN(sqrt_fwd_run))(A, A, O, m, eps2);
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_fwd_pos_run) : FN(sqrt_fwd_run))(A, A, O, m, eps2, K(0.0));
 }
 
 static inline void FN(sqrt_bwd_block)(FN(blk_t) *A, FN(blk_t) *Bg, FN(blk_t) *O, int m, T eps2)
 {
-    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_bwd_pos_run) : FN(sqrt_bwd_run))(A, Bg, O, m, eps2);
+    (FN(sqrt_block_pos)(A, m) ? FN(sqrt_bwd_pos_run) : FN(sqrt_bwd_run))(A, Bg, O, m, eps2, K(0.0));
 }
 #endif /* SO3_KERNELS_ONLY */
 

@@ -26,7 +26,7 @@
  * edge is in a fixed order, whatever the number of threads), and the colors one after the other.
  *
  * The √R variant (tet_dds_*) forms θ̃_ij = H_e v_e, θ̃_ji = -H_e^T v_e once per *edge* in a
- * first pass (OpenMP over edges) into a scratch it maps itself (tet_scratch), then runs the
+ * first pass (parallel over edges) into a scratch it maps itself (tet_scratch), then runs the
  * kernels above; its backward turns the gradient of every directed θ̃ into those of H and v in
  * a last pass over edges. The fused variant (tet_ddr_*) also forms H = √R_e in those passes.
  *
@@ -76,8 +76,17 @@ static void *tet_scratch(size_t bytes)
 #define TET_CAT(a, b) TET_CAT_(a, b)
 /* tets per lane block: one 512-bit register of float32 lanes */
 #define LANES 16
-/* loops over fewer edges than this run on the calling thread (no OpenMP team start-up) */
+/* loops over fewer edges than this run on the calling thread (no pool wake-up) */
 #define TET_PAR_MIN 32768L
+/* tet loops over fewer tets than this too */
+#define TET_PAR_MIN_TETS 4096L
+/* lane blocks (of LANES tets) / edges / SO3_B-edge blocks per task of the pool */
+#define TET_TASK_BLOCKS 16L
+#define TET_TASK_EDGES 4096L
+#define TET_TASK_SO3 16L
+
+#define TC_POOL_CLIENT
+#include "pool.c" /* tc_parallel */
 
 #if defined(__AVX512F__)
 #include <immintrin.h>
@@ -329,39 +338,68 @@ static inline void FN(scatter)(const FN(gblock) *o, int l, const int64_t *ri, co
     }
 }
 
+/* the arguments of the loops below over one batch item (tasks: see each loop) */
+typedef struct {
+    const T_ *rot, *th, *half, *vec, *gin;
+    const int64_t *ridx, *tidx, *order, *chunk_start;
+    T_ *out, *grot, *gth, *ghalf, *gvec;
+    int64_t E, T, c0, nc, th_stride;
+    T_ eps2;
+} FN(args_t);
+
+/* task: TET_TASK_BLOCKS lane blocks of tets */
+static void FN(fwd_task)(void *vc, long task)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t T = c->T, nblk = (T + LANES - 1) / LANES;
+    const int64_t w1 = (task + 1) * TET_TASK_BLOCKS < nblk ? (task + 1) * TET_TASK_BLOCKS : nblk;
+    for (int64_t w = task * TET_TASK_BLOCKS; w < w1; w++) {
+        FN(block) b;
+        const int64_t k0 = w * LANES;
+        const int n = (int)(T - k0 < LANES ? T - k0 : LANES);
+        const int64_t *ris[LANES], *tis[LANES];
+        for (int l = 0; l < n; l++) {
+            ris[l] = c->ridx + 6 * (k0 + l);
+            tis[l] = c->tidx + 7 * (k0 + l);
+        }
+        FN(gather_block)(&b, n, c->rot, c->th, ris, tis);
+        FN(block_fwd)(&b);
+        for (int l = 0; l < n; l++)
+            for (int i = 0; i < 3; i++)
+                c->out[3 * (k0 + l) + i] = b.g[i][l];
+    }
+}
+
 void FN(tet_dd_fwd)(const T_ *rot, const T_ *th, const int64_t *ridx, const int64_t *tidx, T_ *out,
                     int64_t nb, int64_t E, int64_t T, int threads)
 {
     const int64_t nblk = (T + LANES - 1) / LANES;
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *rb = rot + bi * 9 * E, *tb = th + bi * 6 * E;
-        T_ *ob = out + bi * 3 * T;
-#pragma omp parallel for schedule(static) num_threads(threads)
-        for (int64_t w = 0; w < nblk; w++) {
-            FN(block) b;
-            const int64_t k0 = w * LANES;
-            const int n = (int)(T - k0 < LANES ? T - k0 : LANES);
-            const int64_t *ris[LANES], *tis[LANES];
-            for (int l = 0; l < n; l++) {
-                ris[l] = ridx + 6 * (k0 + l);
-                tis[l] = tidx + 7 * (k0 + l);
-            }
-            FN(gather_block)(&b, n, rb, tb, ris, tis);
-            FN(block_fwd)(&b);
-            for (int l = 0; l < n; l++)
-                for (int i = 0; i < 3; i++)
-                    ob[3 * (k0 + l) + i] = b.g[i][l];
-        }
+        FN(args_t) c = {.rot = rot + bi * 9 * E, .th = th + bi * 6 * E, .ridx = ridx, .tidx = tidx,
+                        .out = out + bi * 3 * T, .E = E, .T = T};
+        tc_parallel(tc_tasks(nblk, TET_TASK_BLOCKS), T >= TET_PAR_MIN_TETS ? threads : 1, FN(fwd_task), &c);
     }
 }
 
-/* zero n entries, in parallel when large (the first touch of fresh output pages) */
+/* zero n entries, in parallel when large (the first touch of fresh output pages); a task
+ * zeroes TET_ZERO_STEP entries */
+#define TET_ZERO_STEP (1L << 16)
+typedef struct {
+    T_ *x;
+    int64_t n;
+} FN(zero_t);
+
+static void FN(zero_task)(void *vc, long task)
+{
+    const FN(zero_t) *c = (const FN(zero_t) *)vc;
+    const int64_t s = task * TET_ZERO_STEP;
+    memset(c->x + s, 0, sizeof(T_) * (size_t)(c->n - s < TET_ZERO_STEP ? c->n - s : TET_ZERO_STEP));
+}
+
 static void FN(zero)(T_ *x, int64_t n, int threads)
 {
-    const int64_t step = 1 << 16;
-#pragma omp parallel for schedule(static) num_threads(threads) if (n >= 16 * step)
-    for (int64_t s = 0; s < n; s += step)
-        memset(x + s, 0, sizeof(T_) * (size_t)(n - s < step ? n - s : step));
+    FN(zero_t) c = {x, n};
+    tc_parallel(tc_tasks(n, TET_ZERO_STEP), n >= 16 * TET_ZERO_STEP ? threads : 1, FN(zero_task), &c);
 }
 
 /* prefetch the rows of tets order[s .. min(s + LANES, end)) (read: rotations, θ̃; added to: grot,
@@ -386,42 +424,52 @@ __attribute__((always_inline)) static inline void FN(prefetch)(
     }
 }
 
-/* the chunks of one color, for every batch item: grot (nb, E, 9), gth (nb, E, 2, 3) accumulated
- * (zeroed by the caller); item bi's θ̃ at tb + bi * th_stride */
+/* task w: chunk c0 + w % nc of one color for batch item w / nc: grot (nb, E, 9), gth (nb, E, 2,
+ * 3) accumulated (zeroed by the caller); item bi's θ̃ at th + bi * th_stride. The chunks of one
+ * color touch disjoint edges within an item, the items disjoint memory: tasks never race, and
+ * each edge's sum is in a fixed order */
+static void FN(bwd_chunk_task)(void *vc, long w)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t E = c->E, T = c->T;
+    const int64_t bi = w / c->nc, ch = c->c0 + w % c->nc;
+    const int64_t *ridx = c->ridx, *tidx = c->tidx, *order = c->order, *chunk_start = c->chunk_start;
+    const T_ *r = c->rot + bi * 9 * E, *t = c->th + bi * c->th_stride, *g = c->gin + bi * 3 * T;
+    T_ *gr = c->grot + bi * 9 * E, *gt = c->gth + bi * 6 * E;
+    FN(block) b;
+    FN(gblock) o;
+    for (int64_t s0 = chunk_start[ch]; s0 < chunk_start[ch + 1]; s0 += LANES) {
+        const int n = (int)(chunk_start[ch + 1] - s0 < LANES ? chunk_start[ch + 1] - s0 : LANES);
+        const int64_t *ris[LANES], *tis[LANES];
+        for (int l = 0; l < LANES; l++) {
+            const int64_t k = order[s0 + (l < n ? l : 0)];
+            ris[l] = ridx + 6 * k;
+            tis[l] = tidx + 7 * k;
+            b.g[0][l] = l < n ? g[3 * k] : 0;
+            b.g[1][l] = l < n ? g[3 * k + 1] : 0;
+            b.g[2][l] = l < n ? g[3 * k + 2] : 0;
+        }
+        FN(gather_block)(&b, n, r, t, ris, tis);
+        FN(prefetch)(r, t, gr, gt, ridx, tidx, order, s0 + LANES, chunk_start[ch + 1]);
+        FN(block_bwd)(&b, &o);
+        for (int l = 0; l < n; l++) {
+            const int64_t k = order[s0 + l];
+            FN(scatter)(&o, l, ridx + 6 * k, tidx + 7 * k, gr, gt);
+        }
+    }
+}
+
+/* the chunks of one color, for every batch item (see bwd_chunk_task) */
 static void FN(bwd_item_chunks)(const T_ *rb, const T_ *tb, const T_ *gb, const int64_t *ridx,
                                 const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
                                 int64_t c0, int64_t nc, int64_t nb, int64_t E, int64_t T,
                                 int64_t th_stride, T_ *grot, T_ *gth, int threads)
 {
-    /* (batch item, chunk) pairs of one color: disjoint edges within an item, disjoint memory
-     * across items */
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-    for (int64_t w = 0; w < nb * nc; w++) {
-        const int64_t bi = w / nc, ch = c0 + w % nc;
-        const T_ *r = rb + bi * 9 * E, *t = tb + bi * th_stride, *g = gb + bi * 3 * T;
-        T_ *gr = grot + bi * 9 * E, *gt = gth + bi * 6 * E;
-        FN(block) b;
-        FN(gblock) o;
-        for (int64_t s0 = chunk_start[ch]; s0 < chunk_start[ch + 1]; s0 += LANES) {
-            const int n = (int)(chunk_start[ch + 1] - s0 < LANES ? chunk_start[ch + 1] - s0 : LANES);
-            const int64_t *ris[LANES], *tis[LANES];
-            for (int l = 0; l < LANES; l++) {
-                const int64_t k = order[s0 + (l < n ? l : 0)];
-                ris[l] = ridx + 6 * k;
-                tis[l] = tidx + 7 * k;
-                b.g[0][l] = l < n ? g[3 * k] : 0;
-                b.g[1][l] = l < n ? g[3 * k + 1] : 0;
-                b.g[2][l] = l < n ? g[3 * k + 2] : 0;
-            }
-            FN(gather_block)(&b, n, r, t, ris, tis);
-            FN(prefetch)(r, t, gr, gt, ridx, tidx, order, s0 + LANES, chunk_start[ch + 1]);
-            FN(block_bwd)(&b, &o);
-            for (int l = 0; l < n; l++) {
-                const int64_t k = order[s0 + l];
-                FN(scatter)(&o, l, ridx + 6 * k, tidx + 7 * k, gr, gt);
-            }
-        }
-    }
+    FN(args_t) c = {.rot = rb, .th = tb, .gin = gb, .ridx = ridx, .tidx = tidx, .order = order,
+                    .chunk_start = chunk_start, .grot = grot, .gth = gth, .E = E, .T = T, .c0 = c0,
+                    .nc = nc, .th_stride = th_stride};
+    const int64_t tets = nc > 0 ? chunk_start[c0 + nc] - chunk_start[c0] : 0;
+    tc_parallel(nb * nc, tets * nb >= TET_PAR_MIN_TETS ? threads : 1, FN(bwd_chunk_task), &c);
 }
 
 void FN(tet_dd_bwd)(const T_ *rot, const T_ *th, const T_ *gin, const int64_t *ridx,
@@ -441,21 +489,26 @@ void FN(tet_dd_bwd)(const T_ *rot, const T_ *th, const T_ *gin, const int64_t *r
  * half (nb, E, 9), vec (E, 3) shared by the batch; ghalf (nb, E, 9), gvec (nb, E, 3) per item
  * (summed by the caller) */
 
-/* θ̃ (nb, E, 2, 3) of every edge, one pass over the edges */
+/* θ̃ (nb, E, 2, 3) of every edge, one pass over the edges; task: TET_TASK_EDGES edges */
+static void FN(theta_sqrt_task)(void *vc, long task)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t e1 = (task + 1) * TET_TASK_EDGES < c->E ? (task + 1) * TET_TASK_EDGES : c->E;
+    for (int64_t e = task * TET_TASK_EDGES; e < e1; e++) {
+        const T_ *H = c->half + 9 * e, *v = c->vec + 3 * e;
+        T_ *t = c->out + 6 * e;
+        for (int i = 0; i < 3; i++) {
+            t[i] = H[3 * i] * v[0] + H[3 * i + 1] * v[1] + H[3 * i + 2] * v[2];
+            t[3 + i] = -(H[i] * v[0] + H[3 + i] * v[1] + H[6 + i] * v[2]);
+        }
+    }
+}
+
 static void FN(theta_sqrt)(const T_ *half, const T_ *vec, T_ *theta, int64_t nb, int64_t E, int threads)
 {
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *hb = half + bi * 9 * E;
-        T_ *tb = theta + bi * 6 * E;
-#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
-        for (int64_t e = 0; e < E; e++) {
-            const T_ *H = hb + 9 * e, *v = vec + 3 * e;
-            T_ *t = tb + 6 * e;
-            for (int i = 0; i < 3; i++) {
-                t[i] = H[3 * i] * v[0] + H[3 * i + 1] * v[1] + H[3 * i + 2] * v[2];
-                t[3 + i] = -(H[i] * v[0] + H[3 + i] * v[1] + H[6 + i] * v[2]);
-            }
-        }
+        FN(args_t) c = {.half = half + bi * 9 * E, .vec = vec, .out = theta + bi * 6 * E, .E = E};
+        tc_parallel(tc_tasks(E, TET_TASK_EDGES), E >= TET_PAR_MIN ? threads : 1, FN(theta_sqrt_task), &c);
     }
 }
 
@@ -470,6 +523,24 @@ int FN(tet_dds_fwd)(const T_ *rot, const T_ *half, const T_ *vec, const int64_t 
     FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
     munmap(theta, bytes ? bytes : 1);
     return 0;
+}
+
+/* ghalf, gvec of the edges of a task (TET_TASK_EDGES) from ∂L/∂θ̃ (gth) */
+static void FN(dds_grad_task)(void *vc, long task)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t e1 = (task + 1) * TET_TASK_EDGES < c->E ? (task + 1) * TET_TASK_EDGES : c->E;
+    for (int64_t e = task * TET_TASK_EDGES; e < e1; e++) {
+        const T_ *H = c->half + 9 * e, *v = c->vec + 3 * e, *gp = c->gth + 6 * e, *gm = gp + 3;
+        /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
+        T_ *gH = c->ghalf + 9 * e;
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                gH[3 * i + j] = gp[i] * v[j] - v[i] * gm[j];
+        for (int i = 0; i < 3; i++)
+            c->gvec[3 * e + i] = (H[i] * gp[0] + H[3 + i] * gp[1] + H[6 + i] * gp[2])
+                               - (H[3 * i] * gm[0] + H[3 * i + 1] * gm[1] + H[3 * i + 2] * gm[2]);
+    }
 }
 
 int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
@@ -493,20 +564,9 @@ int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
                             color_start[c + 1] - color_start[c], nb, E, T, 9 * E, grot, gth,
                             threads);
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *hb = half + bi * 9 * E, *gtb = gth + bi * 6 * E;
-        T_ *ghb = ghalf + bi * 9 * E, *gvb = gvec + bi * 3 * E;
-#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
-        for (int64_t e = 0; e < E; e++) {
-            const T_ *H = hb + 9 * e, *v = vec + 3 * e, *gp = gtb + 6 * e, *gm = gp + 3;
-            /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
-            T_ *gH = ghb + 9 * e;
-            for (int i = 0; i < 3; i++)
-                for (int j = 0; j < 3; j++)
-                    gH[3 * i + j] = gp[i] * v[j] - v[i] * gm[j];
-            for (int i = 0; i < 3; i++)
-                gvb[3 * e + i] = (H[i] * gp[0] + H[3 + i] * gp[1] + H[6 + i] * gp[2])
-                               - (H[3 * i] * gm[0] + H[3 * i + 1] * gm[1] + H[3 * i + 2] * gm[2]);
-        }
+        FN(args_t) c = {.half = half + bi * 9 * E, .vec = vec, .gth = gth + bi * 6 * E,
+                        .ghalf = ghalf + bi * 9 * E, .gvec = gvec + bi * 3 * E, .E = E};
+        tc_parallel(tc_tasks(E, TET_TASK_EDGES), E >= TET_PAR_MIN ? threads : 1, FN(dds_grad_task), &c);
     }
     munmap(gth, bytes ? bytes : 1);
     return 0;
@@ -519,32 +579,38 @@ int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
 
 #define SO3FN(name) TET_CAT(name, TET_SUF)
 
-/* θ̃ of every edge from R (nb, E, 9): roots by blocks of SO3_B edges */
+/* θ̃ of every edge from R (nb, E, 9): roots by blocks of SO3_B edges; task: TET_TASK_SO3 blocks */
+static void FN(theta_rot_task)(void *vc, long task)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t E = c->E, nblk = (E + SO3_B - 1) / SO3_B;
+    const int64_t w1 = (task + 1) * TET_TASK_SO3 < nblk ? (task + 1) * TET_TASK_SO3 : nblk;
+    for (int64_t w = task * TET_TASK_SO3; w < w1; w++) {
+        SO3FN(blk_t) A[9], O[9];
+        const int64_t e0 = w * SO3_B;
+        const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+        for (int j = 0; j < m; j++)
+            for (int q = 0; q < 9; q++)
+                A[q][j] = c->rot[9 * (e0 + j) + q];
+        SO3FN(sqrt_fwd_block)(A, O, m, c->eps2);
+        for (int j = 0; j < m; j++) {
+            const T_ *v = c->vec + 3 * (e0 + j);
+            T_ *t = c->out + 6 * (e0 + j);
+            for (int i = 0; i < 3; i++) {
+                t[i] = O[3 * i][j] * v[0] + O[3 * i + 1][j] * v[1] + O[3 * i + 2][j] * v[2];
+                t[3 + i] = -(O[i][j] * v[0] + O[3 + i][j] * v[1] + O[6 + i][j] * v[2]);
+            }
+        }
+    }
+}
+
 static void FN(theta_rot)(const T_ *rot, const T_ *vec, T_ *theta, int64_t nb, int64_t E, int threads,
                           T_ eps2)
 {
     const int64_t nblk = (E + SO3_B - 1) / SO3_B;
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *rb = rot + bi * 9 * E;
-        T_ *tb = theta + bi * 6 * E;
-#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
-        for (int64_t w = 0; w < nblk; w++) {
-            SO3FN(blk_t) A[9], O[9];
-            const int64_t e0 = w * SO3_B;
-            const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
-            for (int j = 0; j < m; j++)
-                for (int q = 0; q < 9; q++)
-                    A[q][j] = rb[9 * (e0 + j) + q];
-            SO3FN(sqrt_fwd_block)(A, O, m, eps2);
-            for (int j = 0; j < m; j++) {
-                const T_ *v = vec + 3 * (e0 + j);
-                T_ *t = tb + 6 * (e0 + j);
-                for (int i = 0; i < 3; i++) {
-                    t[i] = O[3 * i][j] * v[0] + O[3 * i + 1][j] * v[1] + O[3 * i + 2][j] * v[2];
-                    t[3 + i] = -(O[i][j] * v[0] + O[3 + i][j] * v[1] + O[6 + i][j] * v[2]);
-                }
-            }
-        }
+        FN(args_t) c = {.rot = rot + bi * 9 * E, .vec = vec, .out = theta + bi * 6 * E, .E = E, .eps2 = eps2};
+        tc_parallel(tc_tasks(nblk, TET_TASK_SO3), E >= TET_PAR_MIN ? threads : 1, FN(theta_rot_task), &c);
     }
 }
 
@@ -559,6 +625,38 @@ int FN(tet_ddr_fwd)(const T_ *rot, const T_ *vec, const int64_t *ridx, const int
     FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
     munmap(theta, bytes ? bytes : 1);
     return 0;
+}
+
+/* the edges of a task (TET_TASK_SO3 blocks of SO3_B): √R again, ∂L/∂√R and gvec from gth, and
+ * grot += the root's backward */
+static void FN(ddr_grad_task)(void *vc, long task)
+{
+    const FN(args_t) *c = (const FN(args_t) *)vc;
+    const int64_t E = c->E, nblk = (E + SO3_B - 1) / SO3_B;
+    const int64_t w1 = (task + 1) * TET_TASK_SO3 < nblk ? (task + 1) * TET_TASK_SO3 : nblk;
+    for (int64_t w = task * TET_TASK_SO3; w < w1; w++) {
+        SO3FN(blk_t) A[9], G[9], O[9];
+        const int64_t e0 = w * SO3_B;
+        const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+        for (int j = 0; j < m; j++)
+            for (int q = 0; q < 9; q++)
+                A[q][j] = c->rot[9 * (e0 + j) + q];
+        SO3FN(sqrt_fwd_block)(A, O, m, c->eps2); /* H = √R */
+        for (int j = 0; j < m; j++) {
+            const T_ *v = c->vec + 3 * (e0 + j), *gp = c->gth + 6 * (e0 + j), *gm = gp + 3;
+            /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
+            for (int i = 0; i < 3; i++)
+                for (int k = 0; k < 3; k++)
+                    G[3 * i + k][j] = gp[i] * v[k] - v[i] * gm[k];
+            for (int i = 0; i < 3; i++)
+                c->gvec[3 * (e0 + j) + i] = (O[i][j] * gp[0] + O[3 + i][j] * gp[1] + O[6 + i][j] * gp[2])
+                                          - (O[3 * i][j] * gm[0] + O[3 * i + 1][j] * gm[1] + O[3 * i + 2][j] * gm[2]);
+        }
+        SO3FN(sqrt_bwd_block)(A, G, O, m, c->eps2); /* ∂L/∂R through √R */
+        for (int j = 0; j < m; j++)
+            for (int q = 0; q < 9; q++)
+                c->grot[9 * (e0 + j) + q] += O[q][j];
+    }
 }
 
 int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *ridx,
@@ -583,32 +681,9 @@ int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *
                             threads);
     const int64_t nblk = (E + SO3_B - 1) / SO3_B;
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *rb = rot + bi * 9 * E, *gtb = gth + bi * 6 * E;
-        T_ *grb = grot + bi * 9 * E, *gvb = gvec + bi * 3 * E;
-#pragma omp parallel for schedule(static) num_threads(threads) if (E >= TET_PAR_MIN)
-        for (int64_t w = 0; w < nblk; w++) {
-            SO3FN(blk_t) A[9], G[9], O[9];
-            const int64_t e0 = w * SO3_B;
-            const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
-            for (int j = 0; j < m; j++)
-                for (int q = 0; q < 9; q++)
-                    A[q][j] = rb[9 * (e0 + j) + q];
-            SO3FN(sqrt_fwd_block)(A, O, m, eps2); /* H = √R */
-            for (int j = 0; j < m; j++) {
-                const T_ *v = vec + 3 * (e0 + j), *gp = gtb + 6 * (e0 + j), *gm = gp + 3;
-                /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
-                for (int i = 0; i < 3; i++)
-                    for (int k = 0; k < 3; k++)
-                        G[3 * i + k][j] = gp[i] * v[k] - v[i] * gm[k];
-                for (int i = 0; i < 3; i++)
-                    gvb[3 * (e0 + j) + i] = (O[i][j] * gp[0] + O[3 + i][j] * gp[1] + O[6 + i][j] * gp[2])
-                                          - (O[3 * i][j] * gm[0] + O[3 * i + 1][j] * gm[1] + O[3 * i + 2][j] * gm[2]);
-            }
-            SO3FN(sqrt_bwd_block)(A, G, O, m, eps2); /* ∂L/∂R through √R */
-            for (int j = 0; j < m; j++)
-                for (int q = 0; q < 9; q++)
-                    grb[9 * (e0 + j) + q] += O[q][j];
-        }
+        FN(args_t) c = {.rot = rot + bi * 9 * E, .vec = vec, .gth = gth + bi * 6 * E,
+                        .grot = grot + bi * 9 * E, .gvec = gvec + bi * 3 * E, .E = E, .eps2 = eps2};
+        tc_parallel(tc_tasks(nblk, TET_TASK_SO3), E >= TET_PAR_MIN ? threads : 1, FN(ddr_grad_task), &c);
     }
     munmap(theta, bytes ? bytes : 1);
     return 0;
