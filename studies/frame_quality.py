@@ -31,14 +31,14 @@ HEXME = DATA / "hexme" / "meta"
 
 #: Variants of the connection method: the options that differ from ``design``'s defaults.
 VARIANTS: dict[str, dict] = {
-    # the default: connection optimization + guarded quality stage (soft and tangent L-BFGS paths)
+    # the default: connection optimization from the SH and the MBO field + quality paths from both
     "default": {},
     # the default before issue 13: connection optimization + the angle-only guarded polish
     "old_default": {"polish": {"steps": 600}, "quality": {"enabled": False}},
     # no connection optimization: the quality paths start at the SH field
     "no_connection": {"steps": 0},
-    # no quality paths: the better of the connection result and the SH field (the guard only)
-    "guard_only": {"quality": {"paths": []}},
+    # no quality paths: the optimized fields only
+    "optimized_only": {"quality": {"paths": []}},
     # one path kind only
     "soft_only": {"quality": {"paths": ["soft"]}},
     "tangent_only": {"quality": {"paths": ["tangent"]}},
@@ -50,16 +50,15 @@ VARIANTS: dict[str, dict] = {
     # cheaper paths (fewer weights or iterations)
     "lambda_4": {"quality": {"dirichlet_weights": [8.0, 2.0, 1.0, 0.5]}},
     "iters_40": {"quality": {"iters": 40}},
-    # the paths from the optimized field instead of the SH field
-    "paths_from_frames": {"quality": {"path_starts": ["frames"]}},
-    # the quality stage's starts (default: paths from the SH and the MBO field):
-    # the SH field alone (the default until 2026-11-25: more complex faces)
-    "sh_start_only": {"quality": {"path_starts": ["reference"], "score_complex": 0.0}},
+    # the starts of the connection optimization (default: from the SH and from the MBO field)
+    "sh_start_only": {"starts": ["sh"]},
+    "mbo_start_only": {"starts": ["mbo"]},
     "iters_10": {"quality": {"iters": 10}},
-    # the MBO paths on every model (default: only where the MBO field has fewer complex-type
-    # faces than the SH field)
-    "mbo_paths_always": {"quality": {"conditional_starts": False}},
-    "mbo_start_only": {"quality": {"path_starts": ["mbo"]}},
+    # each term of the connection loss off (issue 23's ablation; the hex-stage figures of these are
+    # benchmarks.frames_hexme --opt connection.weights.X=0)
+    "no_flat": {"weights": {"flat": 0.0}},
+    "no_torsion": {"weights": {"torsion": 0.0}},
+    "no_dnabla": {"weights": {"dnabla": 0.0}},
     # the singular-structure repair (torchconn.frames.structure; default: one round, the repair
     # paths with the Dirichlet weights 8, 2, 0.5): off (the default until 2026-11-25 evening), the
     # repair paths with every Dirichlet weight, two rounds
@@ -75,8 +74,6 @@ VARIANTS: dict[str, dict] = {
     # a choice that favours the Dirichlet energy / the mean angle
     "score_dirichlet_2": {"quality": {"score_dirichlet": 2.0}},
     "score_dirichlet_05": {"quality": {"score_dirichlet": 0.5}},
-    # the guard: never worse at all (0) instead of the issue's 1%
-    "slack_0": {"quality": {"slack": 0.0}},
     # the feature-curve alignment never worse than SH's (no 2-degree bound)
     "curve_bound_0": {"quality": {"feature_curve_bound": 0.0}},
 }
@@ -136,18 +133,12 @@ def run(models: list[str], variants: list[str], out: Path, options: dict | None 
                 r = design(mesh, "sh" if method == "sh" else "connection", **opts)
                 row["wall_s"] = time.perf_counter() - t
                 row.update({k: r.metrics["final"][k] for k in r.metrics["final"]})
-                q = r.metrics.get("quality")
-                if q:
-                    # how often each guarded metric blocked a checkpoint (why a model kept the SH field)
-                    blocked = {}
-                    for *_, bad in q["checks"]:
-                        for k in bad:
-                            blocked[k] = blocked.get(k, 0) + 1
-                    row["quality_blocked"] = blocked
-                    row["quality_n_checks"] = len(q["checks"])
-                    row["quality_accepted"] = q["accepted"]
-                    row["quality_weight"] = q["dirichlet_weight"]
-                    row["quality_s"] = q["seconds"]
+                c = r.metrics.get("chosen")
+                if c:
+                    row["quality_n_candidates"] = len(c["candidates"])
+                    row["quality_accepted"] = c["label"]
+                    row["quality_weight"] = c["dirichlet_weight"]
+                    row["quality_s"] = r.timings["quality_s"]
                 row["optimize_s"] = r.timings["optimize_s"]
                 row["finite"] = bool(torch.isfinite(r.vertex_frames).all())
             except Exception as exc:

@@ -21,6 +21,7 @@ from torchconn.lie import so3
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"sh": {"n_smooth_iters": 5}, "polish": {"steps": 0}}
+ONE = {**FAST, "starts": ["sh"]}  # one start: the tests of the optimization loop itself
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,8 @@ def test_design_equals_cli_frames_bitwise(tmp_path, mesh):
     from training.train_frames import design_options, train
 
     cfg = {"mesh": "cylinder", "edge_length": 0.6, "steps": 4, "sh": {"n_smooth_iters": 5}, "progress": False,
-           "polish": {"steps": 10, "check_every": 5}, "output_dir": str(tmp_path / "cli"), "seed": 3}
+           "polish": {"steps": 10, "check_every": 5}, "output_dir": str(tmp_path / "cli"), "seed": 3,
+           "select": "proxies"}  # design()'s own choice (the job's default, select=hex, is torchconn.hexmesh's)
     m = train(cfg)
     z = np.load(tmp_path / "cli" / "frames.npz")
     r = design(mesh, "connection", seed=3, dtype=torch.float64, steps=4, sh={"n_smooth_iters": 5},
@@ -59,7 +61,7 @@ def test_defaults_match_the_config_file():
     """DEFAULTS are the values of configs/train_frames.yaml; every config key is an option or a CLI key."""
     cfg = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / "train_frames.yaml"))
     cli_only = {"mesh", "edge_length", "method", "device", "num_threads", "dtype", "seed", "output_dir", "resume",
-                "checkpoint_every", "progress", "hydra", "defaults"}
+                "checkpoint_every", "progress", "hydra", "defaults", "select", "select_candidates"}
     for k, v in DEFAULTS.items():
         assert cfg[k] == v, f"DEFAULTS[{k!r}] = {v!r} but configs/train_frames.yaml has {cfg[k]!r}"
     extra = set(cfg) - set(DEFAULTS) - cli_only
@@ -71,6 +73,7 @@ def test_in_memory_mesh_writes_no_files(tmp_path, monkeypatch, mesh):
     monkeypatch.chdir(tmp_path)
     r = design(mesh, steps=3, **FAST)
     assert list(tmp_path.iterdir()) == []
+    assert list(r.histories) == ["sh", "mbo"] and r.history is r.histories[r.metrics["chosen"]["start"]]
     assert isinstance(r, FrameFieldResult)
     V, E, T = mesh.n_vertices, mesh.n_edges, mesh.n_tets
     assert r.vertex_frames.shape == (V, 3, 3) and r.tet_frames.shape == (T, 3, 3)
@@ -83,7 +86,7 @@ def test_in_memory_mesh_writes_no_files(tmp_path, monkeypatch, mesh):
     assert r.metrics["final"]["n_singular_faces"] == int(r.singular_faces.sum())
     assert r.metrics["invariants"]["bianchi_ok"] and r.metrics["method"] == "connection"
     assert set(r.history) >= {"total", "smooth", "tie"} and all(len(v) == 3 for v in r.history.values())
-    assert r.timings["iterations"] == 3 and not r.timings["stopped_early"]
+    assert r.timings["iterations"] == 6 and not r.timings["stopped_early"]  # 3 steps from each start
     assert repr(r).startswith("FrameFieldResult(method='connection', V=182, T=675") and len(repr(r)) < 300
 
 
@@ -104,20 +107,20 @@ def test_callback_sees_every_step_and_stops_early(mesh):
         seen.append((step, record["total"]))
 
     r = design(mesh, steps=4, callback=cb, **FAST)
-    assert [s for s, _ in seen] == [1, 2, 3, 4]
-    assert [t for _, t in seen] == r.history["total"]
+    assert [s for s, _ in seen] == [1, 2, 3, 4, 5, 6, 7, 8]  # counted across the two starts
+    assert [t for _, t in seen] == r.histories["sh"]["total"] + r.histories["mbo"]["total"]
 
-    r = design(mesh, steps=10, callback=lambda step, record: step == 3, **FAST)
+    r = design(mesh, steps=10, callback=lambda step, record: step == 3, **ONE)
     assert len(r.history["total"]) == 3 and r.timings["stopped_early"] and r.timings["iterations"] == 3
     assert r.timings["total_steps"] == 10
     # a truthy value other than True does not stop (the documented rule is "returns True")
-    r = design(mesh, steps=2, callback=lambda step, record: 1, **FAST)
+    r = design(mesh, steps=2, callback=lambda step, record: 1, **ONE)
     assert len(r.history["total"]) == 2 and not r.timings["stopped_early"]
 
 
 def test_progress_bar(capsys, mesh):
     pytest.importorskip("tqdm")
-    r = design(mesh, steps=2, progress=True, **FAST)
+    r = design(mesh, steps=2, progress=True, **ONE)
     assert len(r.history["total"]) == 2
     assert "design" in capsys.readouterr().err
 
@@ -166,14 +169,15 @@ def test_resume_from_state_equals_uninterrupted(mesh):
     def keep(state):  # serialize now: the state_dicts are live
         buf = _io.BytesIO()
         torch.save(state, buf)
-        states[state["step"]] = buf.getvalue()
+        states[(state["start"], state["step"])] = buf.getvalue()
 
     full = design(mesh, steps=6, checkpoint_every=2, on_checkpoint=keep, **FAST)
-    assert sorted(states) == [0, 2, 4, 6]
-    state = torch.load(_io.BytesIO(states[2]), weights_only=False)
-    resumed = design(mesh, steps=6, state=state, **FAST)
-    assert torch.equal(full.vertex_frames, resumed.vertex_frames)
-    assert full.history == resumed.history and resumed.timings["iterations"] == 4
+    assert sorted(states) == sorted((s, k) for s in ("sh", "mbo") for k in (0, 2, 4, 6))
+    for key, iters in ((("sh", 2), 4 + 6), (("mbo", 4), 2)):  # inside the first start, inside the second
+        state = torch.load(_io.BytesIO(states[key]), weights_only=False)
+        resumed = design(mesh, steps=6, state=state, **FAST)
+        assert torch.equal(full.vertex_frames, resumed.vertex_frames)
+        assert full.histories == resumed.histories and resumed.timings["iterations"] == iters
 
 
 # ----------------------------------------------------------------------------- per-tet frames

@@ -112,7 +112,8 @@ def test_axis_angle_loss_gradient_finite_at_alignment(gen):
 def test_frame_field_loss_terms_and_total(box, gen):
     from torchconn.frames.model import matched_connection
 
-    w = {"smooth": 1.0, "tie": 2.0, "flat": 0.5, "torsion": 0.1, "align": 3.0, "feature": 4.0, "dirichlet": 0.5}
+    w = {"smooth": 1.0, "tie": 2.0, "flat": 0.5, "torsion": 0.1, "dnabla": 0.2, "align": 3.0, "feature": 4.0,
+         "dirichlet": 0.5}
     lf = FrameFieldLoss(box, w)
     F = _random_frames(box.n_vertices, gen)
     R = matched_connection(F, box.edges)
@@ -121,6 +122,52 @@ def test_frame_field_loss_terms_and_total(box, gen):
     total = sum(w[k] * out[k] for k in TERMS)
     assert torch.allclose(out["total"], total)
     assert all(torch.isfinite(v) for v in out.values())
+
+
+def test_torsion_runs_through_the_matchings_on_every_face(box, gen):
+    """Relabeling the frames vertex by vertex (F_v g_v, g_v in O) changes the matchings, not the
+    field: the torsion through the matchings is the same (the unrelabeled-faces mean was not)."""
+    from torchconn.frames.model import matched_connection
+
+    lf = FrameFieldLoss(box, {"torsion": 1.0})
+    Q = so3.exp(0.2 * torch.randn(box.n_vertices, 3, generator=gen, dtype=D))
+    F = Q @ so3.exp(torch.tensor([[0.3, -0.2, 0.1]], dtype=D))  # a smooth-ish field
+    R = so3.exp(0.05 * torch.randn(box.n_edges, 3, generator=gen, dtype=D)) @ matched_connection(F, box.edges)
+    g = octahedral.group(D)[torch.randint(0, 24, (box.n_vertices,), generator=gen)]
+    Fg = F @ g
+    e = box.edges
+    # the same connection, expressed against the relabeled frames: R'_ij = g_i^T R_ij g_j
+    Rg = g[e[:, 0]].transpose(-1, -2) @ R @ g[e[:, 1]]
+    a, b = lf(R, F)["torsion"], lf(Rg, Fg)["torsion"]
+    assert float(a) > 1e-6 and torch.allclose(a, b, rtol=1e-10, atol=0)
+
+
+def test_dnabla_term_zero_when_flat_positive_when_curved_and_masks_singular_tets(box, gen):
+    from torchconn.frames.model import matched_connection
+
+    lf = FrameFieldLoss(box, {"dnabla": 1.0})
+    F = torch.eye(3, dtype=D).expand(box.n_vertices, 3, 3).clone()
+    R = matched_connection(F, box.edges)
+    assert float(lf(R, F)["dnabla"]) < 1e-28
+    Rc = so3.exp(0.1 * torch.randn(box.n_edges, 3, generator=gen, dtype=D))
+    val = lf(Rc, F)["dnabla"]
+    assert float(val) > 1e-6
+    # a quarter turn on one edge makes the tets around it singular: they leave the mean
+    Rs = Rc.clone()
+    Rs[0] = so3.exp(torch.tensor([0.0, 0.0, math.pi / 2], dtype=D)) @ Rs[0]
+    assert torch.isfinite(lf(Rs, F)["dnabla"])
+
+
+@pytest.mark.parametrize("term", ["torsion", "dnabla"])
+def test_new_terms_gradgradcheck(gen, term):
+    cube = tio.box(n=1)
+    lf = FrameFieldLoss(cube, {term: 1.0})
+    p = (0.2 * torch.randn(cube.n_edges, 3, generator=gen, dtype=D)).requires_grad_(True)
+    w = (0.2 * torch.randn(cube.n_vertices, 3, generator=gen, dtype=D)).requires_grad_(True)
+    F0 = _random_frames(cube.n_vertices, gen)
+    fn = lambda p, w: lf(so3.exp(p), so3.exp(w) @ F0)[term]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (p, w), eps=1e-7, atol=1e-5, fast_mode=True)
+    assert torch.autograd.gradgradcheck(fn, (p, w), eps=1e-6, atol=1e-4, fast_mode=True)
 
 
 def test_frame_field_loss_rejects_bad_weights(box):

@@ -19,9 +19,11 @@ from training import io_utils
 from training.train_frames import NonFiniteLossError, load_config, train
 
 ROOT = Path(__file__).resolve().parents[1]
-# a tiny generated mesh with singular curves and sharp rims (about 180 vertices)
+# a tiny generated mesh with singular curves and sharp rims (about 180 vertices); one start and the
+# proxies' choice keep these tests of the job cheap (test_cli_end_to_end runs the defaults: two
+# starts, the choice by the hex meshes)
 TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1,
-        "polish": {"steps": 40, "check_every": 20}}
+        "polish": {"steps": 40, "check_every": 20}, "starts": ["sh"], "select": "proxies"}
 OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "frames.fra", "singular_faces.vtu", "singular_curves.vtu",
            "loss.png",
            "singularities.png",
@@ -57,7 +59,10 @@ def test_cli_end_to_end(tmp_path):
     inv = m["invariants"]
     assert inv["bianchi_ok"] is True and inv["bianchi_differential_max"] <= inv["bianchi_tolerance"]
     assert inv["n_tets_one_singular_face"] == m["final"]["n_tets_one_singular_face"]
-    assert m["timings"]["iterations"] == 3 and m["timings"]["wall_s"] > 0
+    assert m["timings"]["iterations"] == 6 and m["timings"]["wall_s"] > 0  # 3 steps from each of the 2 starts
+    c = m["chosen"]  # the returned field: a candidate of the connection optimization, chosen by its hex mesh
+    assert c["by"] == "hex" and c["start"] in ("sh", "mbo") and c["meshed"] and len(c["candidates"]) >= 2
+    assert "returned field:" in r.stdout and c["label"] in r.stdout
     z = np.load(out / "frames.npz")
     V, T = z["vertices"], z["tets"]
     assert V.dtype == np.float64 and T.dtype == np.int64 and z["frames"].dtype == np.float64
@@ -83,7 +88,7 @@ def test_loss_decreases_and_field_improves(tmp_path):
     assert h["total"][-1] < h["total"][0]
     # the guarded polish never returns a field worse than the optimized one, nor more singular
     # faces than the SH initialization
-    p = m["polish"]
+    p = m["polish"]["sh"]
     assert [c[0] for c in p["checks"]] == [0, 20, 40]
     assert m["final"]["smoothness_mean_deg"] <= p["checks"][0][1] + 1e-12
     assert m["final"]["n_singular_faces"] <= m["init"]["n_singular_faces"]
@@ -308,5 +313,5 @@ def test_resume_is_bitwise_and_frames_equal_design(tmp_path, monkeypatch):
     assert np.array_equal(a, b)
     assert full["loss_history"] == resumed["loss_history"] and full["final"] == resumed["final"]
     r = design(tio.cylinder(edge_length=0.6), steps=5, sh={"n_smooth_iters": 5},
-               polish={"steps": 10, "check_every": 5})
+               polish={"steps": 10, "check_every": 5}, starts=["sh"])
     assert np.array_equal(a, r.vertex_frames.numpy())

@@ -30,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn.frames.loss import ALIGN_KINDS
 from torchconn.frames.model import FORMULATIONS
-from torchconn.frames.polish import PATH_STARTS
+from torchconn.frames.design import STARTS
 from torchconn.frames.refine import PATH_KINDS
 from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS
 
@@ -119,7 +119,11 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "edge_length": _float(0, lo_open=True, nullable=True),
     "method": _choice("connection", "sh_baseline"),
     "formulation": _choice(*FORMULATIONS),
-    **{f"weights.{k}": _float(0) for k in ("smooth", "tie", "flat", "torsion", "align", "feature", "dirichlet")},
+    **{f"weights.{k}": _float(0) for k in ("smooth", "tie", "flat", "torsion", "dnabla", "align", "feature",
+                                           "dirichlet")},
+    "starts": _list(_choice(*STARTS)),
+    "select": _choice("hex", "proxies"),
+    "select_candidates": _int(1),
     "feature_angle_deg": _float(0, 180),
     "smooth_power": _float(0.5, 2),  # FrameFieldLoss's range
     "smooth_eps": _positive(),
@@ -142,9 +146,6 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "quality.feature_weight": _float(0),
     "quality.tangent_weight": _float(0),
     "quality.complex_weight": _float(0),
-    "quality.path_starts": _list(_choice(*PATH_STARTS)),
-    "quality.conditional_starts": _bool(),
-    "quality.slack": _float(0),
     "quality.score_dirichlet": _float(0),
     "quality.score_complex": _float(0),
     "quality.feature_curve_bound": _float(0),

@@ -18,25 +18,42 @@ CURVE_COLORS = {"valence3": "tab:blue", "valence5": "tab:red", "half": "tab:gree
 """Colour of a singular curve by its label (:data:`torchconn.frames.singular.CURVE_TYPES`)."""
 
 
-def plot_loss(path: Path, history: dict) -> None:
-    """Semilog plot of every recorded loss term per step (``history``: ``{term: [value per step]}``)."""
+def plot_loss(path: Path, history: dict, histories: dict | None = None, chosen: dict | None = None) -> None:
+    """Semilog plot of the loss terms per step of the connection optimization.
+
+    ``history``: ``{term: [value per step]}``, the optimization that made the returned field.
+    ``histories``: ``{start: history}`` of every start (one panel each, the winner's first);
+    ``chosen``: ``metrics["chosen"]`` of :func:`torchconn.frames.design` (which candidate won,
+    how it was chosen): the title says it.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for k, vals in history.items():
-        v = np.asarray(vals, dtype=float)
-        if v.size and np.any(v > 0):
-            ax.semilogy(np.arange(v.size), np.where(v > 0, v, np.nan), label=k, lw=2 if k == "total" else 1)
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss term (unweighted; total weighted)")
-    ax.set_title("train_frames loss")
-    if ax.lines:
-        ax.legend(fontsize=8)
-    else:
-        ax.text(0.5, 0.5, "no optimization steps", ha="center", va="center", transform=ax.transAxes)
+    panels = dict(histories) if histories else {"": history}
+    win = chosen.get("start") if chosen else None
+    order = sorted(panels, key=lambda k: k != win)
+    fig, axes = plt.subplots(1, len(order), figsize=(6 * len(order), 4.2), squeeze=False)
+    for ax, start in zip(axes[0], order):
+        hist = panels[start]
+        for k, vals in hist.items():
+            v = np.asarray(vals, dtype=float)
+            if v.size and np.any(v > 0):
+                ax.semilogy(np.arange(v.size), np.where(v > 0, v, np.nan), label=k, lw=2 if k == "total" else 1)
+        ax.set_xlabel("step")
+        ax.set_ylabel("loss term (unweighted; total weighted)")
+        tag = f"start {start}" if start else "loss"
+        if start and start == win:
+            tag += ": made the returned field"
+        ax.set_title(tag, fontsize=10)
+        if ax.lines:
+            ax.legend(fontsize=7)
+        else:
+            ax.text(0.5, 0.5, "no optimization steps", ha="center", va="center", transform=ax.transAxes)
+    if chosen:
+        fig.suptitle(f"connection optimization; returned: {chosen.get('label')} (chosen by {chosen.get('by')}: "
+                     f"{chosen.get('reason')})", fontsize=10)
     fig.tight_layout()
     io_utils.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)

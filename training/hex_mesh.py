@@ -130,11 +130,13 @@ def _field(cfg, mesh, out: Path):
         F = mbo_frames(mesh)
         summary = {"method": "mbo"}
     else:
-        from torchconn.frames.design import design
+        from torchconn.hexmesh.field import design_for_hex
 
-        res = design(mesh, cfg.method, progress=bool(cfg.progress), seed=int(cfg.seed), **design_options(cfg))
+        res = design_for_hex(mesh, cfg.method, select=str(cfg.select), select_candidates=int(cfg.select_candidates),
+                             hex_options=OmegaConf.to_container(cfg.hex, resolve=True), progress=bool(cfg.progress),
+                             seed=int(cfg.seed), **design_options(cfg))
         F = res.vertex_frames
-        summary = {"method": cfg.method, "final": res.metrics.get("final")}
+        summary = {"method": cfg.method, "final": res.metrics.get("final"), "chosen": res.metrics.get("chosen")}
     summary["seconds"] = time.perf_counter() - t0
     F = F.detach().cpu().double()
     return F, summary, F.numpy()

@@ -74,8 +74,8 @@ ConfigError = config_check.ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 BUILTIN_MESHES = ("box", "ball", "cylinder", "torus")
-CHECKPOINT_KEYS = ("step", "model", "optimizer", "scheduler", "rng", "history", "fingerprint", "init_frames",
-                   "init_metrics")
+CHECKPOINT_KEYS = ("start", "done", "step", "model", "optimizer", "scheduler", "rng", "history", "fingerprint",
+                   "init_frames", "init_metrics")
 
 
 # ----------------------------------------------------------------------------- config
@@ -135,7 +135,7 @@ def _fingerprint(cfg, mesh) -> str:
     h.update(mesh.vertices.detach().cpu().double().numpy().tobytes())
     h.update(mesh.tets.cpu().numpy().tobytes())
     keys = ["method", "formulation", "optim", "dtype", "feature_angle_deg", "smooth_power", "smooth_eps",
-            "align_kind", "align_eps", "lr", "lr_schedule", "steps"]
+            "align_kind", "align_eps", "lr", "lr_schedule", "steps", "starts"]
     h.update(repr([(k, cfg[k]) for k in keys]).encode())
     h.update(repr(OmegaConf.to_container(cfg.weights)).encode())
     h.update(repr(OmegaConf.to_container(cfg.lbfgs)).encode())
@@ -159,14 +159,14 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
     formats.write_fra(out / "frames.fra", result.tet_frames, mesh)
     export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
     export.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
-    frame_plots.plot_loss(out / "loss.png", result.history)
+    frame_plots.plot_loss(out / "loss.png", result.history, result.histories, result.metrics.get("chosen"))
     frame_plots.plot_singularities(out / "singularities.png", mesh, result.singular_graph)
 
 
 # ----------------------------------------------------------------------------- train
 def design_options(cfg) -> dict:
     """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values)."""
-    return {k: OmegaConf.to_container(cfg[k], resolve=True) if isinstance(cfg[k], DictConfig) else cfg[k]
+    return {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
             for k in method_options(cfg.method)}
 
 
@@ -215,9 +215,12 @@ def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
         io_utils.save_checkpoint(ckpt_path, {**state, "fingerprint": fp, "config": config})
 
     connection = cfg.method == "connection"
-    result = design(mesh, cfg.method, progress=bool(cfg.progress), seed=int(cfg.seed),
-                    state=ckpt if connection else None, on_checkpoint=on_checkpoint if connection else None,
-                    checkpoint_every=int(cfg.checkpoint_every), **design_options(cfg))
+    from torchconn.hexmesh.field import design_for_hex
+
+    result = design_for_hex(mesh, cfg.method, select=str(cfg.select), select_candidates=int(cfg.select_candidates),
+                            progress=bool(cfg.progress), seed=int(cfg.seed), state=ckpt if connection else None,
+                            on_checkpoint=on_checkpoint if connection else None,
+                            checkpoint_every=int(cfg.checkpoint_every), **design_options(cfg))
     m = result.metrics
     metrics = {
         **m,
@@ -251,6 +254,12 @@ def main() -> None:
               f"{f['n_singular_curves']} curves (valid fraction {f['singular_valid_fraction']:.3f}, "
               f"{f['n_singular_junctions']} junctions, {f['n_curves_ending_inside']} ending inside), "
               f"wall {m['timings']['wall_s']:.1f} s, output {cfg.output_dir}")
+        c = m.get("chosen")
+        if c:
+            print(f"[train_frames] returned field: {c['label']} (the connection optimization from the {c['start']} "
+                  f"field" + (f", then its {c['kind']} quality path at lambda {c['dirichlet_weight']:g}"
+                              if c['dirichlet_weight'] is not None else f", {c['kind']}") + f"), chosen by {c['by']}: "
+                  f"{c['reason']}, of {len(c['candidates'])} candidates")
 
     app()
 

@@ -3,21 +3,23 @@
 The library form of the ``train_frames`` job (``training/train_frames.py`` is ``config ->
 design() -> writers``); nothing is written to disk. Methods:
 
-* ``"connection"``: the spherical-harmonic field of Ray, Sokolov & Lévy 2016
-  (:func:`~torchconn.frames.sh.sh_frame_field`, or ``init_frames``) initializes a
-  :class:`~torchconn.frames.model.FrameFieldModel` (connection + frames), optimized against
-  :class:`~torchconn.frames.loss.FrameFieldLoss` (:func:`~torchconn.frames.solver.optimize`), then
-  the guarded frames-only polish (:func:`~torchconn.frames.polish.polish_frames`, ``polish``; off by
-  default), then the guarded quality stage (:func:`~torchconn.frames.polish.quality_polish`,
-  ``quality``): L-BFGS quality paths from the SH field and from the MBO field
-  (:mod:`~torchconn.frames.refine`: feature curves soft, and held exactly away from singular
-  faces; ``quality.path_starts``; the two start fields reach different singular structures)
-  lower the mean angle and the matched Dirichlet energy; where the best field has complex-type
-  singular faces, the singular-structure repair (:mod:`~torchconn.frames.structure`, ``quality.repair_*``)
-  searches its edge matchings, relaxes the frames onto them and runs the paths again from there;
-  the best of all checkpoints, the MBO field and the optimized field that is no more
-  than ``quality.slack`` (1%) worse than the initialization (the SH field) on any guarded metric
-  is returned — at worst that field;
+* ``"connection"``: the connection does the work. From each start field of ``starts`` (the
+  spherical-harmonic field of Ray, Sokolov & Lévy 2016, :func:`~torchconn.frames.sh.sh_frame_field`,
+  or ``init_frames``; the MBO field of Palmer, Bommes & Solomon 2020,
+  :func:`~torchconn.frames.mbo.mbo_frames`) a :class:`~torchconn.frames.model.FrameFieldModel`
+  (connection + frames) is optimized against :class:`~torchconn.frames.loss.FrameFieldLoss`
+  (smoothness, tie, symmetric flatness, √R torsion through the matchings, the averaged covariant
+  exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
+  energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`; the
+  optional frames-only polish (:func:`~torchconn.frames.polish.polish_frames`, ``polish``; off);
+  then the candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized
+  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.refine`)
+  and the singular-structure repair (:mod:`~torchconn.frames.structure`) of the best of them.
+  Every candidate descends from a connection optimization; the SH field is the yardstick of the
+  proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
+  field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
+  hex meshes the candidates make, :func:`torchconn.hexmesh.field.hex_chooser`);
+  ``metrics["chosen"]`` says which and why, and lists every candidate;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
 Options are the keys of ``configs/train_frames.yaml`` that belong to the method (:data:`OPTIONS`,
@@ -57,15 +59,18 @@ from ..tolerances import get_eps
 from . import octahedral
 from .constraints import BoundaryConstraint
 from .loss import ALIGN_KINDS, FrameFieldLoss
+from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
-from .polish import polish_frames, quality_polish
+from .polish import choose_by_proxies, connection_candidates, polish_frames
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
 
 __all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options", "tet_frames"]
 
+#: Start fields of the connection optimization (option ``starts``).
+STARTS = ("sh", "mbo")
 #: Methods of :func:`design` (``"sh_baseline"`` is an alias of ``"sh"``).
 METHODS = ("connection", "sh")
 _ALIASES = {"sh_baseline": "sh"}
@@ -73,8 +78,9 @@ _ALIASES = {"sh_baseline": "sh"}
 #: Default value of every option; the same values as ``configs/train_frames.yaml`` (a test checks it).
 DEFAULTS: dict[str, Any] = {
     "formulation": "vertex",
-    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "align": 10.0, "feature": 1.0,
-                "dirichlet": 0.0},
+    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "dnabla": 0.01, "align": 10.0,
+                "feature": 1.0, "dirichlet": 0.0},
+    "starts": ["sh", "mbo"],
     "feature_angle_deg": 30.0,
     "smooth_power": 1.0,
     "smooth_eps": 1e-3,
@@ -88,7 +94,6 @@ DEFAULTS: dict[str, Any] = {
     "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
-                "path_starts": ["reference", "mbo"], "conditional_starts": True, "slack": 0.01,
                 "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
                 "repair_residual_weight": 0.5, "repair_relax_iters": 40, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
     "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
@@ -127,13 +132,18 @@ class FrameFieldResult:
         singular_graph: the :class:`~torchconn.frames.singular.SingularGraph` of ``vertex_frames``
             (curves through the singular faces, their holonomy types, junctions; ``counts()``).
         metrics: ``{"mesh", "method", "formulation", "final", "init", "edge_classes", "polish",
-            "final_loss_terms", "invariants"}``: ``final``/``init`` are
-            :func:`~torchconn.frames.metrics.frame_metrics` of the result and of the initialization,
+            "quality", "chosen", "final_loss_terms", "invariants"}``: ``final``/``init`` are
+            :func:`~torchconn.frames.metrics.frame_metrics` of the result and of the SH field (or
+            ``init_frames``), ``chosen`` the returned candidate (``label``, ``start``, ``kind``,
+            ``dirichlet_weight``, ``by``, ``reason``, ``candidates``: every candidate's proxies),
             ``invariants`` the Bianchi residuals of ``edge_rot`` (``bianchi_ok``) and the singular
             counts; ``final_loss_terms`` and ``polish`` are ``None`` for ``method="sh"``.
-        history: ``{loss term: [value per step]}`` (unweighted terms, ``"total"`` weighted; empty for ``"sh"``).
-        timings: ``{"wall_s", "init_s", "optimize_s", "polish_s", "iterations", "total_steps",
-            "s_per_iteration", "stopped_early"}``.
+        history: ``{loss term: [value per step]}`` of the optimization that made the returned field
+            (unweighted terms, ``"total"`` weighted; empty for ``"sh"``); ``histories``:
+            ``{start: history}`` of every start.
+        timings: ``{"wall_s", "init_s", "optimize_s", "polish_s", "quality_s", "choose_s",
+            "iterations", "total_steps", "s_per_iteration", "stopped_early"}`` (``iterations``:
+            over every start).
     """
 
     mesh: Any
@@ -146,6 +156,7 @@ class FrameFieldResult:
     metrics: dict
     history: dict[str, list[float]] = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
+    histories: dict[str, dict] = field(default_factory=dict)
 
     def __repr__(self) -> str:  # shapes and headline numbers, not every tensor entry
         f = self.metrics.get("final", {})
@@ -195,8 +206,9 @@ def _method_name(method: str) -> str:
     return name
 
 
-def _resolve_options(method: str, options: dict) -> dict:
-    """Defaults of ``method`` overlaid with ``options`` (groups merged), names and values checked."""
+def _resolve_options(method: str, options: dict, extra: tuple = ()) -> dict:
+    """Defaults of ``method`` overlaid with ``options`` (groups merged), names and values checked;
+    ``extra``: names of extra loss terms, allowed as ``weights`` keys (default 0)."""
     known = OPTIONS[method]
     unknown = [k for k in options if k not in known]
     if unknown:
@@ -208,6 +220,8 @@ def _resolve_options(method: str, options: dict) -> dict:
         default = DEFAULTS[k]
         if isinstance(default, dict):
             given = dict(options.get(k) or {})
+            if k == "weights":
+                default = {**default, **{name: 0.0 for name in extra}}
             bad = [s for s in given if s not in default]
             if bad:
                 raise TypeError(f"design(): unknown option(s) {[f'{k}.{s}' for s in bad]}; "
@@ -219,6 +233,9 @@ def _resolve_options(method: str, options: dict) -> dict:
         if k in opts and opts[k] not in allowed:
             raise ValueError(f"design(): option {k}={opts[k]!r} is not one of {list(allowed)}")
     if method == "connection":
+        bad = [x for x in opts["starts"] if x not in STARTS]
+        if bad or not opts["starts"] or len(set(opts["starts"])) != len(opts["starts"]):
+            raise ValueError(f"design(): option starts must name each of {list(STARTS)} at most once, got {opts['starts']}")
         if int(opts["steps"]) < 0:
             raise ValueError(f"design(): option steps must be >= 0, got {opts['steps']}")
         if not float(opts["lr"]) > 0:
@@ -316,6 +333,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
            callback: Callable[[int, dict], bool | None] | None = None, seed: int | None = 0,
            device=None, dtype=None, state: dict | None = None,
            on_checkpoint: Callable[[dict], None] | None = None, checkpoint_every: int = 25,
+           choose: Callable | None = None, extra_terms: dict | None = None,
            **options) -> FrameFieldResult:
     """Octahedral frame field on a tet mesh (methods and rules: the module docstring). Writes no file.
 
@@ -325,21 +343,29 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         method: ``"connection"`` or ``"sh"`` (:data:`METHODS`).
         progress: a tqdm bar over the optimizer steps (a warning and no bar without tqdm).
         callback: ``callback(step, record)`` after every optimizer step ``step = 1, ..., steps``
-            with ``record`` the step's loss terms (floats). **Returning ``True`` stops** the
-            optimization after that step (the polish and the metrics still run;
-            ``timings["stopped_early"]``); exceptions propagate.
+            (of each start, counted across starts) with ``record`` the step's loss terms
+            (floats). **Returning ``True`` stops** the optimization of the current start after
+            that step (``timings["stopped_early"]``); exceptions propagate.
         seed: ``torch.manual_seed(seed)`` first (``None``: the global RNG is left alone).
         device, dtype: move the mesh (and so everything) there; ``None`` keeps the mesh's.
         state: resume from a dict given to ``on_checkpoint`` by an earlier call with the same
-            mesh and options (``method="connection"``): the initialization, model, optimizer,
-            scheduler, torch RNG, step and history are restored, and the result equals the
-            uninterrupted run's. The caller checks that the options match.
-        on_checkpoint: ``on_checkpoint(state)`` at step 0 of a fresh run, every
-            ``checkpoint_every`` steps and at the last step, with ``state = {"step", "model",
-            "optimizer", "scheduler", "rng", "history", "init_frames", "init_metrics"}``
-            (live ``state_dict``s: serialize them before the next step, e.g. ``torch.save``).
+            mesh and options (``method="connection"``): the start fields, the finished starts'
+            optimized fields, the current start's model, optimizer, scheduler, torch RNG, step and
+            history are restored, and the result equals the uninterrupted run's.
+        on_checkpoint: ``on_checkpoint(state)`` at step 0 of every start, every
+            ``checkpoint_every`` steps and at its last step, with ``state = {"start", "done",
+            "step", "model", "optimizer", "scheduler", "rng", "history", "init_frames",
+            "init_metrics"}`` (live ``state_dict``s: serialize them before the next step).
+        choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
+            :class:`~torchconn.frames.polish.Candidate` s (default
+            :func:`~torchconn.frames.polish.choose_by_proxies`); e.g.
+            :func:`torchconn.hexmesh.field.hex_chooser` chooses by the hex meshes they make.
+        extra_terms: ``{name: factory}`` extra loss terms: ``factory(mesh, start_frames)`` returns
+            ``term(edge_rot, frames) -> 0-dim tensor``, weighted by ``weights[name]`` (e.g.
+            :class:`torchconn.hexmesh.energy.MapEnergy`, the seamless map's fitting energy).
         **options: :data:`OPTIONS` of the method (defaults :data:`DEFAULTS`); ``init_frames`` is a
-            ``(V, 3, 3)`` tensor/array or a ``.npz`` (key ``frames``) / ``.npy`` path.
+            ``(V, 3, 3)`` tensor/array or a ``.npz`` (key ``frames``) / ``.npy`` path: it
+            replaces the ``"sh"`` start (label ``"init"``).
 
     Returns:
         :class:`FrameFieldResult`. A failed Bianchi check is reported in
@@ -351,7 +377,8 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
     """
     t_start = time.perf_counter()
     method = _method_name(method)
-    opts = _resolve_options(method, options)
+    extra_terms = dict(extra_terms or {})
+    opts = _resolve_options(method, options, extra=tuple(extra_terms))
     if checkpoint_every < 1:
         raise ValueError(f"design(): checkpoint_every must be >= 1, got {checkpoint_every}")
     if state is not None and method != "connection":
@@ -361,126 +388,166 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         torch.manual_seed(int(seed))
     angle = float(opts["feature_angle_deg"])
 
-    # 1. initialization (stored in the state so that a resume does not redo it)
+    # 1. the start fields: SH (the reference whose proxies are reported beside the result), MBO
     t0 = time.perf_counter()
     if state is not None:
-        F0 = state["init_frames"].to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
+        starts_F = {k: v.to(device=mesh.vertices.device, dtype=mesh.vertices.dtype)
+                    for k, v in state["init_frames"].items()}
         init_metrics = state["init_metrics"]
+        F_ref = starts_F.get("sh", next(iter(starts_F.values())))
     else:
-        if opts["init_frames"] is not None:
-            F0 = _init_frames(opts["init_frames"], mesh)
+        if opts["init_frames"] is not None:  # replaces the SH field: the "sh" method's field and start
+            F_ref = _init_frames(opts["init_frames"], mesh)
         else:
             s = opts["sh"]
-            F0 = sh_frame_field(mesh, boundary_weight=float(s["boundary_weight"]),
-                                n_smooth_iters=int(s["n_smooth_iters"]), feature_angle_deg=angle,
-                                mbo_steps=int(s["mbo_steps"]),
-                                mbo_tau=(float(s["mbo_tau_start"]), float(s["mbo_tau_end"])))
-        init_metrics = frame_metrics(F0, mesh, angle)
+            F_ref = sh_frame_field(mesh, boundary_weight=float(s["boundary_weight"]),
+                                   n_smooth_iters=int(s["n_smooth_iters"]), feature_angle_deg=angle,
+                                   mbo_steps=int(s["mbo_steps"]),
+                                   mbo_tau=(float(s["mbo_tau_start"]), float(s["mbo_tau_end"])))
+        init_metrics = frame_metrics(F_ref, mesh, angle)
+        starts_F = {}
+        if method == "connection":
+            for label in opts["starts"]:
+                if label == "sh":
+                    starts_F["init" if opts["init_frames"] is not None else "sh"] = F_ref
+                elif label == "mbo":
+                    starts_F["mbo"] = mbo_frames(mesh, feature_angle_deg=angle).to(mesh.vertices.dtype)
     t_init = time.perf_counter() - t0
 
     history: dict[str, list[float]] = {}
-    t_opt = t_polish = 0.0
-    start = steps = iterations = 0
+    histories: dict[str, dict] = {}
+    t_opt = t_polish = t_quality = t_choose = 0.0
+    steps = iterations = 0
     stopped = False
-    polish_info = final_terms = quality_info = None
-    t_quality = 0.0
+    polish_info = final_terms = quality_info = choice = None
     if method == "sh":
-        F = F0
+        F = F_ref
         R = matched_connection(F, mesh.edges)
     else:
-        # 2. model, loss, optimizer
         constraint = BoundaryConstraint.from_mesh(mesh, angle)
-        loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
-                                 smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
-                                 align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]))
-        model = FrameFieldModel(mesh, F0, opts["formulation"], constraint).to(mesh.vertices.device)
         steps = int(opts["steps"])
         lb = opts["lbfgs"]
-        optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
-                                              opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
-        history = new_history(loss_fn.weights)
-        if state is not None:
-            model.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-            scheduler.load_state_dict(state["scheduler"])
-            if "rng" in state:
-                _set_rng_state(state["rng"])
-            start = int(state["step"])
-            history = {k: list(v) for k, v in state["history"].items()}
-            if start > steps:
-                raise ValueError(f"design(): the state is at step {start}, beyond steps={steps}")
-
-        def checkpoint(step: int) -> None:
-            on_checkpoint({
-                "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(), "rng": _rng_state(mesh.vertices.device),
-                "history": history, "init_frames": F0.detach().cpu(), "init_metrics": init_metrics,
-            })
-
-        bar = _progress_bar(progress, steps, start)
-
-        def on_step(step: int, record: dict) -> bool:
-            if on_checkpoint is not None and (step % checkpoint_every == 0 or step == steps):
-                checkpoint(step)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
-            return callback is not None and callback(step, record) is True
-
-        # 3. optimization
+        done: dict = {} if state is None else {k: dict(v) for k, v in state["done"].items()}
+        labels = list(starts_F)
+        bar = _progress_bar(progress, steps * len(labels), 0)
+        loss_fns = {}
         t0 = time.perf_counter()
-        if state is None and steps > 0 and on_checkpoint is not None:
-            checkpoint(0)
         try:
-            optimize(model, loss_fn, optimizer, scheduler, steps, start=start, history=history, on_step=on_step)
+            for n_start, label in enumerate(labels):
+                # 2. model, loss, optimizer of this start
+                terms = {name: factory(mesh, starts_F[label]) for name, factory in extra_terms.items()}
+                loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
+                                         smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
+                                         align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]),
+                                         extra_terms=terms)
+                loss_fns[label] = loss_fn
+                if label in done:
+                    if bar is not None:
+                        bar.update(steps)
+                    continue
+                model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
+                optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
+                                                      opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
+                hist = new_history(loss_fn.weights)
+                first = 0
+                if state is not None and state.get("start") == label and label not in done:
+                    model.load_state_dict(state["model"])
+                    optimizer.load_state_dict(state["optimizer"])
+                    scheduler.load_state_dict(state["scheduler"])
+                    if "rng" in state:
+                        _set_rng_state(state["rng"])
+                    first = int(state["step"])
+                    hist = {k: list(v) for k, v in state["history"].items()}
+                    if first > steps:
+                        raise ValueError(f"design(): the state is at step {first}, beyond steps={steps}")
+                    if bar is not None:
+                        bar.update(first)
+
+                def checkpoint(step: int, label=label, model=model, optimizer=optimizer, scheduler=scheduler,
+                               hist=hist) -> None:
+                    on_checkpoint({
+                        "start": label, "done": done, "step": step, "model": model.state_dict(),
+                        "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                        "rng": _rng_state(mesh.vertices.device), "history": hist,
+                        "init_frames": {k: v.detach().cpu() for k, v in starts_F.items()},
+                        "init_metrics": init_metrics,
+                    })
+
+                offset = n_start * steps
+
+                def on_step(step: int, record: dict, checkpoint=checkpoint, offset=offset) -> bool:
+                    if on_checkpoint is not None and (step % checkpoint_every == 0 or step == steps):
+                        checkpoint(step)
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
+                    return callback is not None and callback(offset + step, record) is True
+
+                # 3. the connection optimization from this start
+                if first == 0 and steps > 0 and on_checkpoint is not None:
+                    checkpoint(0)
+                optimize(model, loss_fn, optimizer, scheduler, steps, start=first, history=hist, on_step=on_step)
+                stopped = stopped or len(hist["total"]) < steps
+                iterations += len(hist["total"]) - first
+                with torch.no_grad():
+                    R_s, F_s = model()
+                done[label] = {"frames": F_s.detach(), "edge_rot": R_s.detach(), "history": hist}
+                if on_checkpoint is not None:
+                    checkpoint(len(hist["total"]))
         finally:
             if bar is not None:
                 bar.close()
         t_opt = time.perf_counter() - t0
-        done = len(history["total"])  # steps completed, resumed ones included
-        stopped = done < steps
+        histories = {k: done[k]["history"] for k in labels}
+        optimized = {k: (done[k]["frames"], done[k]["edge_rot"]) for k in labels}
 
-        # 4. guarded polish
-        with torch.no_grad():
-            R, F = model()
+        # 4. guarded frames-only polish (off by default) of each optimized field
         if int(opts["polish"]["steps"]) > 0:
             t0 = time.perf_counter()
             p = opts["polish"]
-            F, polish_info = polish_frames(
-                mesh, F, int(p["steps"]), lr=float(p["lr"]), check_every=int(p["check_every"]),
-                feature_weight=float(opts["weights"]["feature"]),
-                max_singular_faces=int(init_metrics["n_singular_faces"]), angle_deg=angle,
-                align_eps=float(opts["align_eps"]))
-            if polish_info["accepted_step"] > 0:  # the connection that transports the polished frames
-                R = matched_connection(F, mesh.edges)
+            polish_info = {}
+            for k, (Fk, Rk) in list(optimized.items()):
+                Fp, info = polish_frames(
+                    mesh, Fk, int(p["steps"]), lr=float(p["lr"]), check_every=int(p["check_every"]),
+                    feature_weight=float(opts["weights"]["feature"]),
+                    max_singular_faces=int(init_metrics["n_singular_faces"]), angle_deg=angle,
+                    align_eps=float(opts["align_eps"]))
+                if info["accepted_step"] > 0:
+                    optimized[k] = (Fp, matched_connection(Fp, mesh.edges))
+                polish_info[k] = info
             t_polish = time.perf_counter() - t0
-            polish_info["seconds"] = t_polish
-        # 4b. guarded quality stage against the initialization (the SH baseline): the best
-        # mean-angle x Dirichlet-energy candidate no more than quality.slack worse on any guarded metric
+        # 4b. the candidates: the optimized fields, the quality paths from them, the structure repair
         q = opts["quality"]
-        if q["enabled"]:
-            t0 = time.perf_counter()
-            F, quality_info = quality_polish(
-                mesh, F, F0, paths=tuple(q["paths"]), dirichlet_weights=tuple(float(x) for x in q["dirichlet_weights"]),
-                rounds=int(q["rounds"]), iters=int(q["iters"]), feature_weight=float(q["feature_weight"]),
-                tangent_weight=float(q["tangent_weight"]), complex_weight=float(q["complex_weight"]),
-                path_starts=tuple(str(x) for x in q["path_starts"]),
-                conditional_starts=bool(q["conditional_starts"]), slack=float(q["slack"]),
-                score_dirichlet=float(q["score_dirichlet"]), score_complex=float(q["score_complex"]),
-                feature_curve_bound=float(q["feature_curve_bound"]), repair_rounds=int(q["repair_rounds"]),
-                repair_residual_weight=float(q["repair_residual_weight"]),
-                repair_relax_iters=int(q["repair_relax_iters"]),
-                repair_dirichlet_weights=(None if q["repair_dirichlet_weights"] is None
-                                          else tuple(float(x) for x in q["repair_dirichlet_weights"])),
-                angle_deg=angle, align_eps=float(opts["align_eps"]), reference_metrics=init_metrics)
-            if quality_info["accepted"] != "start":  # the connection that transports the returned frames
-                R = matched_connection(F, mesh.edges)
-            t_quality = time.perf_counter() - t0
-            quality_info = {k: v for k, v in quality_info.items() if k not in ("reference", "final")}
-            quality_info["seconds"] = t_quality
+        t0 = time.perf_counter()
+        cands, quality_info = connection_candidates(
+            mesh, optimized, init_metrics, paths=tuple(q["paths"]) if q["enabled"] else (),
+            dirichlet_weights=tuple(float(x) for x in q["dirichlet_weights"]), rounds=int(q["rounds"]),
+            iters=int(q["iters"]), feature_weight=float(q["feature_weight"]), tangent_weight=float(q["tangent_weight"]),
+            complex_weight=float(q["complex_weight"]), score_dirichlet=float(q["score_dirichlet"]),
+            score_complex=float(q["score_complex"]), feature_curve_bound=float(q["feature_curve_bound"]),
+            repair_rounds=int(q["repair_rounds"]) if q["enabled"] else 0,
+            repair_residual_weight=float(q["repair_residual_weight"]), repair_relax_iters=int(q["repair_relax_iters"]),
+            repair_dirichlet_weights=(None if q["repair_dirichlet_weights"] is None
+                                      else tuple(float(x) for x in q["repair_dirichlet_weights"])),
+            angle_deg=angle, align_eps=float(opts["align_eps"]))
+        t_quality = time.perf_counter() - t0
+        # 4c. the choice (default: the proxies; a hex chooser: the hex meshes they make)
+        t0 = time.perf_counter()
+        if choose is None:
+            idx, cinfo = choose_by_proxies(mesh, cands, float(q["feature_curve_bound"]))
+        else:
+            idx, cinfo = choose(mesh, cands)
+        t_choose = time.perf_counter() - t0
+        win = cands[idx]
+        F = win.frames
+        R = win.edge_rot if win.edge_rot is not None else matched_connection(F, mesh.edges)
+        history = histories[win.start]
+        choice = {"index": int(idx), "label": win.label, "kind": win.kind, "start": win.start,
+                  "dirichlet_weight": win.dirichlet_weight, "score": win.score, **cinfo,
+                  "candidates": [c.summary() for c in cands]}
+        quality_info["seconds"] = t_quality
         with torch.no_grad():
-            final_terms = {k: float(v) for k, v in loss_fn(R, F).items()}
-        iterations = done - start
+            final_terms = {k: float(v) for k, v in loss_fns[win.start](R, F).items()}
 
     # 5. matchings, per-tet frames, metrics, invariants
     F, R = F.detach(), R.detach()
@@ -497,6 +564,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "edge_classes": edge_class_breakdown(F, mesh, angle),
         "polish": polish_info,
         "quality": quality_info,
+        "chosen": choice,
         "final_loss_terms": final_terms,
         "invariants": _invariants(R, mask, mesh, atol),
     }
@@ -506,6 +574,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "optimize_s": t_opt,
         "polish_s": t_polish,
         "quality_s": t_quality,
+        "choose_s": t_choose,
         "iterations": iterations,
         "total_steps": steps,
         "s_per_iteration": t_opt / max(iterations, 1),
@@ -514,4 +583,4 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
     return FrameFieldResult(mesh=mesh, vertex_frames=F, tet_frames=tet_frames(F, mesh, matchings), edge_rot=R,
                             matchings=matchings, singular_faces=mask,
                             singular_graph=singular_graph(F, mesh, matchings), metrics=metrics, history=history,
-                            timings=timings)
+                            timings=timings, histories=histories)

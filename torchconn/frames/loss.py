@@ -30,9 +30,19 @@ dimensionless):
   Singular faces (``H_f`` near a non-identity element) are allowed, anything else is penalized.
 * ``torsion`` — solder-form torsion (report Def. 3.2, √R transports, :mod:`torchconn.dec.torsion`)
   of ``θ`` expressed in the frames, per face ``|Θ_f|^2 / area_f`` (dimensionless), averaged over
-  the faces whose three edges are *unrelabeled* (``h = I``; elsewhere the frame labels jump and
-  the solder form is not expressed in one gauge). It ties the connection to the Euclidean
-  geometry beyond the edge-wise ``tie``.
+  **every** face. On an edge whose frames are relabeled (``F_i R_ij = F_j h_ij`` with
+  ``h_ij != I``) the torsion is taken through the matching: with ``R_ij h_ij^T``, the connection
+  that carries ``F_i`` onto ``F_j`` as labeled, so the three frames of every face are in one gauge
+  (``h`` chosen without gradient, as in ``tie``). Its vanishing is the integrability of the frames
+  (the field is locally the gradient of a map; Corman & Crane 2019): the part of the
+  non-integrability a seamless map cannot absorb.
+* ``dnabla`` — the averaged covariant exterior derivative ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (report
+  Def. 5.2, :class:`torchconn.nn.AveragedCovariantD`; by the algebraic Bianchi identity the
+  discrete ``Ω∧θ``) of the connection with ``θ`` in the frames, ``|·|^2 / vol_t^{2/3}``
+  (dimensionless), averaged over the *regular* tets: those whose four faces have holonomy
+  nearest the identity (chosen without gradient). Around a singular curve the holonomy is a
+  turn in O by design and ``Ω∧θ`` is large there; elsewhere it is the curvature of the
+  connection weighted by the geometry, which ``flat`` (per face, without geometry) does not see.
 * ``align``   — at non-feature boundary vertices with unit normal ``n``:
   ``mean (1 - sum_k (F[:, k] . n)^4)``, zero iff one axis is ``±n``.
 * ``feature`` — the same for every (feature vertex, incident boundary face normal) pair, so
@@ -76,7 +86,7 @@ __all__ = [
 ]
 
 #: Names of the loss terms, in display order.
-TERMS = ("smooth", "tie", "flat", "torsion", "align", "feature", "dirichlet")
+TERMS = ("smooth", "tie", "flat", "torsion", "dnabla", "align", "feature", "dirichlet")
 #: Forms of the ``align``/``feature`` terms (:func:`normal_alignment_loss`, :func:`axis_angle_loss`).
 ALIGN_KINDS = ("quartic", "angle")
 
@@ -225,10 +235,14 @@ class FrameFieldLoss:
 
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
                  smooth_power: float = 2.0, smooth_eps: float = 1e-3, align_kind: str = "quartic",
-                 align_eps: float = 1e-3):
-        unknown = set(weights) - set(TERMS)
+                 align_eps: float = 1e-3, extra_terms: Mapping[str, object] | None = None):
+        self.extra_terms = dict(extra_terms or {})
+        clash = set(self.extra_terms) & set(TERMS)
+        if clash:
+            raise KeyError(f"extra_terms {sorted(clash)} clash with the built-in terms {list(TERMS)}")
+        unknown = set(weights) - set(TERMS) - set(self.extra_terms)
         if unknown:
-            raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS)}")
+            raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS) + list(self.extra_terms)}")
         if not (0.5 <= float(smooth_power) <= 2.0 and float(smooth_eps) > 0):
             raise ValueError(f"smooth_power must lie in [0.5, 2] and smooth_eps be > 0, got {smooth_power}, {smooth_eps}")
         self.smooth_power, self.smooth_eps = float(smooth_power), float(smooth_eps)
@@ -237,7 +251,7 @@ class FrameFieldLoss:
                              f"{align_kind!r}, {align_eps}")
         self.align_kind, self.align_eps = align_kind, float(align_eps)
         self.mesh = mesh
-        self.weights = {k: float(weights.get(k, 0.0)) for k in TERMS}
+        self.weights = {k: float(weights.get(k, 0.0)) for k in (*TERMS, *self.extra_terms)}
         bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
         if bad:
             raise ValueError(f"loss weights must be finite and >= 0: {[(k, self.weights[k]) for k in bad]}")
@@ -245,9 +259,17 @@ class FrameFieldLoss:
         self.is_feature = con.is_feature
         self.align_vertices, self.align_normals = con.align_vertices, con.align_normals
         self.feature_vertices_rep, self.feature_normals = con.feature_targets()
-        # face areas for the torsion normalization
+        # face areas for the torsion normalization, tet volumes for the dnabla one
         p = mesh.vertices[mesh.faces]
         self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+        self._dd = None
+        if self.weights["dnabla"]:
+            from ..nn import AveragedCovariantD
+
+            self._dd = AveragedCovariantD(mesh)
+            t = mesh.vertices[mesh.tets]
+            vol = torch.linalg.det(t[:, 1:] - t[:, :1]).abs() / 6.0
+            self.tet_scale = vol.pow(2.0 / 3.0)
 
     def __call__(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> dict[str, torch.Tensor]:
         from ..dec import curvature, torsion
@@ -255,36 +277,63 @@ class FrameFieldLoss:
         self._check_inputs(edge_rot, frames)
         mesh, w = self.mesh, self.weights
         out: dict[str, torch.Tensor] = {}
-        compiled = _ops_frame_loss.frame_loss_terms(edge_rot, frames, mesh, octahedral.group(torch.float64), w,
+        # the op's own torsion term is the unrelabeled-faces one: torsion runs outside it (every face)
+        w_op = {**w, "torsion": 0.0}
+        compiled = _ops_frame_loss.frame_loss_terms(edge_rot, frames, mesh, octahedral.group(torch.float64), w_op,
                                                     self.smooth_power, self.smooth_eps)
         if compiled is not None:
             out.update(compiled)
-            return self._finish(out, frames)
+            if w["torsion"]:
+                out["torsion"] = self._torsion(edge_rot, frames, None)
+            return self._finish(out, frames, edge_rot)
         if w["smooth"]:
             out["smooth"] = smoothness_loss(edge_rot, self.smooth_power, self.smooth_eps)
-        unrel = shared = None
-        if w["tie"] or w["torsion"]:
-            # F_i, F_i R_ij, F_j gathered/formed once for the tie and torsion terms (tet meshes)
+        if w["tie"]:
             shared = _ops_torsion.edge_frames(edge_rot, mesh, frames)
             if shared is not None:
-                out["tie"], unrel = _tie_from(shared[1], shared[2], self.smooth_power, self.smooth_eps)
+                out["tie"], _ = _tie_from(shared[1], shared[2], self.smooth_power, self.smooth_eps)
             else:
-                out["tie"], unrel = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
+                out["tie"], _ = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
         if w["flat"]:
             hol = curvature.face_curvature(edge_rot, mesh, kind="holonomy")
             eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
             out["flat"] = symmetric_flatness_loss(hol + eye)
         if w["torsion"]:
-            if shared is not None:  # == torsion.face_torsion(edge_rot, mesh, "sqrt", frames=frames)
-                tor = _ops_torsion.face_torsion(edge_rot, mesh, "sqrt", edge_frame_rot=shared)  # (F, 3)
-            else:
-                tor = torsion.face_torsion(edge_rot, mesh, kind="sqrt", frames=frames)  # (F, 3)
-            face_ok = unrel[mesh.face_edges].all(-1)
-            per = (tor**2).sum(-1) / self.face_area.to(tor.dtype)  # the mesh follows the inputs' dtype
-            n_ok = int(face_ok.sum())
-            # mean over face_ok without a boolean-mask gather (and its index_put backward)
-            out["torsion"] = torch.where(face_ok, per, 0.0).sum() / n_ok if n_ok else per.sum() * 0.0
-        return self._finish(out, frames)
+            out["torsion"] = self._torsion(edge_rot, frames, torsion)
+        return self._finish(out, frames, edge_rot)
+
+    def _matched(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        """``R_ij h_ij^T`` with ``F_i R_ij = F_j h_ij``, ``h`` the best match (no gradient through it)."""
+        e = self.mesh.edges
+        with torch.no_grad():
+            FiR = frames.index_select(0, e[:, 0]) @ edge_rot
+            _, h = octahedral.match(frames.index_select(0, e[:, 1]), FiR)  # F_j h ~ F_i R_ij
+        return edge_rot @ h.transpose(-1, -2).to(edge_rot.dtype)
+
+    def _torsion(self, edge_rot: torch.Tensor, frames: torch.Tensor, generic) -> torch.Tensor:
+        """Mean over every face of ``|Θ_f|^2 / area_f`` through the matchings (class docstring)."""
+        Rm = self._matched(edge_rot, frames)
+        tor = _ops_torsion.face_torsion(Rm, self.mesh, "sqrt", frames=frames)
+        if tor is None:
+            from ..dec import torsion as _torsion
+
+            tor = _torsion.face_torsion(Rm, self.mesh, kind="sqrt", frames=frames)
+        return ((tor**2).sum(-1) / self.face_area.to(tor.dtype)).mean()
+
+    def _dnabla(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        """Mean over regular tets of ``|𝔡∇ Alt 𝔡∇ Alt θ̃|^2 / vol^{2/3}`` (class docstring)."""
+        from ..dec import curvature
+
+        mesh = self.mesh
+        with torch.no_grad():
+            hol = curvature.face_curvature(edge_rot.detach(), mesh, kind="holonomy")
+            eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
+            idx, _ = octahedral.closest_element(hol + eye)
+            regular = (idx == 0)[mesh.tet_faces].all(-1)
+        dd = self._dd(edge_rot, frames)  # (T, 3)
+        per = (dd**2).sum(-1) / self.tet_scale.to(dd.dtype)
+        n = int(regular.sum())
+        return torch.where(regular, per, 0.0).sum() / n if n else per.sum() * 0.0
 
     def _check_inputs(self, edge_rot, frames) -> None:
         """Types, shapes, dtypes and devices of the call's inputs (class docstring); no sync."""
@@ -314,9 +363,15 @@ class FrameFieldLoss:
             raise ValueError(f"FrameFieldLoss: edge_rot is on {edge_rot.device} but frames is on "
                              f"{frames.device}; move both to one device")
 
-    def _finish(self, out: dict[str, torch.Tensor], frames: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Add the alignment terms and ``total`` to ``out``."""
+    def _finish(self, out: dict[str, torch.Tensor], frames: torch.Tensor,
+                edge_rot: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Add the dnabla, alignment, Dirichlet and extra terms and ``total`` to ``out``."""
         w = self.weights
+        if w["dnabla"]:
+            out["dnabla"] = self._dnabla(edge_rot, frames)
+        for name, fn in self.extra_terms.items():
+            if w[name]:
+                out[name] = fn(edge_rot, frames)
         if w["align"]:
             out["align"] = self._align(frames[self.align_vertices], self.align_normals.to(frames.dtype))
         if w["feature"]:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 
@@ -47,7 +48,7 @@ from .refine import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
 from .solver import cosine_factor
 from .structure import repair_structure
 
-__all__ = ["polish_frames", "quality_polish", "PATH_STARTS", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
+__all__ = ["polish_frames", "quality_polish", "Candidate", "connection_candidates", "choose_by_proxies", "PATH_STARTS", "choose_candidate", "guard_violations", "quality_score", "GUARD_CONTINUOUS",
            "GUARD_COUNTS", "GUARD_STRICT", "GUARD_BOUNDS"]
 
 
@@ -394,3 +395,127 @@ def quality_polish(mesh, frames: torch.Tensor, reference_frames: torch.Tensor, *
     return F, {"accepted": kind, "accepted_start": start, "dirichlet_weight": lam, "score": score,
                "checks": checks, "starts_run": starts if paths else [], "mbo_seconds": mbo_seconds,
                "repairs": repairs, "reference": ref, "final": m}
+
+
+# ----------------------------------------------------------------------------- candidates of the connection method
+@dataclass
+class Candidate:
+    """A field the connection method may return (:func:`connection_candidates`).
+
+    Attributes:
+        frames: ``(V, 3, 3)``.
+        kind: ``"optimized"`` (the connection optimization's own field), a path kind of
+            :data:`~torchconn.frames.refine.PATH_KINDS` (a checkpoint of a quality path from an
+            optimized field) or ``"repaired"`` (the singular-structure repair of a candidate).
+        start: the start field the connection optimization began from (``"sh"``, ``"mbo"``,
+            ``"init"``): every candidate descends from that optimization.
+        dirichlet_weight: the path checkpoint's ``lambda`` (``None`` otherwise).
+        metrics: :func:`frame_metrics` of ``frames`` (without the curl).
+        score: :func:`quality_score` against the reference (the SH field): lower is better.
+        edge_rot: ``(E, 3, 3)`` the optimized connection for ``kind == "optimized"``, else ``None``.
+    """
+
+    frames: torch.Tensor
+    kind: str
+    start: str
+    dirichlet_weight: float | None
+    metrics: dict
+    score: float
+    edge_rot: torch.Tensor | None = None
+
+    @property
+    def label(self) -> str:
+        lam = "" if self.dirichlet_weight is None else f"@{self.dirichlet_weight:g}"
+        return f"{self.start}/{self.kind}{lam}"
+
+    def summary(self) -> dict:
+        """JSON-ready: label, kind, start, lambda, score and the proxies."""
+        m = self.metrics
+        return {"label": self.label, "kind": self.kind, "start": self.start, "dirichlet_weight": self.dirichlet_weight,
+                "score": self.score, "smoothness_mean_deg": m["smoothness_mean_deg"],
+                "smoothness_rms_deg": m["smoothness_rms_deg"], "dirichlet_energy_mean": m["dirichlet_energy_mean"],
+                "n_singular_faces": m["n_singular_faces"], "n_singular_faces_complex": m["n_singular_faces_complex"],
+                "feature_curve_alignment_mean_deg": m["feature_curve_alignment_mean_deg"]}
+
+
+def connection_candidates(mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = PATH_KINDS,
+                          dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
+                          feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
+                          score_dirichlet: float = 1.0, score_complex: float = 0.1, feature_curve_bound: float = 2.0,
+                          repair_rounds: int = 1, repair_residual_weight: float = 0.5, repair_relax_iters: int = 40,
+                          repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
+                          angle_deg: float = 30.0, align_eps: float = 1e-3) -> tuple[list[Candidate], dict]:
+    """The candidates of the connection method: its optimized fields and their polish.
+
+    Every candidate descends from a connection optimization (``optimized``: ``{start label:
+    (frames (V, 3, 3), edge_rot (E, 3, 3))}``): the optimized field itself, the checkpoints of the
+    quality paths (:func:`~torchconn.frames.refine.quality_path`, ``paths`` x ``dirichlet_weights``)
+    started at it, and, where the best candidate by the proxies (:func:`choose_candidate` on
+    :func:`quality_score` against ``reference``, the SH field's :func:`frame_metrics`) has
+    complex-type singular faces, the singular-structure repair of that candidate
+    (:func:`~torchconn.frames.structure.repair_structure`) and the paths from it (``repair_rounds``
+    rounds). There is no fallback to the reference: it is the yardstick of the scores only.
+
+    Returns:
+        ``(candidates, info)``: :class:`Candidate` list (optimized fields first, in the order of
+        ``optimized``) and ``{"repairs": [...], "seconds": ...}``.
+    """
+    t_start = time.perf_counter()
+    bad_paths = [k for k in paths if k not in PATH_KINDS]
+    if bad_paths:
+        raise ValueError(f"connection_candidates: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
+    if not optimized:
+        raise ValueError("connection_candidates: no optimized field")
+    a_ref = math.radians(reference["smoothness_mean_deg"])
+    d_ref = reference["dirichlet_energy_mean"]
+    cands: list[Candidate] = []
+
+    def consider(F, kind, start, lam, R=None):
+        m = frame_metrics(F, mesh, angle_deg, curl=False)
+        c = Candidate(F.detach(), kind, start, lam, m, quality_score(m, reference, score_dirichlet, score_complex), R)
+        cands.append(c)
+        return c
+
+    def run_paths(F, start, weights):
+        for kind in dict.fromkeys(paths):
+            for cp in quality_path(mesh, F, kind=kind, a_ref=a_ref, d_ref=d_ref, dirichlet_weights=weights,
+                                   rounds=rounds, iters=iters, feature_weight=feature_weight,
+                                   tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
+                                   align_eps=align_eps, angle_deg=angle_deg):
+                consider(cp.frames, kind, start, cp.dirichlet_weight)
+
+    for start, (F, R) in optimized.items():
+        consider(F.detach(), "optimized", start, None, R.detach() if R is not None else None)
+    for start, (F, _) in optimized.items():
+        run_paths(F.detach(), start, dirichlet_weights)
+
+    def best():
+        return cands[choose_candidate([(c.score, c.metrics) for c in cands], feature_curve_bound)]
+
+    repairs = []
+    last = None
+    rep_weights = dirichlet_weights if repair_dirichlet_weights is None else repair_dirichlet_weights
+    for r in range(repair_rounds):
+        cur = best()
+        if cur.metrics["n_singular_faces_complex"] == 0 or cur.frames is last:
+            break
+        last = cur.frames
+        t0 = time.perf_counter()
+        Fs, sinfo = repair_structure(cur.frames, mesh, a_ref=a_ref, d_ref=d_ref, residual_weight=repair_residual_weight,
+                                     relax_iters=repair_relax_iters, dirichlet_weight=max(dirichlet_weights, default=8.0),
+                                     feature_weight=feature_weight, eps=eps, align_eps=align_eps, angle_deg=angle_deg)
+        entry = {"round": r, "from": cur.label, "complex_before": sinfo["complex_before"],
+                 "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
+        repairs.append(entry)
+        if sinfo["complex_after"] < sinfo["complex_before"]:
+            consider(Fs, "repaired", cur.start, None)
+            entry["paths_run"] = bool(paths)
+            run_paths(Fs, cur.start, rep_weights)
+        entry["seconds"] = time.perf_counter() - t0
+    return cands, {"repairs": repairs, "seconds": time.perf_counter() - t_start}
+
+
+def choose_by_proxies(mesh, candidates: Sequence[Candidate], feature_curve_bound: float = 2.0) -> tuple[int, dict]:
+    """The default choice among :class:`Candidate` s: :func:`choose_candidate` on their scores."""
+    i = choose_candidate([(c.score, c.metrics) for c in candidates], feature_curve_bound)
+    return i, {"by": "proxies", "reason": "lowest proxy score (feature-curve bound first)"}

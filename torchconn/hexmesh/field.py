@@ -1,0 +1,116 @@
+"""The connection method chosen by the hex meshes its candidates make.
+
+:func:`hex_chooser` returns a ``choose(mesh, candidates)`` for
+:func:`torchconn.frames.design` (its ``choose=`` hook): the candidates (every one a descendant of a
+connection optimization, :class:`torchconn.frames.polish.Candidate`) are meshed by
+:func:`~.pipeline.hex_mesh` and ranked by the end metric: a valid map with a good hex mesh first,
+then a valid map, then fewer inverted and flat tets in the map, fewer cubes dropped, a larger
+minimum scaled Jacobian, fewer irregular interior edges; the proxies' score
+(:func:`~torchconn.frames.polish.quality_score`) breaks ties. Only the most promising candidates are
+meshed (the cost is one hex stage each): each start's optimized field, then the best checkpoint
+by the proxies of each (start, path kind), then the best repaired field, up to ``max_candidates``.
+
+:func:`design_for_hex` is :func:`torchconn.frames.design` with this chooser and the seamless map's
+fitting energy (:class:`~.energy.MapEnergy`) as the loss term ``map``: the connection method as the
+hex job and the benchmark run it.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+__all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect"]
+
+
+def hex_key(result, score: float) -> tuple:
+    """Sort key of a :class:`~.pipeline.HexMeshResult` (smaller is better; module docstring)."""
+    v, q, ex = result.validity, result.quality, result.extraction
+    bad_tets = v.counts.get("inverted_tets", 0) + v.counts.get("degenerate_tets", 0)
+    dropped = ex.counts()["cubes_dropped"] if ex is not None else math.inf
+    sj = q.sj_min if q is not None and q.sj_min == q.sj_min else -math.inf
+    irr = q.irregular_fraction if q is not None else math.inf
+    return (not result.good, not v.valid, bad_tets, dropped, -sj, irr, score)
+
+
+def preselect(candidates, max_candidates: int) -> list[int]:
+    """Indices of the candidates to mesh: optimized fields, the best checkpoint per (start, kind)
+    by the proxies, the best repaired field; at most ``max_candidates``, in that order."""
+    order = []
+    for i, c in enumerate(candidates):
+        if c.kind == "optimized":
+            order.append(i)
+    best = {}
+    for i, c in enumerate(candidates):
+        if c.kind not in ("optimized", "repaired"):
+            key = (c.start, c.kind)
+            if key not in best or c.score < candidates[best[key]].score:
+                best[key] = i
+    order += sorted(best.values(), key=lambda i: candidates[i].score)
+    rep = [i for i, c in enumerate(candidates) if c.kind == "repaired"]
+    if rep:
+        order.append(min(rep, key=lambda i: candidates[i].score))
+    seen, out = set(), []
+    for i in order:
+        if i not in seen:
+            seen.add(i)
+            out.append(i)
+    return out[:max_candidates]
+
+
+def hex_chooser(max_candidates: int = 4, **hex_options):
+    """A ``choose(mesh, candidates) -> (index, info)`` for :func:`torchconn.frames.design`.
+
+    Args:
+        max_candidates: how many candidates are meshed (:func:`preselect`).
+        **hex_options: options of :func:`~.pipeline.hex_mesh` (``edge_length``, ...).
+
+    The ``info`` lists, per meshed candidate, its label, the map's validity and first reasons,
+    the hexes, the scaled Jacobian, the irregular fraction, the Hausdorff distance, ``good`` and
+    the seconds; ``"by": "hex"``.
+    """
+    if not (isinstance(max_candidates, int) and max_candidates >= 1):
+        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+
+    def choose(mesh, candidates):
+        from .pipeline import hex_mesh
+
+        idx = preselect(candidates, max_candidates)
+        rows, keys = [], []
+        for i in idx:
+            c = candidates[i]
+            t0 = time.perf_counter()
+            r = hex_mesh(mesh, c.frames, **hex_options)
+            q = r.quality
+            rows.append({"label": c.label, "valid": bool(r.validity.valid), "good": bool(r.good),
+                         "reasons": list(r.validity.reasons)[:3], "hexes": int(r.hexes.shape[0]),
+                         "sj_min": None if q is None else q.sj_min,
+                         "irregular": None if q is None else q.irregular_fraction,
+                         "hausdorff": None if q is None else q.hausdorff_rel, "seconds": time.perf_counter() - t0})
+            keys.append(hex_key(r, c.score))
+        best = min(range(len(keys)), key=keys.__getitem__)
+        win = idx[best]
+        row = rows[best]
+        reason = ("a valid map and a good hex mesh" if row["good"] else "a valid map" if row["valid"]
+                  else "no candidate has a valid map: the fewest broken tets")
+        return win, {"by": "hex", "reason": reason, "meshed": rows}
+
+    return choose
+
+
+def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", select_candidates: int = 4,
+                   hex_options: dict | None = None, **options):
+    """:func:`torchconn.frames.design` with the hex chooser (``select="hex"``; ``"proxies"``: the
+    default choice) and, when ``weights["map"] > 0``, the seamless map's fitting energy as a loss
+    term (:class:`~.energy.MapEnergy`, built per start field, structure frozen there)."""
+    from ..frames.design import design
+
+    if select not in ("hex", "proxies"):
+        raise ValueError(f"select must be 'hex' or 'proxies', got {select!r}")
+    hex_options = dict(hex_options or {})
+    extra = {}
+    if method in ("connection",) and float((options.get("weights") or {}).get("map", 0.0)) > 0:
+        from .energy import map_energy_term
+
+        extra["map"] = map_energy_term(edge_length=hex_options.get("edge_length"))
+    choose = hex_chooser(select_candidates, **hex_options) if select == "hex" and method == "connection" else None
+    return design(mesh, method, choose=choose, extra_terms=extra or None, **options)
