@@ -22,6 +22,7 @@ import torch
 
 __all__ = [
     "group",
+    "group_tables",
     "match",
     "match_edges",
     "closest_element",
@@ -60,6 +61,29 @@ def group(dtype: torch.dtype | None = None, device: torch.device | str | None = 
     matrices, ``det = +1``, closed under products and transposes.
     """
     return torch.tensor(_GROUP, dtype=dtype or torch.get_default_dtype(), device=device)
+
+
+def group_tables():
+    """Integer tables of O for combinatorial code: ``(G, mul, inv)`` numpy int64 arrays,
+    ``G (24, 3, 3)`` the elements (the order of :func:`group`), ``mul (24, 24)`` with
+    ``G[mul[i, j]] = G[i] @ G[j]`` and ``inv (24,)`` with ``G[inv[i]] = G[i]^T`` (built once, cached;
+    read-only)."""
+    global _TABLES
+    if _TABLES is None:
+        import numpy as np
+
+        G = np.array(_GROUP, dtype=np.int64)
+        key = {tuple(r): i for i, r in enumerate(G.reshape(24, 9).tolist())}
+        prod = np.einsum("aij,bjk->abik", G, G).reshape(24 * 24, 9)
+        mul = np.array([key[tuple(r)] for r in prod.tolist()], dtype=np.int64).reshape(24, 24)
+        inv = np.array([key[tuple(g.T.reshape(-1).tolist())] for g in G], dtype=np.int64)
+        for a in (G, mul, inv):
+            a.setflags(write=False)
+        _TABLES = (G, mul, inv)
+    return _TABLES
+
+
+_TABLES = None
 
 
 def _check_mats(name: str, M: torch.Tensor) -> None:

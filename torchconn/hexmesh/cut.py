@@ -48,22 +48,10 @@ __all__ = ["GROUP_MUL", "GROUP_INV", "group_matrices", "TetCharts", "tet_charts"
 
 def group_matrices() -> np.ndarray:
     """The 24 elements of O as an ``(24, 3, 3)`` int64 array (identity first)."""
-    return octahedral.group(torch.float64).round().to(torch.int64).numpy()
+    return octahedral.group_tables()[0]
 
 
-def _tables() -> tuple[np.ndarray, np.ndarray]:
-    G = group_matrices()
-    flat = G.reshape(24, 9)
-    key = {tuple(r): i for i, r in enumerate(flat.tolist())}
-    mul = np.empty((24, 24), np.int64)
-    for i in range(24):
-        for j in range(24):
-            mul[i, j] = key[tuple((G[i] @ G[j]).reshape(-1).tolist())]
-    inv = np.array([key[tuple(G[i].T.reshape(-1).tolist())] for i in range(24)], np.int64)
-    return mul, inv
-
-
-GROUP_MUL, GROUP_INV = _tables()
+_, GROUP_MUL, GROUP_INV = octahedral.group_tables()
 """``GROUP_MUL[i, j]``: index of ``G[i] @ G[j]``; ``GROUP_INV[i]``: index of ``G[i]^T``."""
 
 

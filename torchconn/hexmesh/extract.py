@@ -170,17 +170,10 @@ class HexExtraction:
 
 # ----------------------------------------------------------------------------- group tables
 def _group_tables():
-    """``G (24,3,3)`` int64 from :func:`torchconn.frames.octahedral.group`, ``mult (24,24)`` with
-    ``G[mult[i,j]] = G[i] @ G[j]`` and ``inv (24,)`` with ``G[inv[i]] = G[i].T``."""
-    from ..frames.octahedral import group
+    """``(G (24,3,3), mult (24,24), inv (24,))`` of :func:`torchconn.frames.octahedral.group_tables`."""
+    from ..frames.octahedral import group_tables
 
-    G = group(dtype=torch.float64).numpy().round().astype(np.int64)
-    flat = G.reshape(24, 9)
-    key = {tuple(r): i for i, r in enumerate(flat.tolist())}
-    prod = np.einsum("aij,bjk->abik", G, G).reshape(24 * 24, 9)
-    mult = np.array([key[tuple(r)] for r in prod.tolist()], np.int64).reshape(24, 24)
-    inv = np.array([key[tuple(r)] for r in G.transpose(0, 2, 1).reshape(24, 9).tolist()], np.int64)
-    return G, mult, inv
+    return group_tables()
 
 
 def _apply(G: np.ndarray, rot: np.ndarray, x: np.ndarray) -> np.ndarray:
