@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import re
+import sys
 from functools import lru_cache
 from typing import Any
 
@@ -82,6 +83,27 @@ def owners() -> dict[int, str]:
     return out
 
 
+def data_doc(namespace: str, name: str) -> list[str]:
+    """The ``#:`` doc comment of the constant ``namespace.name``, found in the module that assigns
+    it (autodoc reads the comment from the module it is told, which for ``torchconn.so3.X`` or
+    ``torchconn.frames.METRIC_KEYS`` is not where the assignment is)."""
+    from sphinx.errors import PycodeError
+    from sphinx.pycode import ModuleAnalyzer
+
+    ns = resolve(namespace)
+    obj = getattr(ns, name)
+    candidates = [ns.__name__] + sorted(m for m, mod in list(sys.modules.items())
+                                        if m.startswith(ns.__name__ + ".") and getattr(mod, name, None) is obj)
+    for modname in candidates:
+        try:
+            docs = ModuleAnalyzer.for_module(modname).find_attr_docs()
+        except PycodeError:
+            continue
+        if ("", name) in docs:
+            return list(docs[("", name)])
+    return []
+
+
 def _directive(obj: Any) -> str:
     if inspect.isclass(obj):
         return "autoexception" if issubclass(obj, BaseException) else "autoclass"
@@ -112,6 +134,8 @@ class PublicApi(SphinxDirective):
                 elsewhere.append(f":py:obj:`{name} <{owner}>`")
                 continue
             lines += [f".. {_directive(obj)}:: {full}", ""]
+            if _directive(obj) == "autodata":
+                lines += [f"   {line}" if line else "" for line in data_doc(namespace, name)] + [""]
         if elsewhere:
             lines += [f"Also importable from ``{namespace}`` and documented under their public names: "
                       + ", ".join(elsewhere) + ".", ""]
