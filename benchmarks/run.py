@@ -18,6 +18,10 @@ Cases
    ``*_vs_torch`` rows) and ``roma`` when it is installed (``*_vs_roma`` rows).
    ``max_abs_diff`` is the largest entry difference of the forward values (log against the
    matrix log and roma: through ``exp``, both signs being logarithms at angle π).
+   ``so3.log_validation(fwd)`` / ``(fwd+bwd)``: ``torchconn.so3.log`` (validated; its compiled
+   kernel counts the non-rotations in the same pass) against the unvalidated
+   ``torchconn.ops.so3.log``, the overhead in the note. ``path`` records ``-march`` (set
+   ``TORCHCONN_MARCH=x86-64-v3`` to time the AVX2 code on an AVX-512 machine).
 2. Curvature + averaged ``d∇d∇θ̃`` (and torsion alone) on box meshes of ~10k, 100k, 1M tets
    (``io.box(n)``, ``6 n³`` tets; ``--quick`` stops at 100k), float32 and float64, from a
    ``ConnectionField``-like parameter tensor (``so3.exp`` of skew params), loss
@@ -36,13 +40,18 @@ Cases
    2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed (in a
    subprocess, ``--mouette-timeout`` seconds; a run that does not finish is reported as such).
    ``benchmark.json`` is rewritten after every case, so partial results survive an interrupt.
+5. Under load (only with ``--only under_load``): :mod:`benchmarks.under_load`'s training step
+   with one thread and with torch's default threads, unloaded and while a spinner process holds
+   a core, once per OpenMP wait policy (default, PASSIVE) in a child process; ``ratio`` =
+   one-thread time / default-threads time (issue 24's target with the spinner: >= 1/1.5).
 
 Timing: each figure is the median of ``--repeats`` runs after one warm-up run; fast and
 reference are measured alternately in the same process (``ratio`` is taken side by side). At
 ≥ 1M tets the reference is run once after its warm-up (it takes tens of seconds; noted in the
 row). ``--threads`` sets ``torch.set_num_threads`` (default: torch's default). On a shared
-machine, OpenMP threads of a loaded 2-core box can be ~10× slower per op than one thread;
-record the thread count with the figures. ``--malloc resident`` (default) keeps freed memory in
+machine torch's own OpenMP threads spin at their barriers (unless ``OMP_WAIT_POLICY=PASSIVE``
+was set before Python started), which can make a loaded 2-core box ~10× slower per op than
+one thread; record the thread count and the load with the figures. ``--malloc resident`` (default) keeps freed memory in
 the process (:func:`keep_memory_resident`); without it, page faults of re-mmapped large
 temporaries make the time per tet at 1M ~1.8x that at 100k. Both are recorded in the JSON.
 
@@ -301,8 +310,10 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
         import roma
     except ImportError:
         roma = None
-    # which path so3.exp/log/sqrt take here (compiled csrc/so3.c or the torch code)
-    path = "compiled C" if torchconn.ops.can_use_compiled("so3", w) else "torch (compiled kernels unavailable)"
+    # which path so3.exp/log/sqrt take here (compiled csrc/so3.c, for which -march, or the torch code)
+    march = os.environ.get("TORCHCONN_MARCH", "").strip() or "native"
+    path = (f"compiled C (-march={march})" if torchconn.ops.can_use_compiled("so3", w)
+            else "torch (compiled kernels unavailable)")
 
     def fb(f, x):
         def run():
@@ -339,6 +350,19 @@ def bench_so3(n: int, repeats: int, rows: list) -> None:
                          max_abs_diff=diff, unit="rotations", path=path))
     if roma is None:
         rows.append(_row("so3.exp_vs_roma", n, "float32", None, None, None, note="roma not installed"))
+    # the cost of validation: torchconn.so3.log (checked: the compiled kernel counts the matrices
+    # that are not rotations in the same pass) against the unvalidated torchconn.ops.so3.log
+    def fwd(f, x):
+        def run():
+            with torch.no_grad():
+                f(x)
+        return run
+
+    for label, make in (("fwd", fwd), ("fwd+bwd", fb)):
+        t, tr = _side_by_side(make(so3.log, R), make(ops_so3.log, R), repeats)
+        rows.append(_row(f"so3.log_validation({label})", n, "float32", t, tr, None, unit="rotations", path=path,
+                         reference="torchconn.ops.so3.log (unvalidated)",
+                         note=f"validation adds {100 * (t / tr - 1):+.0f}% (target <= +20%)"))
 
 
 def _box(tets: int, dtype):
@@ -523,6 +547,21 @@ def bench_end_to_end(rows: list, threads: int, mouette_timeout: float = 600.0) -
                      mouette=theirs, note=note, command=" ".join(cmd[1:])))
 
 
+def bench_under_load(rows: list, steps: int) -> None:
+    """:mod:`benchmarks.under_load`: a training step (MLP -> so3.exp -> Curvature +
+    AveragedCovariantD, Adam) with one thread and with torch's default threads, side by side,
+    unloaded and while a spinner process holds the last CPU; each OpenMP wait policy in a fresh
+    child process (default, PASSIVE). ``seconds`` = the default threads, ``reference_seconds`` =
+    one thread per step, so ``ratio`` < 1 is the slowdown (target with the spinner: >= 1/1.5)."""
+    from benchmarks import under_load
+
+    for r in under_load.bench_policies(("default", "passive"), steps=steps, rounds=4):
+        rows.append(_row(f"{r['name']} OMP_WAIT_POLICY={r['wait_policy']}", r["tets"], "float32",
+                         r["ms_threads"] / 1e3, r["ms_1_thread"] / 1e3, None, unit="tets",
+                         reference="the same step with 1 thread",
+                         note=f"{r['threads']} threads / 1 thread = {r['ratio']:.2f}x; loadavg {r['loadavg']}"))
+
+
 # ----------------------------------------------------------------------------- report
 
 def _fmt(x, spec):
@@ -551,7 +590,8 @@ def main(argv=None) -> list:
                     help="resident: keep freed memory in the process (glibc mallopt, see keep_memory_resident); "
                          "default: glibc's defaults")
     ap.add_argument("--mouette-timeout", type=float, default=600.0, help="seconds for the mouette run")
-    ap.add_argument("--only", nargs="+", default=None, choices=["so3", "operators", "loss", "end_to_end"])
+    ap.add_argument("--only", nargs="+", default=None,
+                    choices=["so3", "operators", "loss", "end_to_end", "under_load"])
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -577,6 +617,9 @@ def main(argv=None) -> list:
             print(f"  done {n} tets {dtype} ({time.perf_counter() - t_start:.0f} s)", flush=True)
     if "end_to_end" in only:
         bench_end_to_end(rows, threads, args.mouette_timeout)
+        _save(rows, threads, malloc, args.output_dir)
+    if "under_load" in only:
+        bench_under_load(rows, 100 if args.quick else 400)
         _save(rows, threads, malloc, args.output_dir)
     _save(rows, threads, malloc, args.output_dir)
     print(table(rows))
