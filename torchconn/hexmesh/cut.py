@@ -47,8 +47,8 @@ __all__ = ["GROUP_MUL", "GROUP_INV", "group_matrices", "TetCharts", "tet_charts"
 
 
 def group_matrices() -> np.ndarray:
-    """The 24 elements of O as an ``(24, 3, 3)`` int64 array (identity first)."""
-    return octahedral.group_tables()[0]
+    """The 24 elements of O as an ``(24, 3, 3)`` int64 array (identity first; a fresh copy)."""
+    return octahedral.group_tables()[0].copy()
 
 
 _, GROUP_MUL, GROUP_INV = octahedral.group_tables()
