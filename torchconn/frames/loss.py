@@ -332,8 +332,9 @@ class FrameFieldLoss:
             regular = (idx == 0)[mesh.tet_faces].all(-1)
         dd = self._dd(edge_rot, frames)  # (T, 3)
         per = (dd**2).sum(-1) / self.tet_scale.to(dd.dtype)
-        n = int(regular.sum())
-        return torch.where(regular, per, 0.0).sum() / n if n else per.sum() * 0.0
+        # no int(): a data-dependent branch breaks vmap and torch.compile(fullgraph=True); 0 when
+        # no tet is regular (the sum is then 0, divided by 1)
+        return torch.where(regular, per, 0.0).sum() / regular.sum().clamp_min(1)
 
     def _check_inputs(self, edge_rot, frames) -> None:
         """Types, shapes, dtypes and devices of the call's inputs (class docstring); no sync."""
