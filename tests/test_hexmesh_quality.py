@@ -400,3 +400,34 @@ def test_features_of_the_hexme_cube():
     assert q.valid and q.sj_min > 0.999
     assert (q.n_corners, q.n_corners_meshed, q.n_curves, q.n_curves_meshed) == (8, 8, 12, 12)
     assert q.hausdorff_rel < 1e-6 and q.volume_ratio == pytest.approx(1.0, abs=1e-6) and q.good
+
+
+def test_untangle_moves_only_interior_vertices_and_raises_the_worst_jacobian():
+    """A 3x3x3 grid whose centre vertex is pushed through a neighbour's face: the interior
+    optimization restores positive scaled Jacobians; boundary vertices do not move."""
+    from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
+    from torchconn.hexmesh.smooth import untangle
+
+    n = 3
+    g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
+    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    hexes = []
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                c = [(i, j, k), (i + 1, j, k), (i + 1, j + 1, k), (i, j + 1, k),
+                     (i, j, k + 1), (i + 1, j, k + 1), (i + 1, j + 1, k + 1), (i, j + 1, k + 1)]
+                hexes.append([idx[a] for a in c])
+    hexes = np.array(hexes)
+    P = g.copy()
+    inner = idx[1, 1, 1]
+    P[inner] += [1.3, 0.2, 0.1]  # folds the hexes around it
+    assert scaled_jacobian(P, hexes).min() < 0
+    bv = np.unique(boundary_quads_of(hexes).reshape(-1))
+    Q, info = untangle(P, hexes, bv)
+    assert info["accepted"] and info["sj_min_after"] > 0.25 and info["sj_min_before"] < 0
+    assert np.array_equal(Q[bv], P[bv])  # the boundary is kept exactly
+    assert scaled_jacobian(Q, hexes).min() == pytest.approx(info["sj_min_after"])
+    # a mesh that is already good is returned unchanged
+    R, info2 = untangle(g, hexes, bv)
+    assert not info2["accepted"] and np.array_equal(R, g)

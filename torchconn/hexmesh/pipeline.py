@@ -82,8 +82,8 @@ class HexMeshResult:
         return out
 
 
-def hex_mesh(mesh, frames, *, extract: bool = True, quality: bool = True, progress: bool = False,
-             **map_options) -> HexMeshResult:
+def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quality: bool = True,
+             progress: bool = False, **map_options) -> HexMeshResult:
     """The hex mesh of a frame field (HEXMESH.md steps 1-8 and the judgement).
 
     Args:
@@ -92,6 +92,8 @@ def hex_mesh(mesh, frames, *, extract: bool = True, quality: bool = True, progre
         frames: a :class:`~torchconn.frames.design.FrameFieldResult` on ``mesh``, or frames
             ``(V, 3, 3)`` per vertex or ``(T, 3, 3)`` per tet.
         extract: extract the hexes (also from an invalid map, where it allows).
+        untangle: move the interior hex vertices to raise the worst scaled Jacobian
+            (:func:`~.smooth.untangle`; boundary vertices fixed, kept only if it helps).
         quality: judge the hex mesh (:func:`~.quality.hex_quality`) against ``mesh``.
         progress: progress bars on the rounding and the extraction.
         **map_options: :data:`MAP_OPTIONS`, passed to :func:`~.igm.integer_grid_map`
@@ -131,6 +133,15 @@ def hex_mesh(mesh, frames, *, extract: bool = True, quality: bool = True, progre
         ext = extract_hexes(igm.mesh, igm.uvw, igm.face_rot, igm.face_shift, grid_bits=igm.grid_bits,
                             progress=progress)
         timings["extract_s"] = time.perf_counter() - t0
+        if untangle and ext.hexes.shape[0]:
+            from .quality import boundary_quads_of
+            from .smooth import untangle as _untangle
+
+            t0 = time.perf_counter()
+            bv = np.unique(boundary_quads_of(ext.hexes).reshape(-1))
+            ext.points, uinfo = _untangle(ext.points, ext.hexes, bv)
+            ext.timings["untangle"] = uinfo
+            timings["untangle_s"] = time.perf_counter() - t0
         if quality and ext.hexes.shape[0]:
             from .quality import hex_quality
 

@@ -341,6 +341,14 @@ def _group_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gid, np.bincount(gid_sorted)
 
 
+def boundary_quads_of(hexes) -> np.ndarray:
+    """``(Q, 4)`` the quads of ``hexes (H, 8)`` (VTK order) that belong to exactly one hex, outward."""
+    h = np.asarray(hexes, dtype=np.int64)
+    loops = h[:, HEX_FACES].reshape(-1, 4)
+    fid, fcount = _group_rows(np.sort(loops, axis=1))
+    return loops[fcount[fid] == 1] if loops.shape[0] else loops
+
+
 def _loop_direction(loops: np.ndarray) -> np.ndarray:
     """``+1/-1`` per quad loop ``(M, 4)``: the orientation of the loop read from its smallest
     vertex (next neighbour smaller than the previous one: +1). Two loops on the same vertex
