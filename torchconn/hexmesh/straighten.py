@@ -16,10 +16,16 @@ to the edge's direction in the field ``w_along``, a turn about another axis ``w_
 complex holonomy ``w_complex``, and ``w_tangent`` more for a turn at a boundary vertex about an
 axis more than 45° from the boundary normal there (a singular curve touching the boundary
 instead of ending on it: the map lays its line into the boundary plane); plus ``w_misfit`` times the rotation angle (radians) by which a
-face's matching departs from its best match. Each step takes the move with the largest
-decrease among the faces at a singular edge (faces with a boundary edge are left alone: their
-matchings set how the boundary planes meet); it stops when no move decreases the cost. It
-terminates: the cost falls at every move and takes finitely many values.
+face's matching departs from its best match. LMFF's local conditions (:mod:`.meshability`) add
+``w_zipper`` per zipper node and ``w_node`` per invalid singular node (vertex costs: a move
+changes the classes of its face's three vertices) and ``w_fold`` per boundary edge off sharp
+features whose fan folds (valence ±2 on a surface: a move on a face of the fan changes the fan's
+transport). The search does not tell a half turn's valence 2 from 6 (it counts 6). Each step
+takes the move with the largest decrease among the faces at a singular edge or at a folded
+boundary fan (faces with a boundary edge only with ``boundary_moves``: their matchings set how
+the boundary planes meet), the chosen move's decrease recomputed before it is made (the vertex
+costs of a face also change with moves at its vertices); it stops when no move decreases the
+cost. It terminates: the cost falls at every move and takes finitely many values.
 """
 from __future__ import annotations
 
@@ -28,10 +34,17 @@ import torch
 
 from ..frames.singular import classify_holonomy
 from .cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
+from .meshability import (VERTEX_CLASSES, boundary_edge_class, boundary_fans, classify_vertices, edge_class_counts,
+                          fan_quarter_table, field_turn, interior_class_table, sharp_edges, walk_products)
 
 __all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS", "tangent_axes", "touching_edges"]
 
-DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "tangent": 8.0, "misfit": 2.0}
+DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "tangent": 8.0, "misfit": 2.0,
+                   "zipper": 8.0, "node": 8.0, "fold": 4.0}
+"""Weights of the search's cost (module docstring). ``zipper`` and ``node``: measured on the 17
+simple HexMe ``c`` meshes with the connection field (valid maps 7 with 0, 4, 8 or 16; zipper /
+invalid nodes left 75 / 113 without, 7 / 68 with 8); ``fold``: no fan folds there (set on the
+constructed case of the tests)."""
 
 
 def _element_tables():
@@ -56,8 +69,10 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
 
     Returns:
         ``(face_match (F,), info)`` with ``info``: ``moves``, ``edge_cost_before/after`` (the
-        edge part of the cost), ``misfit_added_rad`` (summed over the moved faces), and the edge counts ``across_before/after``, ``complex_before/after``,
-        ``singular_before/after``.
+        edge part of the cost, folds included), ``misfit_added_rad`` (summed over the moved
+        faces), the edge counts ``across_before/after``, ``complex_before/after``,
+        ``singular_before/after``, ``folds_before/after``, and the vertex counts
+        ``zipper_before/after``, ``invalid_nodes_before/after`` (the search's classes).
     """
     w = dict(DEFAULT_WEIGHTS)
     if weights:
@@ -102,17 +117,47 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
     def transitions():
         return GROUP_INV[match]
 
-    def edge_cost(hol):
-        return cost_tab[np.arange(E), np.maximum(hol, 0)] * interior_e
+    # LMFF's conditions (meshability): the class of every edge for each product of its walk
+    # (interior: holonomy; boundary: the fan's transport), folded fans off sharp features priced
+    # per edge, zipper and invalid nodes per vertex
+    fans = boundary_fans(mesh, walks)
+    eb = fans.edge
+    rot0 = transitions()
+    rot0[~(face_tets >= 0).all(1)] = 0
+    turn0 = field_turn(mesh, Fnp, rot0, walks)
+    qtab = fan_quarter_table(Fnp, fans, d[eb], fans.dihedral + turn0[eb])  # (Eb, 24)
+    _, expected = sharp_edges(mesh, fans)
+    cls_tab = interior_class_table(dpar)
+    cls_tab[eb] = boundary_edge_class(qtab)
+    fold_tab = (qtab == 0) | (qtab == 4)
+    cost_tab[eb] = w["fold"] * (fold_tab & (expected[eb] == 2)[:, None])
+    use_v = w["zipper"] > 0 or w["node"] > 0
+    vlut = np.zeros(len(VERTEX_CLASSES))
+    vlut[VERTEX_CLASSES.index("zipper")] = w["zipper"]
+    vlut[VERTEX_CLASSES.index("invalid")] = w["node"]
+    vlut[VERTEX_CLASSES.index("complex")] = w["node"]  # a complex edge does not make its ends valid nodes
+    on_b = np.zeros(mesh.n_vertices, bool)
+    on_b[mesh.boundary_vertices.cpu().numpy()] = True
+    faces_v = mesh.faces.cpu().numpy()
 
-    hol = walks.holonomy(transitions())
-    cost_e = edge_cost(hol)
+    def edge_cost(prod):
+        return cost_tab[np.arange(E), prod]
+
+    prod = walk_products(walks, transitions())  # holonomy, or the fan's transport on boundary edges
+    hol = np.where(walks.boundary, -1, prod)
+    cost_e = edge_cost(prod)
+    cls_e = cls_tab[np.arange(E), prod]
+    vcnt = edge_class_counts(edges, cls_e, mesh.n_vertices)
+    vcls = classify_vertices(vcnt, on_b)
     info = {"edge_cost_before": float(cost_e.sum())}
     misfit_added = 0.0
     sing0 = (hol > 0)
     info.update(singular_before=int(sing0.sum()), across_before=int((sing0 & turn[np.maximum(hol, 0)]
                                                                      & (_EAXIS[np.maximum(hol, 0)] != along)).sum()),
-                complex_before=int((sing0 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()))
+                complex_before=int((sing0 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()),
+                folds_before=int((cost_e[eb] > 0).sum()),
+                zipper_before=int((vcls == VERTEX_CLASSES.index("zipper")).sum()),
+                invalid_nodes_before=int((vcls == VERTEX_CLASSES.index("invalid")).sum()))
 
     # face -> its (edge, step) incidences in the walks of interior edges
     steps_e = np.repeat(np.arange(E), np.diff(walks.ptr))
@@ -158,8 +203,6 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
                 continue
             steps = inc_step[f_ptr[f]:f_ptr[f + 1]]
             es = steps_e[steps]
-            keep = interior_e[es]
-            steps, es = steps[keep], es[keep]
             if steps.size == 0:
                 continue
             ks = steps_k[steps]
@@ -177,19 +220,41 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
             mr = misfit_row(f)
             dm = w["misfit"] * (mr[new_match] - mr[match[f]])
             delta = dc + dm
+            if use_v:
+                delta = delta + vertex_delta(f, es, Hn)
             delta[0] = np.inf  # g = I: no move
             j = int(np.argmin(delta))
             best_d[n_f], best_g[n_f] = delta[j], j
         return best_d, best_g
 
-    # candidate faces: those in the walks of singular interior edges
+    def vertex_delta(f, es, Hn):
+        """(24,) change of the vertex costs at the corners of face f when its edges es take the
+        walk products Hn (m, 24)."""
+        fv = faces_v[f]
+        cnt = np.repeat(vcnt[fv][None], 24, axis=0)  # (24, 3, C)
+        new_c = cls_tab[es[:, None], Hn]  # (m, 24)
+        at = edges[es][:, None, :] == fv[None, :, None]  # (m, 3, 2)
+        g_all = np.arange(24)
+        for i in range(es.size):  # the face's (up to 3) edges
+            for j in np.nonzero(at[i].any(1))[0]:  # its two corners
+                if cls_e[es[i]] >= 0:
+                    cnt[:, j, cls_e[es[i]]] -= 1
+                ok = new_c[i] >= 0
+                cnt[g_all[ok], j, new_c[i][ok]] += 1
+        new_v = classify_vertices(cnt, np.broadcast_to(on_b[fv], (24, 3)))
+        return vlut[new_v].sum(1) - vlut[vcls[fv]].sum()
+
+    # candidate faces: those in the walks of singular interior edges and of folded fans
     def faces_of(e_ids):
         if len(e_ids) == 0:
             return np.zeros(0, np.int64)
         idx = np.concatenate([np.arange(walks.ptr[e], walks.ptr[e + 1]) for e in e_ids])
         return np.unique(walks.face[idx])
 
-    sing_e = np.nonzero((hol > 0) & interior_e)[0]
+    sing_e = np.nonzero(((hol > 0) & interior_e) | (cost_e > 0))[0]
+    if use_v:  # the boundary edges of bad vertices (a zipper of feature curves)
+        bad_v = vlut[vcls] > 0
+        sing_e = np.union1d(sing_e, np.nonzero(walks.boundary & (cls_e >= 0) & bad_v[edges].any(1))[0])
     cand = faces_of(sing_e.tolist())
     fbest_d = np.full(F, np.inf)
     fbest_g = np.zeros(F, np.int64)
@@ -201,6 +266,11 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
         f = int(np.argmin(fbest_d))
         if not fbest_d[f] < -tol:
             break
+        if use_v:  # vertex costs change with moves at the face's corners: recompute before moving
+            d_f, g_f = score([f])
+            if not d_f[0] <= fbest_d[f] + tol:
+                fbest_d[f], fbest_g[f] = d_f[0], g_f[0]
+                continue
         g = int(fbest_g[f])
         R = transitions()
         mr = misfit_row(f)
@@ -211,20 +281,37 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
         # the three edges of f change; rescore every face on their walks
         steps = inc_step[f_ptr[f]:f_ptr[f + 1]]
         es = np.unique(steps_e[steps])
-        hol[es] = _holonomy_of(walks, es, transitions())
-        cost_e[es] = edge_cost(hol)[es]
+        prod[es] = _holonomy_of(walks, es, transitions())
+        cost_e[es] = cost_tab[es, prod[es]]
+        new_c = cls_tab[es, prod[es]]
+        for end in (0, 1):
+            old = cls_e[es] >= 0
+            np.subtract.at(vcnt, (edges[es[old], end], cls_e[es[old]]), 1)
+            new = new_c >= 0
+            np.add.at(vcnt, (edges[es[new], end], new_c[new]), 1)
+        cls_e[es] = new_c
+        fv = faces_v[f]
+        vcls[fv] = classify_vertices(vcnt[fv], on_b[fv])
         for e in es.tolist():
             ps.pop(e, None)
         ps.update(prefix_suffix(es))
         aff = faces_of(es.tolist())
+        if use_v:  # faces moving a singular edge at the corners see new vertex costs
+            at_v = np.nonzero((cls_e >= 0) & np.isin(edges, fv).any(1))[0]
+            aff = np.union1d(aff, faces_of(at_v.tolist()))
         # faces on the walks of the affected edges' faces also see changed P/S of those edges
         fbest_d[aff], fbest_g[aff] = score(aff.tolist())
-    hol = walks.holonomy(transitions())
+    prod = walk_products(walks, transitions())
+    hol = np.where(walks.boundary, -1, prod)
     sing1 = hol > 0
-    info.update(moves=moves, edge_cost_after=float(edge_cost(hol).sum()), misfit_added_rad=misfit_added,
+    vcls = classify_vertices(edge_class_counts(edges, cls_tab[np.arange(E), prod], mesh.n_vertices), on_b)
+    info.update(moves=moves, edge_cost_after=float(edge_cost(prod).sum()), misfit_added_rad=misfit_added,
                 singular_after=int(sing1.sum()),
                 across_after=int((sing1 & turn[np.maximum(hol, 0)] & (_EAXIS[np.maximum(hol, 0)] != along)).sum()),
-                complex_after=int((sing1 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()))
+                complex_after=int((sing1 & (_ETYPE[np.maximum(hol, 0)] == 3)).sum()),
+                folds_after=int((edge_cost(prod)[eb] > 0).sum()),
+                zipper_after=int((vcls == VERTEX_CLASSES.index("zipper")).sum()),
+                invalid_nodes_after=int((vcls == VERTEX_CLASSES.index("invalid")).sum()))
     return match, info
 
 
@@ -277,11 +364,14 @@ def touching_edges(mesh, tet_frames, face_match: np.ndarray | None = None) -> np
 
 
 def _holonomy_of(walks, e_ids, face_rot):
-    R = np.where(walks.forward, face_rot[walks.face], GROUP_INV[face_rot[walks.face]])
+    """Products of the walks of edges ``e_ids`` (the fan's transport on boundary edges)."""
     out = np.empty(len(e_ids), np.int64)
     for n, e in enumerate(np.asarray(e_ids).tolist()):
+        a, b = walks.ptr[e], walks.ptr[e + 1]
+        fr = face_rot[walks.face[a:b]]
+        R = np.where(walks.forward[a:b], fr, GROUP_INV[fr])
         acc = 0
-        for k in range(walks.ptr[e], walks.ptr[e + 1]):
-            acc = GROUP_MUL[R[k], acc]
-        out[n] = -1 if walks.boundary[e] else acc
+        for r in R.tolist():
+            acc = GROUP_MUL[r, acc]
+        out[n] = acc
     return out
