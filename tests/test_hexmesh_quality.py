@@ -431,3 +431,29 @@ def test_untangle_moves_only_interior_vertices_and_raises_the_worst_jacobian():
     # a mesh that is already good is returned unchanged
     R, info2 = untangle(g, hexes, bv)
     assert not info2["accepted"] and np.array_equal(R, g)
+
+
+def test_untangle_slides_boundary_vertices_on_the_surface_and_keeps_sharp_ones():
+    from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
+    from torchconn.hexmesh.smooth import untangle
+
+    n = 3
+    g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
+    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    hexes = np.array([[idx[a] for a in [(i, j, k), (i + 1, j, k), (i + 1, j + 1, k), (i, j + 1, k), (i, j, k + 1),
+                                         (i + 1, j, k + 1), (i + 1, j + 1, k + 1), (i, j + 1, k + 1)]]
+                      for i in range(n) for j in range(n) for k in range(n)])
+    quads = boundary_quads_of(hexes)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    P = g.copy()
+    v = idx[1, 1, 0]  # on the face z = 0, away from the cube's edges
+    P[v] += [1.2, 0.3, 0.0]  # slid within the face far enough to fold its hexes
+    assert scaled_jacobian(P, hexes).min() < 0
+    bv = np.unique(quads.reshape(-1))
+    Q0, i0 = untangle(P, hexes, bv)  # boundary fixed: the fold at the boundary stays
+    Q, info = untangle(P, hexes, bv, surface=(g, tris))
+    # sliding on the face undoes most of a fold that the interior alone cannot
+    assert info["accepted"] and info["boundary_moved"] > 0 and info["sj_min_after"] > i0["sj_min_after"] + 0.3
+    assert abs(Q[v, 2]) < 1e-12  # back on the face
+    corners = [idx[a, b, c] for a in (0, n) for b in (0, n) for c in (0, n)]
+    assert np.array_equal(Q[corners], P[corners])  # sharp vertices do not move

@@ -139,7 +139,8 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
 
             t0 = time.perf_counter()
             bv = np.unique(boundary_quads_of(ext.hexes).reshape(-1))
-            ext.points, uinfo = _untangle(ext.points, ext.hexes, bv)
+            surf = (mesh.vertices.detach().cpu().double().numpy(), mesh.boundary_faces.cpu().numpy())
+            ext.points, uinfo = _untangle(ext.points, ext.hexes, bv, surface=surf)
             ext.timings["untangle"] = uinfo
             timings["untangle_s"] = time.perf_counter() - t0
         if quality and ext.hexes.shape[0]:

@@ -46,14 +46,20 @@ def corner_jacobians(P: torch.Tensor, hexes: torch.Tensor) -> torch.Tensor:
 
 
 def untangle(points: np.ndarray, hexes: np.ndarray, boundary_vertices: np.ndarray, *, target: float = 0.3,
-             reg: float = 1e-3, iters: int = 200) -> tuple[np.ndarray, dict]:
-    """Move the interior vertices to raise the worst scaled Jacobian (module docstring).
+             reg: float = 1e-3, iters: int = 200, surface=None, sharp_deg: float = 30.0,
+             slide: float = 100.0) -> tuple[np.ndarray, dict]:
+    """Move the vertices to raise the worst scaled Jacobian (module docstring).
 
     Args:
-        points: ``(N, 3)``; hexes: ``(H, 8)`` VTK order; boundary_vertices: indices kept fixed.
+        points: ``(N, 3)``; hexes: ``(H, 8)`` VTK order; boundary_vertices: the hex mesh's
+            boundary vertices (fixed without ``surface``).
         target: scaled Jacobian below which a sample is penalized.
         reg: weight of staying near the extracted positions.
         iters: L-BFGS iterations.
+        surface: ``(vertices (Vs, 3), triangles (Fs, 3))`` the input boundary: boundary vertices
+            whose incident boundary quads turn by less than ``sharp_deg`` slide and are projected
+            back onto it.
+        slide: weight of the normal motion of sliding vertices.
 
     Returns:
         ``(points, info)``: ``info`` has ``sj_min_before``, ``sj_min_after``, ``moved``
@@ -66,13 +72,35 @@ def untangle(points: np.ndarray, hexes: np.ndarray, boundary_vertices: np.ndarra
     if not len(hexes):
         return np.asarray(points), info
     fixed = np.zeros(P0.shape[0], bool)
-    fixed[np.asarray(boundary_vertices, np.int64)] = True
+    bvs = np.asarray(boundary_vertices, np.int64)
+    fixed[bvs] = True
+    normals = None
+    if surface is not None and bvs.size:
+        from .quality import boundary_quads_of
+
+        q = boundary_quads_of(hexes)
+        Pq = np.asarray(points, dtype=np.float64)[q]
+        qn = np.cross(Pq[:, 2] - Pq[:, 0], Pq[:, 3] - Pq[:, 1])
+        qn /= np.linalg.norm(qn, axis=1, keepdims=True).clip(1e-300)
+        nv = np.zeros((P0.shape[0], 3))
+        np.add.at(nv, q.reshape(-1), np.repeat(qn, 4, axis=0))
+        nv /= np.linalg.norm(nv, axis=1, keepdims=True).clip(1e-300)
+        # sharp: some incident quad normal farther than sharp_deg from the vertex normal
+        cos = np.einsum("qi,qi->q", np.repeat(qn, 4, axis=0), nv[q.reshape(-1)])
+        worst = np.ones(P0.shape[0])
+        np.minimum.at(worst, q.reshape(-1), cos)
+        slides = bvs[worst[bvs] >= np.cos(np.radians(sharp_deg))]
+        fixed[slides] = False
+        normals = torch.as_tensor(nv)
     used = np.zeros(P0.shape[0], bool)
     used[np.asarray(hexes).reshape(-1)] = True
     free = np.nonzero(~fixed & used)[0]
     if not free.size or before >= target:
         return np.asarray(points), info
     free_t = torch.as_tensor(free)
+    on_b = np.zeros(P0.shape[0], bool)
+    on_b[bvs] = True
+    bfree = torch.as_tensor(on_b[free])
     edges = torch.stack([H[:, [0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3]], H[:, [1, 2, 3, 0, 5, 6, 7, 4, 4, 5, 6, 7]]], -1)
     h = float((P0[edges[..., 0]] - P0[edges[..., 1]]).norm(dim=-1).mean())
     x = P0[free_t].clone().requires_grad_(True)
@@ -82,14 +110,27 @@ def untangle(points: np.ndarray, hexes: np.ndarray, boundary_vertices: np.ndarra
         opt.zero_grad()
         P = P0.index_put((free_t,), x)
         J = corner_jacobians(P, H)
-        e = torch.relu(target - J).pow(2).sum() + reg * ((x - P0[free_t]) ** 2).sum() / (h * h)
+        d = x - P0[free_t]
+        e = torch.relu(target - J).pow(2).sum() + reg * (d**2).sum() / (h * h)
+        if normals is not None and bool(bfree.any()):
+            dn = (d[bfree] * normals[free_t][bfree]).sum(-1)
+            e = e + slide * (dn**2).sum() / (h * h)
         e.backward()
         return e
 
     opt.step(closure)
     P = P0.index_put((free_t,), x.detach()).numpy()
+    if normals is not None and bool(bfree.any()):  # back onto the input surface
+        import igl
+
+        Vs, Fs = (np.asarray(a) for a in surface)
+        ids = free[bfree.numpy()]
+        _, _, C = igl.point_mesh_squared_distance(P[ids], np.ascontiguousarray(Vs, dtype=np.float64),
+                                                  np.ascontiguousarray(Fs, dtype=np.int64))
+        P[ids] = C
     after = float(scaled_jacobian(P, hexes).min())
     if after > before:
-        info.update(sj_min_after=after, moved=int(free.size), accepted=True)
+        info.update(sj_min_after=after, moved=int(free.size), accepted=True,
+                    boundary_moved=int(bfree.sum()))
         return P, info
     return np.asarray(points), info
