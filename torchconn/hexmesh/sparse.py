@@ -74,6 +74,8 @@ def _release_factors() -> None:
     for solver in list(_LIVE):
         solver._factors = []
     gc.collect()
+
+
 _COMPILE_REASON = ("the sparse SPD solve calls CHOLMOD / SuperLU on numpy arrays (a factorization is state the "
                    "graph cannot hold), so torch.compile runs it outside the graph")
 
@@ -330,7 +332,8 @@ def sparse_spd_solve(indices: torch.Tensor, values: torch.Tensor, b: torch.Tenso
             positive definite (a non-positive diagonal entry; CHOLMOD's failure).
     """
     who = "sparse_spd_solve"
-    indices = _check_indices(indices, who)
+    if not (isinstance(factor, SPDSolve) and indices is factor.indices):  # (a factor's own indices are checked)
+        indices = _check_indices(indices, who)
     values = _check_values(values, indices.shape[1], who)
     b = _check_tensor(b, "b", who)
     if b.dtype != values.dtype:
