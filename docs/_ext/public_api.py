@@ -1,7 +1,7 @@
 """Sphinx extension of the torchconn docs: the API reference under the names users import.
 
 Every object is documented once, under its *public name*: the first ``namespace.name`` of
-:data:`PUBLIC_NAMESPACES` whose ``__all__`` lists it (``torchconn.Curvature``, not
+:func:`public_namespaces` whose ``__all__`` lists it (``torchconn.Curvature``, not
 ``torchconn.nn.modules.Curvature``; ``torchconn.so3.exp``, not ``torchconn.lie.so3.exp``).
 
 * ``.. public-api:: NAMESPACE`` (option ``:names: a b c``, default: the namespace's whole
@@ -29,28 +29,13 @@ from docutils.parsers.rst import directives
 from docutils.statemachine import StringList
 from sphinx.util.docutils import SphinxDirective
 
-#: Public namespaces in priority order: an object listed by several ``__all__`` is documented
-#: under the first (``import torchconn as tc`` first, then the subpackages users import).
-PUBLIC_NAMESPACES = (
-    "torchconn",
-    "torchconn.nn",
-    "torchconn.so3",
-    "torchconn.son",
-    "torchconn.transport",
-    "torchconn.connection",
-    "torchconn.smooth",
-    "torchconn.curvature",
-    "torchconn.chains",
-    "torchconn.torsion",
-    "torchconn.dnabla",
-    "torchconn.bianchi",
-    "torchconn.mesh",
-    "torchconn.io",
-    "torchconn.tolerances",
-    "torchconn.ops",
-    "torchconn.frames",
-    "torchconn.hexmesh",
-)
+def public_namespaces() -> list[str]:
+    """The namespaces users import, in priority order: ``torchconn`` (``import torchconn as tc``),
+    then every module its ``__all__`` names, in that order (``torchconn.mesh``, ``torchconn.so3``,
+    ``torchconn.frames``, ...). An object listed by several is documented under the first."""
+    import torchconn
+
+    return ["torchconn"] + [f"torchconn.{n}" for n in torchconn.__all__ if inspect.ismodule(getattr(torchconn, n))]
 
 
 def resolve(name: str) -> Any:
@@ -76,7 +61,7 @@ def public_names(namespace: str) -> list[str]:
 def owners() -> dict[int, str]:
     """``id(object)`` -> its public name (the first namespace listing it wins)."""
     out: dict[int, str] = {}
-    for namespace in PUBLIC_NAMESPACES:
+    for namespace in public_namespaces():
         ns = resolve(namespace)
         for name in public_names(namespace):
             out.setdefault(id(getattr(ns, name)), f"{namespace}.{name}")
