@@ -355,7 +355,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         on_checkpoint: ``on_checkpoint(state)`` at step 0 of every start, every
             ``checkpoint_every`` steps and at its last step, with ``state = {"start", "done",
             "step", "model", "optimizer", "scheduler", "rng", "history", "init_frames",
-            "init_metrics"}`` (live ``state_dict``s: serialize them before the next step).
+            "init_metrics"}`` (live ``state_dict`` objects: serialize them before the next step).
         choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
             :class:`~torchconn.frames.polish.Candidate` s (default
             :func:`~torchconn.frames.polish.choose_by_proxies`); e.g.

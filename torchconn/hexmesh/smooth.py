@@ -5,7 +5,7 @@ straight edges through the images of the cube's corners can still fold where the
 strongly inside one cube (a valid map gave hexes of scaled Jacobian -0.6 on HexMe s04). The
 remedy of the hex-meshing pipelines is a local optimization of the vertex positions. Here only
 the **interior** vertices move (boundary vertices, hence the boundary, the Hausdorff distance and
-the features meshed, are kept exactly): L-BFGS on
+the features meshed, are kept exactly): L-BFGS on::
 
     E(x) = sum_{hexes, 9 samples} relu(target - J)^2 + reg * sum_interior |x - x0|^2 / h^2
 
