@@ -66,7 +66,8 @@ Conditions (each a list of offending elements in :class:`Meshability`)
   valid kind may still be arranged wrongly; the conditions are necessary, not sufficient.
   Vertices at a complex edge are classed ``complex`` (the edge is reported) and not counted.
 * ``touching_edges``: interior singular edges with an end on the boundary whose turn axis is
-  more than 45° from the boundary normal there (:func:`~.straighten.touching_edges`).
+  more than 45° from the boundary normal there (:func:`tangent_axes`; the search's ``w_tangent``,
+  :func:`~.straighten.touching_edges`).
 * ``across_edges``: singular edges whose turn axis is not the parameter axis closest to their
   direction (:attr:`~.cut.TetCharts.edge_across`).
 
@@ -88,7 +89,7 @@ from .cut import GROUP_INV, GROUP_MUL, TetCharts, edge_walks, group_matrices, te
 __all__ = ["Meshability", "meshability", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
            "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class",
            "interior_class_table", "BoundaryFans", "boundary_fans", "fan_quarters", "fan_quarter_table",
-           "field_turn", "sharp_edges", "walk_products"]
+           "field_turn", "sharp_edges", "tangent_axes", "walk_products"]
 
 VERTEX_CLASSES = ("regular", "arc", "node", "zipper", "invalid", "complex")
 """Codes of :attr:`Meshability.vertex_class`: no singular edge; on an arc (or a feature curve,
@@ -407,6 +408,42 @@ def _element_tables():
 _ELEMENTS = _element_tables()
 
 
+def tangent_axes(mesh, start_frames: np.ndarray, edges: np.ndarray, boundary_edge: np.ndarray) -> np.ndarray:
+    """``(E, 3)`` bool: for each interior edge with an end on the boundary, the parameter axes
+    (frame axes of its start tet) more than 45° from the normal of some boundary face at that end.
+
+    A singular line about such an axis through a boundary vertex lies in that face's boundary
+    plane of the map (the tets between collapse); in particular a singular curve cannot end on a
+    feature curve, whose faces have two normals. Edges without a boundary end: all false.
+    """
+    E = edges.shape[0]
+    V = mesh.n_vertices
+    bf = mesh.boundary_faces.cpu().numpy()
+    X = mesh.vertices.detach().cpu().double().numpy()
+    n = np.cross(X[bf[:, 1]] - X[bf[:, 0]], X[bf[:, 2]] - X[bf[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    vv = bf.reshape(-1)
+    nn = np.repeat(n, 3, axis=0)
+    order = np.argsort(vv, kind="stable")
+    ptr = np.searchsorted(vv[order], np.arange(V + 1))
+    nn = nn[order]
+    out = np.zeros((E, 3), bool)
+    c45 = np.sqrt(0.5)
+    for end in (0, 1):
+        v = edges[:, end]
+        cnt = ptr[v + 1] - ptr[v]
+        sel = np.nonzero((cnt > 0) & ~boundary_edge)[0]
+        if not sel.size:
+            continue
+        lens = cnt[sel]
+        rows = np.repeat(sel, lens)
+        offs = np.arange(lens.sum()) - np.repeat(np.cumsum(lens) - lens, lens)
+        normals = nn[np.repeat(ptr[v[sel]], lens) + offs]
+        cosk = np.abs(np.einsum("pik,pi->pk", start_frames[rows], normals))  # |F[:, k] . n_f|
+        np.logical_or.at(out, rows, cosk < c45)
+    return out
+
+
 # ----------------------------------------------------------------------------- the report
 @dataclass
 class Meshability:
@@ -478,8 +515,6 @@ def meshability(mesh, tet_frames, face_match: np.ndarray | None = None, *, chart
 
     Cost: linear in the mesh (one pass of rotation logs over the steps of the edge walks).
     """
-    from .straighten import tangent_axes  # the touching rule has one home
-
     ch = tet_charts(mesh, tet_frames, face_match) if charts is None else charts
     walks = edge_walks(mesh)
     edges = mesh.edges.cpu().numpy()

@@ -35,9 +35,10 @@ import torch
 from ..frames.singular import classify_holonomy
 from .cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
 from .meshability import (VERTEX_CLASSES, boundary_edge_class, boundary_fans, classify_vertices, edge_class_counts,
-                          fan_quarter_table, field_turn, interior_class_table, sharp_edges, walk_products)
+                          fan_quarter_table, field_turn, interior_class_table, sharp_edges, tangent_axes,
+                          walk_products)
 
-__all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS", "tangent_axes", "touching_edges"]
+__all__ = ["straighten_singular_edges", "DEFAULT_WEIGHTS", "touching_edges"]  # tangent_axes: from .meshability
 
 DEFAULT_WEIGHTS = {"along": 1.0, "across": 8.0, "complex": 16.0, "tangent": 8.0, "misfit": 2.0,
                    "zipper": 8.0, "node": 8.0, "fold": 4.0}
@@ -313,42 +314,6 @@ def straighten_singular_edges(mesh, tet_frames, face_match: np.ndarray | None = 
                 zipper_after=int((vcls == VERTEX_CLASSES.index("zipper")).sum()),
                 invalid_nodes_after=int((vcls == VERTEX_CLASSES.index("invalid")).sum()))
     return match, info
-
-
-def tangent_axes(mesh, start_frames: np.ndarray, edges: np.ndarray, boundary_edge: np.ndarray) -> np.ndarray:
-    """``(E, 3)`` bool: for each interior edge with an end on the boundary, the parameter axes
-    (frame axes of its start tet) more than 45° from the normal of some boundary face at that end.
-
-    A singular line about such an axis through a boundary vertex lies in that face's boundary
-    plane of the map (the tets between collapse); in particular a singular curve cannot end on a
-    feature curve, whose faces have two normals. Edges without a boundary end: all false.
-    """
-    E = edges.shape[0]
-    V = mesh.n_vertices
-    bf = mesh.boundary_faces.cpu().numpy()
-    X = mesh.vertices.detach().cpu().double().numpy()
-    n = np.cross(X[bf[:, 1]] - X[bf[:, 0]], X[bf[:, 2]] - X[bf[:, 0]])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    vv = bf.reshape(-1)
-    nn = np.repeat(n, 3, axis=0)
-    order = np.argsort(vv, kind="stable")
-    ptr = np.searchsorted(vv[order], np.arange(V + 1))
-    nn = nn[order]
-    out = np.zeros((E, 3), bool)
-    c45 = np.sqrt(0.5)
-    for end in (0, 1):
-        v = edges[:, end]
-        cnt = ptr[v + 1] - ptr[v]
-        sel = np.nonzero((cnt > 0) & ~boundary_edge)[0]
-        if not sel.size:
-            continue
-        lens = cnt[sel]
-        rows = np.repeat(sel, lens)
-        offs = np.arange(lens.sum()) - np.repeat(np.cumsum(lens) - lens, lens)
-        normals = nn[np.repeat(ptr[v[sel]], lens) + offs]
-        cosk = np.abs(np.einsum("pik,pi->pk", start_frames[rows], normals))  # |F[:, k] . n_f|
-        np.logical_or.at(out, rows, cosk < c45)
-    return out
 
 
 def touching_edges(mesh, tet_frames, face_match: np.ndarray | None = None) -> np.ndarray:
