@@ -46,7 +46,7 @@ state is an :class:`SPDSolve`, and ``torch.compile`` runs it outside the graph
 (``torch.compiler.disable``: a graph break; ``fullgraph=True`` refuses it). With ``setup_context``,
 ``torch.func.grad`` and ``vjp`` work through a solve with a fixed factor (``SPDSolve(...)(b)``);
 a factorization made inside a ``torch.func`` transform (of values it tracks) is not supported,
-nor is ``vmap`` (batch dimensions are native instead).
+nor is ``vmap`` (batch dimensions of ``values`` and ``b`` are supported directly instead).
 """
 from __future__ import annotations
 
