@@ -485,3 +485,27 @@ def test_exp_beyond_the_reduction_range_matches_torch(dtype):
     _, g_t, _ = _grad(_with(fn, False), w, G)
     assert _is_native(out)
     torch.testing.assert_close(g_n, g_t, atol=VAL_TOL[dtype] * 10, rtol=0)
+
+
+@pytest.mark.parametrize("kind", MAPS)
+def test_backward_reads_strided_gradients_in_place(kind):
+    """The compiled backward reads the incoming gradient through its strides: a broadcast one
+    (the gradient of a sum, strides 0), one broadcast along the batch and a transposed one give
+    bitwise what the same gradient made contiguous gives (cost ~20 ms)."""
+    dtype = torch.float32
+    x = _inputs(kind, dtype, n=3000, seed=15)
+    bwd = {"exp": ops_so3._so3_exp_backward, "log": ops_so3._so3_log_backward,
+           "sqrt": ops_so3._so3_sqrt_backward}[kind]
+    shape = (x.shape[0], 3) if kind == "log" else (x.shape[0], 3, 3)
+    gen = torch.Generator().manual_seed(16)
+    K = 3 if kind == "log" else 9
+    grads = [torch.ones((), dtype=dtype).expand(shape),                                  # strides (0, 0)
+             torch.randn(shape[1:], generator=gen, dtype=dtype).expand(shape),            # (0, 1)
+             torch.randn(K, x.shape[0], generator=gen, dtype=dtype).t().reshape(shape)]   # (1, n)
+    for G in grads:
+        assert not G.is_contiguous() and G.reshape(x.shape[0], K)._base is not None  # read as a view
+        out = bwd(x, G)
+        assert _C_CALLS, "the compiled backward did not run"
+        _C_CALLS.clear()
+        assert torch.equal(out, bwd(x, G.contiguous()))
+        torch.testing.assert_close(out, _with(lambda t: bwd(t, G), False)(x), atol=VAL_TOL[dtype] * 100, rtol=1e-5)

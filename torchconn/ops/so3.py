@@ -45,7 +45,8 @@ __all__ = ["exp", "log", "log_checked", "sqrt", "half_exp", "exp_autograd"]
 # ----------------------------------------------------------------------------- C signatures
 
 _MAP = [c_void_p, c_void_p, c_long, c_int, c_double]            # (in, out, n, threads, eps)
-_BWD = [c_void_p, c_void_p, c_void_p, c_long, c_int, c_double]  # (in, grad_out, grad_in, ...)
+_BWD = [c_void_p, c_void_p, c_void_p, c_long, c_int, c_double,  # (in, grad_out, grad_in, ...
+        c_long, c_long]                                             #  ..., grad_out's two strides)
 _SUF = {torch.float32: "f32", torch.float64: "f64"}
 #: ``_C[name, dtype]``: the C functions of ``csrc/so3.c`` (declared once; built on first call).
 _C = {(f"{m}_{d}", dt): _native.declare("so3", f"so3_{m}_{d}_{suf}", _BWD if d == "bwd" else _MAP)
@@ -78,8 +79,15 @@ def _map_c(kind: str, x: torch.Tensor) -> torch.Tensor:
 
 
 def _bwd_c(kind: str, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The compiled backward; ``g`` is read through its strides (the gradient of a ``sum`` is a
+    broadcast view: no ``(n, 9)`` copy of it)."""
     n = x.numel() // _IN[kind]
-    gx = _c_run(f"{kind}_bwd", n, _IN[kind], x.reshape(n, _IN[kind]), g.reshape(n, _OUT[kind]))
+    xs = x.reshape(n, _IN[kind]).contiguous()
+    gs = g.reshape(n, _OUT[kind])  # a view where one exists; kept alive until the call returns
+    gx = _native.empty(n, _IN[kind], dtype=x.dtype)
+    if n:
+        _C[f"{kind}_bwd", x.dtype](_native.ptr(xs), c_void_p(gs.data_ptr()), _native.ptr(gx), n,
+                                   torch.get_num_threads(), get_eps("small_angle", x.dtype), *gs.stride())
     return gx.reshape(x.shape)
 
 
