@@ -23,7 +23,7 @@ import torch
 
 from .backend import _plain
 
-__all__ = ["require", "traced_constant", "edge_vectors"]
+__all__ = ["require", "traced_constant", "edge_ends", "edge_vectors"]
 
 _FALLBACK: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
 
@@ -73,6 +73,21 @@ def traced_constant(fn):
     return call
 
 
+@traced_constant
+def edge_ends(mesh, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(i (E,), j (E,))``: the columns of ``mesh.edges`` as contiguous long tensors on ``device``
+    (built once per mesh and device), the indices of per-edge gathers such as ``F_i``, ``F_j``.
+
+    Not the strided views ``edges[:, 0]``, ``edges[:, 1]``: inductor's vectorized CPU code
+    (torch 2.13) reads a strided index tensor as contiguous in the backward of a gather:
+    ``torch.compile`` of ``(F[e[:, 0]] @ R @ F[e[:, 1]]ᵀ).sin().sum()`` gave gradients off by
+    O(1) in float64 and heap corruption in float32 (correct with ``cpp.simdlen=1`` or with
+    contiguous indices), which broke the frame-field loss differentiated in the frames."""
+    dev = torch.device(device)
+    return require(mesh, f"ops.edge_ends.{dev}",
+                   lambda m: tuple(m.edges[:, k].to(dev).contiguous() for k in (0, 1)))
+
+
 def edge_vectors(mesh, device, dtype):
     """``v_j - v_i`` of every canonical edge ``(i, j)`` of ``mesh.edges``: ``(E, 3)`` on ``device``, ``dtype``.
 
@@ -99,6 +114,6 @@ def edge_vectors(mesh, device, dtype):
 
 
 def _edge_vectors(mesh, verts, device, dtype):
-    e = mesh.edges.to(device)
+    i, j = edge_ends(mesh, device)
     v = verts.to(device=device, dtype=dtype)
-    return v.index_select(0, e[:, 1]) - v.index_select(0, e[:, 0])
+    return v.index_select(0, j) - v.index_select(0, i)

@@ -25,6 +25,7 @@ import torch
 
 from . import _so3_formulas as _f
 from . import native as _native
+from ._cache import edge_ends as _edge_ends
 from ._cache import edge_vectors as _edge_vectors
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
@@ -331,8 +332,8 @@ def tet_dd_solder(edge_rot: torch.Tensor, mesh, half_rot: torch.Tensor | None = 
         return tet_dd_rot(edge_rot, vec, k) if half_rot is None else tet_dd_sqrt(edge_rot, half_rot, vec, k)
     else:
         Fv = frames.to(device=dev, dtype=dt)
-        e = mesh.edges.to(dev)
-        Fi, Fj = Fv.index_select(-3, e[:, 0]), Fv.index_select(-3, e[:, 1])
+        i, j = _edge_ends(mesh, dev)
+        Fi, Fj = Fv.index_select(-3, i), Fv.index_select(-3, j)
         H = _sqrt(Fi @ edge_rot @ Fj.transpose(-1, -2)) if half_rot is None \
             else Fi @ half_rot @ Fj.transpose(-1, -2)
         amb = edge_solder_sqrt(H, vec)  # (*B, E, 2, 3) ambient

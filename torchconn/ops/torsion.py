@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from . import _so3_formulas as _f
+from ._cache import edge_ends as _edge_ends
 from ._cache import edge_vectors as _edge_vectors
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
@@ -234,8 +235,8 @@ def edge_frames(edge_rot: torch.Tensor, mesh, frames: torch.Tensor
     """
     if not (_sorted_triangles(mesh) and edge_rot.dim() >= 3 and edge_rot.shape[-1] == 3):
         return None
-    e = mesh.edges.to(edge_rot.device)
-    Fi, Fj = frames.index_select(-3, e[:, 0]), frames.index_select(-3, e[:, 1])
+    i, j = _edge_ends(mesh, edge_rot.device)
+    Fi, Fj = frames.index_select(-3, i), frames.index_select(-3, j)
     return Fi, Fi @ edge_rot, Fj
 
 
@@ -257,8 +258,8 @@ def edge_solder_frames(edge_rot: torch.Tensor, mesh, kind: str = "sqrt",
         # the cached edge vectors are never handed out: a copy for the naive solder form
         return _matvec(_sqrt(edge_rot), vec) if kind == "sqrt" else vec.expand(*edge_rot.shape[:-2], 3).clone()
     if edge_frame_rot is None:
-        e = mesh.edges.to(edge_rot.device)
-        Fi, Fj = frames.index_select(-3, e[:, 0]), frames.index_select(-3, e[:, 1])
+        i, j = _edge_ends(mesh, edge_rot.device)
+        Fi, Fj = frames.index_select(-3, i), frames.index_select(-3, j)
         FiR = Fi @ edge_rot if kind == "sqrt" else None
     else:
         Fi, FiR, Fj = edge_frame_rot
