@@ -86,12 +86,17 @@ def _mesh():
 
 # ----------------------------------------------------------------------------- module cases
 
-def _module_case(name: str, make_module, frames: bool = False):
-    """A module of :mod:`torchconn.nn` on edge rotations ``x (E, 3, 3)`` (optionally with fixed frames)."""
+def _module_case(name: str, make_module, frames: str | None = None):
+    """A module of :mod:`torchconn.nn` on edge rotations ``x (E, 3, 3)``, with fixed frames
+    (``frames="fixed"``), or as a function of the frames ``x (V, 3, 3)`` with fixed rotations
+    (``frames="input"``)."""
     def build(dtype):
         mesh = _mesh()
         mod = make_module(mesh)
         E, V = mesh.edges.shape[0], mesh.vertices.shape[0]
+        if frames == "input":
+            R0 = _rotations(E, dtype, 1)
+            return Case(name, _rotations(V, dtype, 7), _rotations(V, dtype, 8), lambda x: mod(R0, x))
         F0 = _rotations(V, dtype, 7) if frames else None
         fn = (lambda x: mod(x, F0)) if frames else mod
         return Case(name, _rotations(E, dtype, 1), _rotations(E, dtype, 2), fn)
@@ -224,11 +229,15 @@ COMPILE_ONLY: dict[str, Callable] = {"pipeline": _pipeline_case}
 CASES: dict[str, Callable] = {
     "Curvature": _module_case("Curvature", tc.Curvature),
     "Torsion": _module_case("Torsion", tc.Torsion),
-    "Torsion(frames)": _module_case("Torsion(frames)", tc.Torsion, frames=True),
+    "Torsion(frames)": _module_case("Torsion(frames)", tc.Torsion, frames="fixed"),
+    "Torsion(d/dframes)": _module_case("Torsion(d/dframes)", tc.Torsion, frames="input"),
     "CovariantD(behs21)": _module_case("CovariantD(behs21)", lambda m: tc.CovariantD(m, "behs21")),
     "CovariantD(wedge)": _module_case("CovariantD(wedge)", lambda m: tc.CovariantD(m, "wedge")),
     "AveragedCovariantD": _module_case("AveragedCovariantD", tc.AveragedCovariantD),
-    "AveragedCovariantD(frames)": _module_case("AveragedCovariantD(frames)", tc.AveragedCovariantD, frames=True),
+    "AveragedCovariantD(frames)": _module_case("AveragedCovariantD(frames)", tc.AveragedCovariantD,
+                                               frames="fixed"),
+    "AveragedCovariantD(d/dframes)": _module_case("AveragedCovariantD(d/dframes)", tc.AveragedCovariantD,
+                                                  frames="input"),
     "BianchiCheck": _bianchi_case,
     "ConnectionField": _field_case,
     "FrameFieldLoss(edge_rot)": _frame_loss_case("rot"),
