@@ -40,7 +40,7 @@ def test_design_equals_cli_frames_bitwise(tmp_path, mesh):
 
     cfg = {"mesh": "cylinder", "edge_length": 0.6, "steps": 4, "sh": {"n_smooth_iters": 5}, "progress": False,
            "polish": {"steps": 10, "check_every": 5}, "output_dir": str(tmp_path / "cli"), "seed": 3,
-           "select": "proxies"}  # design()'s own choice (the job's default, select=hex, is torchconn.hexmesh's)
+           "select": "proxies", "map_weight": 0.0}  # design() alone: no hex-stage term, its own choice
     m = train(cfg)
     z = np.load(tmp_path / "cli" / "frames.npz")
     r = design(mesh, "connection", seed=3, dtype=torch.float64, steps=4, sh={"n_smooth_iters": 5},
@@ -54,6 +54,7 @@ def test_design_equals_cli_frames_bitwise(tmp_path, mesh):
     from training.train_frames import _validate
 
     assert set(design_options(_validate(cfg))) == set(OPTIONS["connection"])
+    assert design_options(_validate({**cfg, "map_weight": 1.5}))["weights"]["map"] == 1.5  # the job's hex-stage term
     assert set(design_options(_validate({**cfg, "method": "sh_baseline"}))) == set(OPTIONS["sh"])
 
 
@@ -61,7 +62,7 @@ def test_defaults_match_the_config_file():
     """DEFAULTS are the values of configs/train_frames.yaml; every config key is an option or a CLI key."""
     cfg = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / "train_frames.yaml"))
     cli_only = {"mesh", "edge_length", "method", "device", "num_threads", "dtype", "seed", "output_dir", "resume",
-                "checkpoint_every", "progress", "hydra", "defaults", "select", "select_candidates"}
+                "checkpoint_every", "progress", "hydra", "defaults", "select", "select_candidates", "map_weight"}
     for k, v in DEFAULTS.items():
         assert cfg[k] == v, f"DEFAULTS[{k!r}] = {v!r} but configs/train_frames.yaml has {cfg[k]!r}"
     extra = set(cfg) - set(DEFAULTS) - cli_only

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation as Rot
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchconn import dnabla, io, so3
+from torchconn.frames import octahedral
 import torchconn.ops
 from torchconn.ops import curvature as ops_curvature
 from torchconn.ops import so3 as ops_so3
@@ -357,12 +358,24 @@ def test_frame_field_loss_shared_path_matches_term_by_term_composition(dtype):
     lf = losses.FrameFieldLoss(mesh, {k: 1.0 for k in losses.TERMS})
     out = lf(so3.exp(w), so3.exp(p))
     R, F = so3.exp(w), so3.exp(p)
-    tie, unrel = losses.tie_loss(R, F, mesh.edges)
+    tie, _ = losses.tie_loss(R, F, mesh.edges)
     hol = curvature.face_curvature(R, mesh, kind="holonomy") + torch.eye(3, dtype=dtype)
-    tor = torsion.face_torsion(R, mesh, kind="sqrt", cut=torch.tensor(-1), frames=F)  # generic loop
-    ok = unrel[mesh.face_edges].all(-1)
+    # torsion through the matchings, every face: R h^T with F_i R_ij = F_j h_ij (h without gradient)
+    e = mesh.edges
+    with torch.no_grad():
+        _, h = octahedral.match(F[e[:, 1]], F[e[:, 0]] @ R)
+    tor = torsion.face_torsion(R @ h.transpose(-1, -2), mesh, kind="sqrt", cut=torch.tensor(-1), frames=F)  # loop
+    # the averaged d∇ on the regular tets (no face holonomy nearest a non-identity element)
+    from torchconn.nn import AveragedCovariantD
+
+    dd = AveragedCovariantD(mesh)(R, F)
+    with torch.no_grad():
+        regular = (octahedral.closest_element(hol)[0] == 0)[mesh.tet_faces].all(-1)
+    X = mesh.vertices[mesh.tets]
+    vol = torch.linalg.det(X[:, 1:] - X[:, :1]).abs() / 6
     ref = {"smooth": losses.smoothness_loss(R), "tie": tie, "flat": losses.symmetric_flatness_loss(hol),
-           "torsion": ((tor ** 2).sum(-1) / lf.face_area)[ok].mean(),
+           "torsion": ((tor ** 2).sum(-1) / lf.face_area).mean(),
+           "dnabla": ((dd ** 2).sum(-1) / vol ** (2 / 3))[regular].mean(),
            "dirichlet": losses.matched_dirichlet_loss(F, mesh.edges)}
     tol = 5 * TOL[dtype]
     for k, v in ref.items():

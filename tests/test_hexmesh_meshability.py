@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from torchconn import io, so3
 from torchconn.hexmesh.cut import GROUP_MUL, edge_walks, face_matchings, group_matrices
 from torchconn.hexmesh.meshability import (EDGE_CLASSES, INTERIOR_NODES, VERTEX_CLASSES, classify_vertices,
-                                           meshability)
+                                           meshability_report)
 from torchconn.hexmesh.straighten import straighten_singular_edges
 from torchconn.mesh import TetMesh
 
@@ -282,7 +282,7 @@ def _ref_vertex_classes(mesh, hexes):
 
 
 def _check_against_references(mesh, F, face_match=None, accumulate=False):
-    m = meshability(mesh, F, face_match)
+    m = meshability_report(mesh, F, face_match)
     ch = m.charts
     np.testing.assert_allclose(m.edge_turn, _ref_turn(mesh, ch.frames, ch.face_rot), atol=1e-9)
     ref_r = _ref_fan_rotations(mesh, ch.frames, ch.face_rot, m.edge_turn)
@@ -307,7 +307,7 @@ def _check_against_references(mesh, F, face_match=None, accumulate=False):
 # ----------------------------------------------------------------------------- clean cases
 def test_box_with_the_identity_field_is_meshable_with_its_corners_as_nodes():
     mesh = io.box(2)
-    m = meshability(mesh, _identity(mesh))
+    m = meshability_report(mesh, _identity(mesh))
     c = m.counts()
     assert c["meshable"] and c["singular_nodes"] == 8
     assert all(c[k] == 0 for k in ("complex_edges", "zipper_nodes", "invalid_nodes", "surface_valence2_edges",
@@ -363,14 +363,14 @@ def test_complex_turn_gives_complex_edges_and_complex_vertices():
 def test_field_off_its_axis_gives_across_and_touching_edges():
     mesh, F = axis_prism(turns=4.0)
     tilt = so3.exp(torch.tensor([math.radians(50.0), 0.0, 0.0], dtype=torch.float64))
-    m = meshability(mesh, tilt @ F)
+    m = meshability_report(mesh, tilt @ F)
     E, X = mesh.edges.numpy(), mesh.vertices.numpy()
     chain = set(np.nonzero(np.abs(X[E][:, :, :2]).max((1, 2)) < 1e-12)[0].tolist())
     assert set(m.across_edges.tolist()) == chain  # the turn axis is 50 degrees off the chain
     touching = set(m.touching_edges.tolist())  # the end edges: axis 50 degrees off the face normal
     assert touching and touching <= chain
     assert all(np.isin(X[E[e], 2], [0.0, 1.0]).any() for e in touching)
-    assert meshability(mesh, F).touching_edges.size == 0
+    assert meshability_report(mesh, F).touching_edges.size == 0
 
 
 # ----------------------------------------------------------------------------- the constructed conditions
@@ -461,9 +461,9 @@ def test_vertex_rules():
 def test_bad_input_is_a_clear_error():
     mesh = io.box(1)
     with pytest.raises(ValueError, match="shape"):
-        meshability(mesh, torch.eye(3).expand(2, 3, 3))
+        meshability_report(mesh, torch.eye(3).expand(2, 3, 3))
     with pytest.raises(ValueError, match="face_match"):
-        meshability(mesh, _identity(mesh), np.full(mesh.faces.shape[0], 30))
+        meshability_report(mesh, _identity(mesh), np.full(mesh.faces.shape[0], 30))
 
 
 def test_group_element_helper():

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # proxies' choice keep these tests of the job cheap (test_cli_end_to_end runs the defaults: two
 # starts, the choice by the hex meshes)
 TINY = {"mesh": "cylinder", "edge_length": 0.6, "sh": {"n_smooth_iters": 5}, "progress": False, "num_threads": 1,
-        "polish": {"steps": 40, "check_every": 20}, "starts": ["sh"], "select": "proxies"}
+        "polish": {"steps": 40, "check_every": 20}, "starts": ["sh"], "select": "proxies", "map_weight": 0.0}
 OUTPUTS = ("frames.npz", "metrics.json", "frames.vtu", "frames.fra", "singular_faces.vtu", "singular_curves.vtu",
            "loss.png",
            "singularities.png",

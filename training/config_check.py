@@ -124,6 +124,7 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "starts": _list(_choice(*STARTS)),
     "select": _choice("hex", "proxies"),
     "select_candidates": _int(1),
+    "map_weight": _float(0),
     "feature_angle_deg": _float(0, 180),
     "smooth_power": _float(0.5, 2),  # FrameFieldLoss's range
     "smooth_eps": _positive(),

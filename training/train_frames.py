@@ -135,7 +135,7 @@ def _fingerprint(cfg, mesh) -> str:
     h.update(mesh.vertices.detach().cpu().double().numpy().tobytes())
     h.update(mesh.tets.cpu().numpy().tobytes())
     keys = ["method", "formulation", "optim", "dtype", "feature_angle_deg", "smooth_power", "smooth_eps",
-            "align_kind", "align_eps", "lr", "lr_schedule", "steps", "starts"]
+            "align_kind", "align_eps", "lr", "lr_schedule", "steps", "starts", "map_weight"]
     h.update(repr([(k, cfg[k]) for k in keys]).encode())
     h.update(repr(OmegaConf.to_container(cfg.weights)).encode())
     h.update(repr(OmegaConf.to_container(cfg.lbfgs)).encode())
@@ -165,9 +165,14 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
 
 # ----------------------------------------------------------------------------- train
 def design_options(cfg) -> dict:
-    """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values)."""
-    return {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-            for k in method_options(cfg.method)}
+    """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values); the
+    connection method's ``weights`` gain ``map`` = ``cfg.map_weight`` (the hex stage's term that
+    :func:`torchconn.hexmesh.field.design_for_hex` injects)."""
+    out = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+           for k in method_options(cfg.method)}
+    if "weights" in out and "map_weight" in cfg:
+        out["weights"] = {**out["weights"], "map": float(cfg.map_weight)}
+    return out
 
 
 def train(cfg) -> dict:

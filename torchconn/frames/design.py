@@ -435,7 +435,12 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         try:
             for n_start, label in enumerate(labels):
                 # 2. model, loss, optimizer of this start
-                terms = {name: factory(mesh, starts_F[label]) for name, factory in extra_terms.items()}
+                model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
+                # the extra terms are built on the model's own (combed) start frames: their labels
+                with torch.no_grad():
+                    F_model0 = model()[1].detach()
+                terms = {name: factory(mesh, F_model0) for name, factory in extra_terms.items()
+                         if float(opts["weights"].get(name, 0.0)) > 0}
                 loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
                                          smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
                                          align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]),
@@ -445,7 +450,6 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                     if bar is not None:
                         bar.update(steps)
                     continue
-                model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
                 optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
                                                       opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
                 hist = new_history(loss_fn.weights)

@@ -240,7 +240,7 @@ class FrameFieldLoss:
         clash = set(self.extra_terms) & set(TERMS)
         if clash:
             raise KeyError(f"extra_terms {sorted(clash)} clash with the built-in terms {list(TERMS)}")
-        unknown = set(weights) - set(TERMS) - set(self.extra_terms)
+        unknown = {k for k in set(weights) - set(TERMS) - set(self.extra_terms) if float(weights[k]) != 0.0}
         if unknown:
             raise KeyError(f"unknown loss terms {sorted(unknown)}; known: {list(TERMS) + list(self.extra_terms)}")
         if not (0.5 <= float(smooth_power) <= 2.0 and float(smooth_eps) > 0):
@@ -251,7 +251,7 @@ class FrameFieldLoss:
                              f"{align_kind!r}, {align_eps}")
         self.align_kind, self.align_eps = align_kind, float(align_eps)
         self.mesh = mesh
-        self.weights = {k: float(weights.get(k, 0.0)) for k in (*TERMS, *self.extra_terms)}
+        self.weights = {k: float(weights.get(k, 0.0)) for k in (*TERMS, *self.extra_terms)}  # zero-weight extras: off
         bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
         if bad:
             raise ValueError(f"loss weights must be finite and >= 0: {[(k, self.weights[k]) for k in bad]}")

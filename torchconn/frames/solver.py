@@ -64,14 +64,10 @@ def make_optimizer(params, optim: str = "adam", lr: float = 0.02, steps: int = 1
 
 
 def new_history(weights: Mapping[str, float]) -> dict[str, list]:
-    """Empty loss history: one list per weighted term of :data:`TERMS` plus ``"total"``.
-
-    ``tie`` is recorded whenever ``torsion`` is on (the loss then evaluates it for the mask).
-    """
-    history = {k: [] for k in (*TERMS, "total") if k == "total" or weights.get(k, 0.0) > 0}
-    if weights.get("torsion", 0.0) > 0 and "tie" not in history:
-        history["tie"] = []
-    return history
+    """Empty loss history: one list per weighted term (of :data:`TERMS`, then any extra term of
+    the loss, in ``weights``' order) plus ``"total"``."""
+    extra = [k for k in weights if k not in TERMS]
+    return {k: [] for k in (*TERMS, *extra, "total") if k == "total" or weights.get(k, 0.0) > 0}
 
 
 def check_finite_terms(terms: Mapping[str, torch.Tensor], step: int) -> None:

@@ -19,7 +19,31 @@ from __future__ import annotations
 import math
 import time
 
-__all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect"]
+__all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect", "map_energy_term"]
+
+
+def map_energy_term(edge_length: float | None = None):
+    """A loss-term factory for :func:`torchconn.frames.design`'s ``extra_terms``: per start field,
+    :class:`~.energy.MapEnergy` with the structure frozen there, as ``term(edge_rot, frames)`` of the
+    per-vertex frames (the seamless map's fitting energy per volume; differentiable)."""
+    from .energy import MapEnergy
+
+    def factory(mesh, start_frames):
+        state = {"energy": MapEnergy.from_vertex_frames(mesh, start_frames.detach(), edge_length), "rebuilt": 0}
+
+        def term(edge_rot, frames):
+            try:
+                return state["energy"].of_vertex_frames(frames)
+            except ValueError:
+                # the frames left the frozen structure (a tet's relabeled vertex frames no longer
+                # average to a rotation): freeze the structure of the current field instead
+                state["energy"] = MapEnergy.from_vertex_frames(mesh, frames.detach(), edge_length)
+                state["rebuilt"] += 1
+                return state["energy"].of_vertex_frames(frames)
+
+        return term
+
+    return factory
 
 
 def hex_key(result, score: float) -> tuple:
@@ -57,7 +81,7 @@ def preselect(candidates, max_candidates: int) -> list[int]:
     return out[:max_candidates]
 
 
-def hex_chooser(max_candidates: int = 4, **hex_options):
+def hex_chooser(max_candidates: int = 8, **hex_options):
     """A ``choose(mesh, candidates) -> (index, info)`` for :func:`torchconn.frames.design`.
 
     Args:
@@ -97,7 +121,7 @@ def hex_chooser(max_candidates: int = 4, **hex_options):
     return choose
 
 
-def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", select_candidates: int = 4,
+def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", select_candidates: int = 8,
                    hex_options: dict | None = None, **options):
     """:func:`torchconn.frames.design` with the hex chooser (``select="hex"``; ``"proxies"``: the
     default choice) and, when ``weights["map"] > 0``, the seamless map's fitting energy as a loss
@@ -107,10 +131,6 @@ def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", sel
     if select not in ("hex", "proxies"):
         raise ValueError(f"select must be 'hex' or 'proxies', got {select!r}")
     hex_options = dict(hex_options or {})
-    extra = {}
-    if method in ("connection",) and float((options.get("weights") or {}).get("map", 0.0)) > 0:
-        from .energy import map_energy_term
-
-        extra["map"] = map_energy_term(edge_length=hex_options.get("edge_length"))
+    extra = {"map": map_energy_term(edge_length=hex_options.get("edge_length"))} if method == "connection" else {}
     choose = hex_chooser(select_candidates, **hex_options) if select == "hex" and method == "connection" else None
     return design(mesh, method, choose=choose, extra_terms=extra or None, **options)

@@ -2,7 +2,7 @@
 
 An integer-grid map follows a frame field only where the field's singular graph looks, locally,
 like the singular graph of a hex mesh (HEXMESH.md step 1). With one frame per tet the singular
-graph lives on mesh edges (:mod:`.cut`); :func:`meshability` checks it vertex by vertex and edge
+graph lives on mesh edges (:mod:`.cut`); :func:`meshability_report` checks it vertex by vertex and edge
 by edge and lists the offending elements of each condition.
 
 The hex count of an edge
@@ -86,7 +86,7 @@ import torch
 
 from .cut import GROUP_INV, GROUP_MUL, TetCharts, edge_walks, group_matrices, tet_charts
 
-__all__ = ["Meshability", "meshability", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
+__all__ = ["Meshability", "meshability_report", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
            "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class",
            "interior_class_table", "BoundaryFans", "boundary_fans", "fan_quarters", "fan_quarter_table",
            "field_turn", "sharp_edges", "tangent_axes", "walk_products"]
@@ -494,7 +494,7 @@ class Meshability:
         return out
 
 
-def meshability(mesh, tet_frames, face_match: np.ndarray | None = None, *, charts: TetCharts | None = None,
+def meshability_report(mesh, tet_frames, face_match: np.ndarray | None = None, *, charts: TetCharts | None = None,
                 features: bool = True) -> Meshability:
     """LMFF's local conditions on the edge-based singular graph of per-tet frames.
 
