@@ -257,6 +257,8 @@ def hex_stage(mesh, frames, options: dict) -> dict:
                    hex_good=bool(r.good), hex_edge_length=float(r.map.edge_length),
                    hex_map_tets=int(r.map.mesh.n_tets), hex_singular_edges=int(r.map.charts.counts()["singular_edges"]),
                    hex_stats={k: val for k, val in r.map.stats.items() if k != "timings"},
+                   hex_meshability=r.meshability.counts() if r.meshability is not None else None,
+                   hex_meshable=bool(r.meshability.meshable) if r.meshability is not None else None,
                    hex_times={**{f"map_{k}": val for k, val in r.map.stats["timings"].items()}, **r.timings})
         if q is not None:
             out.update(hex_sj_min=q.sj_min, hex_sj_mean=q.sj_mean, hex_valid_mesh=bool(q.valid),

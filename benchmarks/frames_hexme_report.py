@@ -28,7 +28,7 @@ BASELINE = "sh"
 ID_COLUMNS = ("set", "model", "kind", "method", "n_vertices", "n_tets")
 TIME_COLUMNS = ("mesh_s", "method_s", "metrics_s", "wall_s", "peak_rss_mb")
 #: The hex stage's columns (benchmarks.frames_hexme.hex_stage).
-HEX_COLUMNS = ("hex_valid", "hex_good", "hex_first_check", "hex_inverted_tets", "hex_degenerate_tets",
+HEX_COLUMNS = ("hex_valid", "hex_good", "hex_meshable", "hex_first_check", "hex_inverted_tets", "hex_degenerate_tets",
                "hex_complex_edges", "hex_n", "hex_dropped", "hex_sj_min", "hex_sj_mean", "hex_irregular", "hex_hausdorff",
                "hex_volume_ratio", "hex_corners_meshed", "hex_corners", "hex_curves_meshed", "hex_curves",
                "hex_edge_length", "hex_map_tets", "hex_s", "end_to_end_s", "hex_reason", "hex_not_good", "hex_error")
@@ -283,8 +283,8 @@ def hex_markdown(rows: list[dict]) -> list[str]:
              + " | " + " | ".join("–" for _ in cats)
              + f" | {100 * ANCHOR_HEXME_FEATURES['corners']:.1f}% | {100 * ANCHOR_HEXME_FEATURES['curves']:.1f}% | – | – |")
     L += ["", "### Hex meshes per model", "",
-          "| model | method | map | first failing check | inverted / flat tets | hexes | SJ min | SJ mean | irregular % "
-          "| Hausdorff % | corners | curves | good | hex s | why not good |", "|---|---|" + "---|" * 13]
+          "| model | method | map | first failing check | LMFF conditions left | inverted / flat tets | hexes | SJ min | "
+          "SJ mean | irregular % | Hausdorff % | corners | curves | good | hex s | why not good |", "|---|---|" + "---|" * 14]
     for x in models:
         for m in methods:
             r = t.get((x, m))
@@ -294,7 +294,12 @@ def hex_markdown(rows: list[dict]) -> list[str]:
                 L.append(f"| {x} | {m} | error | {r['hex_error'][:120]} |" + " |" * 11)
                 continue
             pct = lambda v: _fmt(100 * _f(v), 3) if v is not None else "–"  # noqa: E731
+            mc = r.get("hex_meshability") or {}
+            lmff = ", ".join(f"{k.replace('_', ' ')} {mc[k]}" for k in ("complex_edges", "zipper_nodes", "invalid_nodes",
+                                                                      "surface_valence2_edges", "touching_edges")
+                             if mc.get(k)) or ("none" if mc else "–")
             L.append(f"| {x} | {m} | {'valid' if r.get('hex_valid') else 'invalid'} | {r.get('hex_first_check') or ''} | "
+                     f"{lmff} | "
                      f"{r.get('hex_inverted_tets', 0)} / {r.get('hex_degenerate_tets', 0)} | {r.get('hex_n', 0)} | "
                      f"{_fmt(r.get('hex_sj_min'))} | {_fmt(r.get('hex_sj_mean'))} | {pct(r.get('hex_irregular'))} | "
                      f"{pct(r.get('hex_hausdorff'))} | {r.get('hex_corners_meshed', '–')}/{r.get('hex_corners', '–')} | "

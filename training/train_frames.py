@@ -227,8 +227,18 @@ def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
                             on_checkpoint=on_checkpoint if connection else None,
                             checkpoint_every=int(cfg.checkpoint_every), **design_options(cfg))
     m = result.metrics
+    from torchconn.hexmesh.meshability import meshability_report
+    from torchconn.hexmesh.straighten import straighten_singular_edges
+
+    # LMFF's local conditions on the edge-based singular graph the map will see: with the best
+    # face matchings, and after the hex stage's repair search over them
+    tf = result.tet_frames.detach().cpu().double()
+    fm, _ = straighten_singular_edges(mesh.to(device="cpu", dtype=torch.float64), tf, boundary_moves=True)
+    meshability = {"field": meshability_report(mesh.to(device="cpu", dtype=torch.float64), tf).counts(),
+                   "after_search": meshability_report(mesh.to(device="cpu", dtype=torch.float64), tf, fm).counts()}
     metrics = {
         **m,
+        "meshability": meshability,
         "mesh": {"source": str(cfg.mesh), **m["mesh"]},
         "method": cfg.method,
         "loss_history": result.history,

@@ -40,6 +40,8 @@ class HexMeshResult:
             it dropped and why.
         quality: the :class:`~.quality.HexQuality` of the hex mesh against the input mesh
             (``None`` without hexes or with ``quality=False``).
+        meshability: the :class:`~.meshability.Meshability` report of the singular graph the
+            map saw (after the straightening search and the splits): LMFF's local conditions.
         timings: seconds per step (``map``, ``validity``, ``extract``, ``quality``, ``total``).
     """
 
@@ -48,6 +50,7 @@ class HexMeshResult:
     extraction: object | None = None
     quality: object | None = None
     timings: dict = field(default_factory=dict)
+    meshability: object | None = None
 
     @property
     def points(self) -> np.ndarray:
@@ -75,6 +78,7 @@ class HexMeshResult:
                     "edge_length": m.edge_length, "energy": m.energy, "energy_continuous": m.energy_continuous,
                     "tets": int(m.mesh.n_tets), "vertices": int(m.mesh.n_vertices),
                     "singular_graph": m.charts.counts(), **stats},
+            "meshability": self.meshability.counts() if self.meshability is not None else None,
             "extraction": self.extraction.counts() if self.extraction is not None else None,
             "quality": self.quality.as_dict() if self.quality is not None else None,
             "timings": {**{f"map_{k}": v for k, v in m.stats.get("timings", {}).items()}, **self.timings},
@@ -125,6 +129,11 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
     t0 = time.perf_counter()
     validity = check_map(igm.mesh, igm)
     timings["validity_s"] = time.perf_counter() - t0
+    from .meshability import meshability_report
+
+    t0 = time.perf_counter()
+    mesh_report = meshability_report(igm.mesh, igm.charts.frames, charts=igm.charts)
+    timings["meshability_s"] = time.perf_counter() - t0
     ext = hq = None
     if extract:
         from .extract import extract_hexes
@@ -150,4 +159,5 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
             hq = hex_quality(ext.points, ext.hexes, tet_mesh=mesh)
             timings["quality_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_all
-    return HexMeshResult(map=igm, validity=validity, extraction=ext, quality=hq, timings=timings)
+    return HexMeshResult(map=igm, validity=validity, extraction=ext, quality=hq, timings=timings,
+                         meshability=mesh_report)
