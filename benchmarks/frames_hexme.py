@@ -9,7 +9,10 @@ Methods (``--methods``; default ``sh,mbo,connection`` plus ``mouette`` when it i
 
 * ``sh``: the SH baseline of Ray, Sokolov & Lévy 2016 (``design(mesh, "sh")``, its defaults);
 * ``mbo``: :func:`torchconn.frames.mbo.mbo_frames` (Palmer, Bommes & Solomon 2020), its defaults;
-* ``connection``: ``design(mesh)``, the default configuration;
+* ``connection``: the connection method as the jobs run it,
+  :func:`torchconn.hexmesh.field.design_for_hex` (``select=hex`` over 8 candidates, the map-energy
+  term with weight :data:`CONNECTION_MAP_WEIGHT`; ``--opt connection.select=proxies``,
+  ``--opt connection.weights.map=0`` etc. change them);
 * ``mouette``: mouette's ``VolumeFrameField(mesh, "vertices")`` on the same tet mesh (optional;
   an error row when the package is missing). mouette indexes its boundary-normal attribute with
   volume-vertex ids, so the mesh is renumbered boundary-first for it and the frames mapped back
@@ -84,6 +87,8 @@ SHARED = {
     "fandisk": ("fandisk.ply", 0.2),
 }
 FEATURE_ANGLE = 30.0
+#: ``map_weight`` of configs/train_frames.yaml (the connection method as the jobs run it).
+CONNECTION_MAP_WEIGHT = 1.0
 
 
 # ----------------------------------------------------------------------------- cases
@@ -177,10 +182,18 @@ def _mouette_frames(mesh):
 def run_method(method: str, mesh, options: dict | None = None):
     """Frames ``(V, 3, 3)`` of ``method`` on ``mesh`` with the method's ``options``."""
     options = dict(options or {})
-    if method in ("sh", "connection"):
+    if method == "sh":
         from torchconn.frames.design import design
 
         return design(mesh, method, **options).vertex_frames
+    if method == "connection":  # the jobs' default: the hex chooser and the map-energy term
+        from torchconn.hexmesh.field import design_for_hex
+
+        weights = {"map": CONNECTION_MAP_WEIGHT, **(options.pop("weights", None) or {})}
+        select = options.pop("select", "hex")
+        k = int(options.pop("select_candidates", 8))
+        return design_for_hex(mesh, "connection", select=select, select_candidates=k, weights=weights,
+                              **options).vertex_frames
     if method == "mbo":
         from torchconn.frames.mbo import mbo_frames
 
