@@ -19,7 +19,9 @@ import torch
 
 import torchconn as tc
 from torchconn import so3
-from torchconn.frames.loss import TERMS, FrameFieldLoss, tie_loss
+from torchconn.dec import curvature
+from torchconn.frames import octahedral
+from torchconn.frames.loss import TERMS, FrameFieldLoss
 from torchconn.mesh.batch import ELEMENT_KINDS
 from torchconn.mesh.cad import cad_tags_from_elements
 from torchconn.ops import compiled
@@ -199,8 +201,8 @@ def test_connection_field_on_union(meshes, union, gen):
 @pytest.mark.parametrize("native", [True, False], ids=["compiled", "torch"])
 def test_frame_field_loss_on_union_is_the_count_weighted_mean(meshes, union, gen, native):
     """Each term on the union is sum_k n_k term_k / sum_k n_k with n_k the elements that term
-    averages over on mesh k (edges, faces, aligned vertices, feature pairs, unrelabeled faces);
-    so are the gradients, term by term."""
+    averages over on mesh k (edges, faces -- the torsion too, through the matchings --, regular
+    tets, aligned vertices, feature pairs); so are the gradients, term by term."""
     weights = {t: 1.0 for t in TERMS}
     parts, joined = _params(meshes, gen)
     fparts, fjoined = _frames(meshes, gen)
@@ -209,9 +211,11 @@ def test_frame_field_loss_on_union_is_the_count_weighted_mean(meshes, union, gen
         params, frames = params.clone().requires_grad_(), frames.clone().requires_grad_()
         loss = FrameFieldLoss(mesh, weights)
         out = loss(so3.exp(params), frames)
-        _, unrel = tie_loss(so3.exp(params).detach(), frames.detach(), mesh.edges)
+        hol = curvature.face_curvature(so3.exp(params).detach(), mesh, kind="holonomy")
+        idx, _ = octahedral.closest_element(hol + torch.eye(3, dtype=hol.dtype))
+        regular = int((idx == 0)[mesh.tet_faces].all(-1).sum())  # tets whose four faces are unsingular
         n = {"smooth": mesh.n_edges, "tie": mesh.n_edges, "dirichlet": mesh.n_edges, "flat": mesh.n_faces,
-             "torsion": int(unrel[mesh.face_edges].all(-1).sum()), "align": loss.align_vertices.numel(),
+             "torsion": mesh.n_faces, "dnabla": regular, "align": loss.align_vertices.numel(),
              "feature": loss.feature_vertices_rep.numel()}
         return out, n, params, frames
 

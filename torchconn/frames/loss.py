@@ -318,7 +318,7 @@ class FrameFieldLoss:
             from ..dec import torsion as _torsion
 
             tor = _torsion.face_torsion(Rm, self.mesh, kind="sqrt", frames=frames)
-        return ((tor**2).sum(-1) / self.face_area.to(tor.dtype)).mean()
+        return ((tor**2).sum(-1) / self.face_area.to(device=tor.device, dtype=tor.dtype)).mean()
 
     def _dnabla(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
         """Mean over regular tets of ``|𝔡∇ Alt 𝔡∇ Alt θ̃|^2 / vol^{2/3}`` (class docstring)."""
@@ -331,7 +331,7 @@ class FrameFieldLoss:
             idx, _ = octahedral.closest_element(hol + eye)
             regular = (idx == 0)[mesh.tet_faces].all(-1)
         dd = self._dd(edge_rot, frames)  # (T, 3)
-        per = (dd**2).sum(-1) / self.tet_scale.to(dd.dtype)
+        per = (dd**2).sum(-1) / self.tet_scale.to(device=dd.device, dtype=dd.dtype)
         # no int(): a data-dependent branch breaks vmap and torch.compile(fullgraph=True); 0 when
         # no tet is regular (the sum is then 0, divided by 1)
         return torch.where(regular, per, 0.0).sum() / regular.sum().clamp_min(1)
