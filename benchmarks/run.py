@@ -571,7 +571,7 @@ def bench_under_load(rows: list, steps: int) -> None:
     one thread per step, so ``ratio`` < 1 is the slowdown (target with the spinner: >= 1/1.5)."""
     from benchmarks import under_load
 
-    for r in under_load.bench_policies(("default", "passive"), steps=steps, rounds=4):
+    for r in under_load.bench_policies(tuple(under_load.POLICIES), steps=steps, rounds=4):
         rows.append(_row(f"{r['name']} OMP_WAIT_POLICY={r['wait_policy']}", r["tets"], "float32",
                          r["ms_threads"] / 1e3, r["ms_1_thread"] / 1e3, None, unit="tets",
                          reference="the same step with 1 thread",

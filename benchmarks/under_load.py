@@ -17,8 +17,10 @@ setting over its blocks, their ratio (``threads`` / one thread; issue 24's targe
 spinner: <= 1.5) and ``/proc/loadavg`` when the row started.
 
 ``--wait-policy``: each value runs the rows in a fresh child process with GNU OpenMP's
-``OMP_WAIT_POLICY`` unset (``default``: torch's OpenMP threads spin at every barrier and between
-parallel regions, up to ~300k iterations) or ``PASSIVE`` (they sleep at once). The variable is
+``OMP_WAIT_POLICY`` unset and torch imported first (``default``: torch's OpenMP threads spin at
+every barrier and between parallel regions, up to ~300k iterations), unset and ``import
+torchconn`` first (``torchconn-first``: torchconn sets ``PASSIVE`` before it loads torch, see
+``torchconn/__init__.py``) or ``PASSIVE`` (they sleep at once). The variable is
 read once, when torch loads its OpenMP runtime, so it cannot be changed from inside a process
 that imported torch. torchconn's compiled kernels do not use OpenMP (their pool, ``csrc/pool.c``,
 sleeps after a 20 us spin either way); torch's own parallel operations do.
@@ -39,7 +41,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 _SPIN = "import os, sys\ncpu = int(sys.argv[1])\nif cpu >= 0:\n    os.sched_setaffinity(0, {cpu})\nwhile True:\n    pass\n"
-POLICIES = {"default": None, "passive": "PASSIVE"}
+POLICIES = {"default": None, "torchconn-first": None, "passive": "PASSIVE"}
+# the child imports torchconn before torch: torchconn sets OMP_WAIT_POLICY=PASSIVE when unset
+_CHILD_TORCHCONN_FIRST = "import sys, torchconn; from benchmarks.under_load import main; main(sys.argv[1:])"
 
 
 def _loadavg() -> str:
@@ -118,12 +122,15 @@ def side_by_side(step, steps: int, rounds: int, threads: int) -> dict:
 
 
 def bench(steps: int = 400, rounds: int = 4, edge_length: float = 0.25, threads: int | None = None,
-          spinners: tuple[str, ...] = ("pinned",), unloaded: bool = True, torch_only: bool = True) -> list[dict]:
+          spinners: tuple[str, ...] = ("pinned",), unloaded: bool = True, torch_only: bool = True,
+          label: str | None = None) -> list[dict]:
     """Rows ``{name, tets, threads, ms_1_thread, ms_threads, ratio, loadavg, wait_policy, ...}``
     in this process (see the module doc)."""
     threads = threads or torch.get_num_threads()
     ncpu = os.cpu_count() or 1
     policy = os.environ.get("OMP_WAIT_POLICY", "") or "default (unset)"
+    if label == "torchconn-first":
+        policy = f"{policy} (import torchconn first)"
     rows = []
     kinds = [("train_step", False)] + ([("torch_only_step", True)] if torch_only else [])
     for kind, only in kinds:
@@ -145,7 +152,7 @@ def bench(steps: int = 400, rounds: int = 4, edge_length: float = 0.25, threads:
     return rows
 
 
-def bench_policies(policies: tuple[str, ...] = ("default", "passive"), **kw) -> list[dict]:
+def bench_policies(policies: tuple[str, ...] = ("default", "torchconn-first", "passive"), **kw) -> list[dict]:
     """:func:`bench` in a fresh child process per OpenMP wait policy (set before torch loads)."""
     rows = []
     for pol in policies:
@@ -155,7 +162,8 @@ def bench_policies(policies: tuple[str, ...] = ("default", "passive"), **kw) -> 
             env["OMP_WAIT_POLICY"] = POLICIES[pol]
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(tmp) / "rows.json"
-            cmd = [sys.executable, "-m", "benchmarks.under_load", "--child", str(out),
+            head = ["-c", _CHILD_TORCHCONN_FIRST] if pol == "torchconn-first" else ["-m", "benchmarks.under_load"]
+            cmd = [sys.executable, *head, "--child", str(out), "--label", pol,
                    "--steps", str(kw.get("steps", 400)), "--rounds", str(kw.get("rounds", 4)),
                    "--edge-length", str(kw.get("edge_length", 0.25)), "--spinner", *kw.get("spinners", ("pinned",))]
             if kw.get("threads"):
@@ -176,16 +184,17 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--edge-length", type=float, default=0.25, help="torchconn.ball edge length")
     ap.add_argument("--threads", type=int, default=None, help="the default setting (default: torch's)")
     ap.add_argument("--spinner", nargs="+", default=["pinned"], choices=["pinned", "free"])
-    ap.add_argument("--wait-policy", nargs="+", default=["default", "passive"], choices=list(POLICIES))
+    ap.add_argument("--wait-policy", nargs="+", default=list(POLICIES), choices=list(POLICIES))
     ap.add_argument("--no-unloaded", action="store_true", help="skip the rows without a spinner")
     ap.add_argument("--no-torch-only", action="store_true", help="skip the torch-only step")
     ap.add_argument("--output-dir", type=Path, default=None, help="write under_load.json there")
     ap.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)  # rows of this process -> file
+    ap.add_argument("--label", default=None, help=argparse.SUPPRESS)  # the child's policy name
     args = ap.parse_args(argv)
     kw = dict(steps=args.steps, rounds=args.rounds, edge_length=args.edge_length, threads=args.threads,
               spinners=tuple(args.spinner), unloaded=not args.no_unloaded, torch_only=not args.no_torch_only)
     if args.child is not None:
-        rows = bench(**kw)
+        rows = bench(**kw, label=args.label)
         args.child.write_text(json.dumps(rows))
         return rows
     rows = bench_policies(tuple(args.wait_policy), **kw)

@@ -16,12 +16,27 @@ The report's modules are also reachable from the top level (``torchconn.so3``,
 ``torchconn.curvature``, ...). The core (``tolerances`` ... ``nn``) never imports the
 application: ``torchconn.frames`` is a lazy attribute (PEP 562), imported on first access, so
 ``import torchconn`` loads the core only. See README.md and docs/architecture.md.
+
+Threads: when ``import torchconn`` is what loads torch (the console scripts, ``python -m
+training.*``, a script importing torchconn first) and ``OMP_WAIT_POLICY`` is unset, it is set to
+``PASSIVE`` first: torch's OpenMP threads then sleep at a barrier instead of spinning ~300k
+iterations, so a core held by another process no longer multiplies the step time
+(``benchmarks/under_load.py``: a training step with two threads and a spinner on one core 15x the
+one-thread time with the variable unset, 1.4x with ``PASSIVE``). Where torch is imported first the
+variable is left alone (libgomp reads it once, when torch loads it); set it yourself, or
+``OMP_WAIT_POLICY=ACTIVE`` to keep the spinning.
 """
 from __future__ import annotations
 
-import importlib
+import os
+import sys
 
-from . import dec, lie, mesh, nn, ops, tolerances
+if "torch" not in sys.modules:  # libgomp reads the variable when torch loads it (docstring)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import importlib  # noqa: E402
+
+from . import dec, lie, mesh, nn, ops, tolerances  # noqa: E402
 from .dec import bianchi, chains, connection, curvature, dnabla, smooth, torsion, transport
 from .dec.bianchi import BianchiError
 from .dec.connection import Connection
