@@ -33,8 +33,6 @@ HEXME = DATA / "hexme" / "meta"
 VARIANTS: dict[str, dict] = {
     # the default: connection optimization from the SH and the MBO field + quality paths from both
     "default": {},
-    # the default before issue 13: connection optimization + the angle-only guarded polish
-    "old_default": {"polish": {"steps": 600}, "quality": {"enabled": False}},
     # no connection optimization: the quality paths start at the SH field
     "no_connection": {"steps": 0},
     # no quality paths: the optimized fields only
@@ -45,7 +43,7 @@ VARIANTS: dict[str, dict] = {
     # no anneal: one Dirichlet weight
     "dirichlet_fixed_1": {"quality": {"dirichlet_weights": [1.0]}},
     "dirichlet_fixed_8": {"quality": {"dirichlet_weights": [8.0]}},
-    # no Dirichlet term: the mean angle (+ feature terms) only, guarded
+    # no Dirichlet term: the mean angle (+ feature terms) only
     "angle_only": {"quality": {"dirichlet_weights": [0.0]}},
     # cheaper paths (fewer weights or iterations)
     "lambda_4": {"quality": {"dirichlet_weights": [8.0, 2.0, 1.0, 0.5]}},

@@ -20,7 +20,7 @@ from torchconn.frames.sh import sh_frame_field
 from torchconn.lie import so3
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = {"sh": {"n_smooth_iters": 5}, "polish": {"steps": 0}}
+FAST = {"sh": {"n_smooth_iters": 5}}
 ONE = {**FAST, "starts": ["sh"]}  # one start: the tests of the optimization loop itself
 
 
@@ -39,12 +39,11 @@ def test_design_equals_cli_frames_bitwise(tmp_path, mesh):
     from training.train_frames import design_options, train
 
     cfg = {"mesh": "cylinder", "edge_length": 0.6, "steps": 4, "sh": {"n_smooth_iters": 5}, "progress": False,
-           "polish": {"steps": 10, "check_every": 5}, "output_dir": str(tmp_path / "cli"), "seed": 3,
+           "output_dir": str(tmp_path / "cli"), "seed": 3,
            "select": "proxies", "map_weight": 0.0}  # design() alone: no hex-stage term, its own choice
     m = train(cfg)
     z = np.load(tmp_path / "cli" / "frames.npz")
-    r = design(mesh, "connection", seed=3, dtype=torch.float64, steps=4, sh={"n_smooth_iters": 5},
-               polish={"steps": 10, "check_every": 5})
+    r = design(mesh, "connection", seed=3, dtype=torch.float64, steps=4, sh={"n_smooth_iters": 5})
     assert np.array_equal(z["frames"], r.vertex_frames.numpy())
     assert np.array_equal(z["vertices"], r.mesh.vertices.numpy())
     assert np.array_equal(z["singular_faces"], r.mesh.faces[r.singular_faces].numpy())

@@ -1,5 +1,6 @@
 """Frame-field quality against the baseline (issue 13): the quality paths (torchconn.frames.refine), the
-guarded quality stage, its guard, the matched Dirichlet term, and design()'s use of them."""
+candidates of the connection method and their proxy choice (torchconn.frames.polish), the matched
+Dirichlet term, and design()'s use of them."""
 from __future__ import annotations
 
 import math
@@ -12,8 +13,7 @@ from torchconn.frames import frame_metrics, octahedral, sh
 from torchconn.frames.design import design
 from torchconn.frames.loss import FrameFieldLoss, matched_dirichlet_loss
 from torchconn.frames.model import matched_connection
-from torchconn.frames.polish import (GUARD_CONTINUOUS, GUARD_COUNTS, GUARD_STRICT, guard_violations, quality_polish,
-                                     quality_score)
+from torchconn.frames.polish import Candidate, choose_by_proxies, connection_candidates, quality_score
 
 
 @pytest.fixture(scope="module")
@@ -26,35 +26,6 @@ def _ref() -> dict:
     return {"smoothness_mean_deg": 10.0, "smoothness_rms_deg": 12.0, "dirichlet_energy_mean": 0.1,
             "n_singular_faces": 20, "n_singular_faces_complex": 2, "n_curves_ending_inside": 0,
             "n_tets_one_singular_face": 0, "alignment_mean_deg": 0.0, "feature_curve_alignment_mean_deg": 3.0}
-
-
-def test_guard_names_every_worse_metric():
-    ref = _ref()
-    assert guard_violations(ref, ref) == []
-    for k in GUARD_CONTINUOUS:
-        m = {**ref, k: ref[k] * 1.005}
-        assert guard_violations(m, ref) == [k]
-        assert guard_violations(m, ref, slack=0.01) == []  # within the slack
-        assert guard_violations({**ref, k: float("nan")}, ref) == [k]
-    for k in GUARD_COUNTS:  # face counts: "no more than 1% worse" with slack = 0.01
-        assert guard_violations({**ref, k: ref[k] + 1}, ref) == [k]
-        assert guard_violations({**ref, k: ref[k] + 1}, ref, slack=0.5) == []
-        assert guard_violations({**ref, k: ref[k] * 2}, ref, slack=0.5) == [k]
-    for k in GUARD_STRICT:  # defects of the singular graph take no slack
-        assert guard_violations({**ref, k: ref[k] + 1}, ref, slack=0.5) == [k]
-    # bounds: max(reference, floor)
-    assert guard_violations({**ref, "alignment_mean_deg": 0.4}, ref) == []
-    assert guard_violations({**ref, "alignment_mean_deg": 0.6}, ref) == ["alignment_mean_deg"]
-    fc = "feature_curve_alignment_mean_deg"
-    assert guard_violations({**ref, fc: 2.9}, ref) == []
-    assert guard_violations({**ref, fc: 3.1}, ref) == [fc]
-    low = {**ref, fc: 0.5}
-    assert guard_violations({**low, fc: 1.9}, low) == []  # the issue's 2-degree bound
-    assert guard_violations({**low, fc: 2.1}, low) == [fc]
-    assert guard_violations({**low, fc: 0.6}, low, bounds={fc: 0.0}) == [fc]  # held at the reference's
-    nofc = {**ref, fc: float("nan")}
-    assert guard_violations(nofc, nofc) == []
-    assert guard_violations({**nofc, fc: 2.5}, nofc) == [fc]
 
 
 def test_quality_score():
@@ -70,19 +41,22 @@ def test_quality_score():
     assert quality_score(mc, ref, 1.0, 0.1) == pytest.approx(quality_score(m, ref) + 0.1 * math.log((n0 + 4) / (n0 + 1)))
 
 
-def test_choose_candidate_puts_the_curve_bound_first():
-    from torchconn.frames.polish import choose_candidate
-
+def test_choose_by_proxies_puts_the_curve_bound_first():
     fc = "feature_curve_alignment_mean_deg"
-    ref = (0.0, {fc: 3.5})  # the reference outside the bound (SH misses the tangents)
-    assert choose_candidate([ref]) == 0
-    assert choose_candidate([ref, (-0.1, {fc: 3.2})]) == 1  # better score, both outside: the score decides
-    assert choose_candidate([ref, (-0.1, {fc: 3.2}), (0.05, {fc: 1.0})]) == 2  # within the bound first
-    assert choose_candidate([ref, (0.05, {fc: 1.0})], feature_curve_bound=0.5) == 0  # none within: the score
-    nofc = (0.0, {fc: float("nan")})
-    assert choose_candidate([nofc, (-0.2, {fc: float("nan")})]) == 1
+
+    def cands(*pairs):
+        return [Candidate(torch.eye(3)[None], "optimized", "sh", None, {fc: v}, score) for score, v in pairs]
+
+    ref = (0.0, 3.5)  # outside the bound (SH misses the tangents)
+    assert choose_by_proxies(None, cands(ref)) == (0, {"by": "proxies",
+                                                       "reason": "lowest proxy score (feature-curve bound first)"})
+    assert choose_by_proxies(None, cands(ref, (-0.1, 3.2)))[0] == 1  # better score, both outside: the score decides
+    assert choose_by_proxies(None, cands(ref, (-0.1, 3.2), (0.05, 1.0)))[0] == 2  # within the bound first
+    assert choose_by_proxies(None, cands(ref, (0.05, 1.0)), feature_curve_bound=0.5)[0] == 0  # none within: the score
+    assert choose_by_proxies(None, cands((0.0, float("nan")), (-0.2, float("nan"))))[0] == 1  # no feature curve
+    assert choose_by_proxies(None, cands((0.1, 1.0), (0.1, 1.0)))[0] == 0  # a tie: the first
     with pytest.raises(ValueError, match="no candidate"):
-        choose_candidate([])
+        choose_by_proxies(None, [])
 
 
 def test_matched_dirichlet_loss_is_the_metric_and_differentiable(cyl):
@@ -170,105 +144,65 @@ def test_quality_path_constraints(cyl):
             quality_path(m, F0, **{**kw, **bad})
 
 
-def test_quality_polish_never_worse_than_the_reference(cyl):
+def test_connection_candidates_from_an_optimized_field(cyl):
     m, F0 = cyl
     ref = frame_metrics(F0, m)
-    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15, "path_starts": ("reference",)}
-    F, info = quality_polish(m, F0, F0, **kw)
-    so3.check_rotation(F)
-    after = frame_metrics(F, m)
-    assert guard_violations(after, ref, slack=0.01) == []
-    assert info["accepted"] in ("reference", "start", "soft", "tangent")
-    assert len(info["checks"]) == 1 + 2 * 2  # the start + one checkpoint per (path, weight)
-    assert {c[5] for c in info["checks"][1:]} == {"reference"} and info["mbo_seconds"] == 0.0
-    # the returned field is the best-scored admissible candidate within the curve bound
-    ok = [c for c in info["checks"] if c[3]]
-    assert info["score"] == pytest.approx(min([0.0] + [c[2] for c in ok]), abs=1e-12)
-    assert quality_score(after, ref) == pytest.approx(info["score"], abs=1e-9)
-    # this SH field is far from the Dirichlet minimum: a path checkpoint wins and improves both
-    assert info["accepted"] in ("soft", "tangent") and info["dirichlet_weight"] in (4.0, 1.0)
-    assert after["dirichlet_energy_mean"] < ref["dirichlet_energy_mean"]
-    assert after["smoothness_mean_deg"] < ref["smoothness_mean_deg"]
-    assert after["alignment_max_deg"] < 1e-6
-    assert after["feature_curve_alignment_mean_deg"] <= 2.0
-    # one path only
-    _, one = quality_polish(m, F0, F0, paths=("tangent",), **kw)
-    assert {c[0] for c in one["checks"]} == {"start", "tangent"}
+    R0 = matched_connection(F0, m.edges)
+    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15, "repair_rounds": 0}
+    cands, info = connection_candidates(m, {"sh": (F0, R0)}, ref, **kw)
+    # the optimized field first (with its connection), then one checkpoint per (path, weight) from it
+    assert [(c.kind, c.start, c.dirichlet_weight) for c in cands] == [
+        ("optimized", "sh", None), ("soft", "sh", 4.0), ("soft", "sh", 1.0), ("tangent", "sh", 4.0),
+        ("tangent", "sh", 1.0)]
+    assert [c.label for c in cands[:2]] == ["sh/optimized", "sh/soft@4"]
+    assert torch.equal(cands[0].frames, F0) and torch.equal(cands[0].edge_rot, R0)
+    assert all(c.edge_rot is None for c in cands[1:])
+    assert info["repairs"] == [] and info["seconds"] > 0
+    for c in cands:
+        so3.check_rotation(c.frames)
+        assert c.metrics["alignment_max_deg"] < 1e-6  # rotation about the normal only
+        # the score: quality_score against the reference with the default weights (1, 0.1)
+        assert c.score == pytest.approx(quality_score(c.metrics, ref, 1.0, 0.1), abs=1e-12)
+        assert c.metrics["dirichlet_energy_mean"] == pytest.approx(
+            frame_metrics(c.frames, m)["dirichlet_energy_mean"], rel=1e-12)
+        assert set(c.summary()) >= {"label", "score", "smoothness_mean_deg", "n_singular_faces_complex"}
+    assert cands[0].score == pytest.approx(0.0, abs=1e-12)  # the reference's own field
+    # this SH field is far from the Dirichlet minimum: a path checkpoint wins the proxies and improves both
+    idx, why = choose_by_proxies(m, cands)
+    best = cands[idx]
+    assert why["by"] == "proxies" and best.kind in ("soft", "tangent") and best.score < 0
+    assert best.score == min(c.score for c in cands if not c.metrics["feature_curve_alignment_mean_deg"] > 2.0)
+    assert best.metrics["dirichlet_energy_mean"] < ref["dirichlet_energy_mean"]
+    assert best.metrics["smoothness_mean_deg"] < ref["smoothness_mean_deg"]
+    assert best.metrics["feature_curve_alignment_mean_deg"] <= 2.0
+    # the score weights reach the candidates
+    c2, _ = connection_candidates(m, {"sh": (F0, R0)}, ref, paths=(), score_dirichlet=0.5, score_complex=0.0)
+    assert len(c2) == 1 and c2[0].score == pytest.approx(0.0, abs=1e-12)
+    # one path kind only; no path: the optimized field alone
+    one, _ = connection_candidates(m, {"sh": (F0, R0)}, ref, paths=("tangent",), **kw)
+    assert [c.kind for c in one] == ["optimized", "tangent", "tangent"]
+    for kw_bad, msg in [({"paths": ("hard",)}, "path kind"), ({"dirichlet_weights": (1.0, float("nan"))},
+                                                             "dirichlet_weights"), ({"iters": 0}, "iters")]:
+        with pytest.raises(ValueError, match=msg):
+            connection_candidates(m, {"sh": (F0, R0)}, ref, **kw_bad)
+    with pytest.raises(ValueError, match="no optimized field"):
+        connection_candidates(m, {}, ref)
 
 
-def test_quality_polish_paths_start_at_the_reference(cyl):
+def test_connection_candidates_paths_start_at_each_optimized_field(cyl):
     m, F0 = cyl
     gen = torch.Generator().manual_seed(2)
     noisy = so3.exp(0.3 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
-    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10, "path_starts": ("reference",)}
-    # the paths start at the reference whatever the candidate; the candidate is scored as "start"
-    a, ia = quality_polish(m, noisy, F0, **kw)
-    b, ib = quality_polish(m, F0, F0, **kw)
-    assert [c[2] for c in ia["checks"][1:]] == pytest.approx([c[2] for c in ib["checks"][1:]], abs=1e-12)
-    assert ia["checks"][0][0] == "start" and ia["checks"][0][3] is False  # the noisy candidate fails the guard
-    assert torch.allclose(a, b)
-    _, ic = quality_polish(m, noisy, F0, **{**kw, "path_starts": ("frames",), "conditional_starts": False})
-    assert ic["checks"][1][2] != pytest.approx(ib["checks"][1][2], abs=1e-6)  # a path from the noisy field
-
-
-def test_quality_polish_paths_from_the_mbo_field(cyl):
-    m, F0 = cyl
-    from torchconn.frames.mbo import mbo_frames
-    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
-    F, info = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1,
-                             conditional_starts=False, **kw)
     ref = frame_metrics(F0, m)
-    # the start, the MBO field (a candidate of its own), then one path per start
-    assert [(c[0], c[5]) for c in info["checks"]] == [("start", None), ("mbo", None), ("soft", "reference"),
-                                                      ("soft", "mbo")]
-    assert info["mbo_seconds"] > 0
-    assert guard_violations(frame_metrics(F, m), ref, slack=0.01) == []
-    # the MBO candidate is the MBO method's field (warm-started projections), scored against the reference
-    mm = frame_metrics(mbo_frames(m, warm_start=True), m)
-    assert info["checks"][1][2] == pytest.approx(quality_score(mm, ref, 1.0, 0.1), abs=1e-9)
-    # the path from the MBO field is a different field from the path from the reference
-    assert info["checks"][3][2] != pytest.approx(info["checks"][2][2], abs=1e-6)
-    # conditional starts: the MBO paths run only where the MBO field has fewer complex faces
-    _, ic = quality_polish(m, F0, F0, path_starts=("reference", "mbo"), score_complex=0.1,
-                           conditional_starts=True, **kw)
-    fewer = mm["n_singular_faces_complex"] < ref["n_singular_faces_complex"]
-    assert ic["starts_run"] == (["reference", "mbo"] if fewer else ["reference"])
-    assert [c[5] for c in ic["checks"][2:]] == ic["starts_run"]
-    assert info["starts_run"] == ["reference", "mbo"]
-    # both branches: against a noisy reference (many complex faces) the MBO field has fewer
-    gen = torch.Generator().manual_seed(5)
-    noisy = so3.exp(0.8 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
-    assert frame_metrics(noisy, m)["n_singular_faces_complex"] > mm["n_singular_faces_complex"]
-    _, inoisy = quality_polish(m, F0, noisy, path_starts=("reference", "mbo"), score_complex=0.1,
-                               conditional_starts=True, paths=())
-    assert inoisy["starts_run"] == [] and inoisy["accepted"] in ("start", "mbo")
-    _, inoisy = quality_polish(m, F0, noisy, path_starts=("reference", "mbo"), score_complex=0.1,
-                               conditional_starts=True, **{**kw, "dirichlet_weights": (8.0,), "iters": 2})
-    assert inoisy["starts_run"] == ["reference", "mbo"]
-    # mbo_options reach mbo_frames
-    _, i2 = quality_polish(m, F0, F0, path_starts=("mbo",), paths=(), mbo_options={"n_taus": 0}, score_complex=0.1)
-    mm0 = frame_metrics(mbo_frames(m, n_taus=0), m)
-    assert i2["checks"][1][2] == pytest.approx(quality_score(mm0, ref, 1.0, 0.1), abs=1e-9)
-
-
-def test_quality_polish_falls_back_to_the_reference(cyl):
-    m, F0 = cyl
-    gen = torch.Generator().manual_seed(1)
-    noisy = so3.exp(torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0  # a bad start
-    F, info = quality_polish(m, noisy, F0, paths=(), path_starts=("reference",))
-    assert info["accepted"] == "reference" and info["dirichlet_weight"] is None and torch.equal(F, F0)
-    assert info["checks"][0][3] is False and info["checks"][0][4]  # the start fails, naming metrics
-    F, info = quality_polish(m, F0, F0, paths=(), path_starts=("reference",))
-    assert torch.equal(F, F0)  # the start equals the reference: score 0, the reference is kept
-    for kw, msg in [({"paths": ("hard",)}, "path kind"), ({"slack": -0.1}, "slack"),
-                    ({"feature_curve_bound": -1.0}, "feature_curve_bound"),
-                    ({"dirichlet_weights": (1.0, float("nan"))}, "dirichlet_weights"),
-                    ({"iters": 0}, "iters"), ({"path_starts": ("middle",)}, "path_starts"),
-                    ({"path_starts": ("mbo", "mbo")}, "path_starts"), ({"score_complex": -1.0}, "score_complex")]:
-        with pytest.raises(ValueError, match=msg):
-            quality_polish(m, F0, F0, **kw)
-    with pytest.raises(ValueError, match="reference_frames"):
-        quality_polish(m, F0, F0[:-1])
+    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10, "repair_rounds": 0}
+    both, _ = connection_candidates(m, {"sh": (F0, None), "mbo": (noisy, None)}, ref, **kw)
+    # the optimized fields first, in the order given, then the paths of each start
+    assert [(c.kind, c.start) for c in both] == [("optimized", "sh"), ("optimized", "mbo"), ("soft", "sh"),
+                                                 ("soft", "mbo")]
+    assert both[1].edge_rot is None and torch.equal(both[1].frames, noisy)
+    alone, _ = connection_candidates(m, {"sh": (F0, None)}, ref, **kw)
+    assert torch.equal(both[2].frames, alone[1].frames)  # a path depends on its own start only
+    assert both[3].score != pytest.approx(both[2].score, abs=1e-6)  # a path from the noisy field
 
 
 def test_the_returned_field_is_the_connection_methods(cyl):

@@ -1,6 +1,6 @@
 """Singular-structure search (torchconn.frames.structure) and the fixed-matching relaxation
 (torchconn.frames.refine.relax_to_matchings): against a slow per-edge reference, its invariants, and
-its use as the repair start of quality_polish (issue 13)."""
+its use as the repair candidate of connection_candidates (issue 13)."""
 from __future__ import annotations
 
 import math
@@ -11,7 +11,7 @@ from conftest import DATA_DIR
 
 from torchconn import io, so3
 from torchconn.frames import frame_metrics, octahedral, sh
-from torchconn.frames.polish import guard_violations, quality_polish
+from torchconn.frames.polish import choose_by_proxies, connection_candidates
 from torchconn.frames.refine import relax_to_matchings
 from torchconn.frames.singular import classify_holonomy, face_holonomy_from_matchings
 from torchconn.frames.structure import (FACE_COSTS, complex_face_count, edge_face_incidence, repair_matchings,
@@ -186,44 +186,40 @@ def test_repair_structure(small):
             repair_structure(noisy, m, a_ref=a_ref, d_ref=d_ref, **kw)
 
 
-def test_quality_polish_repair_start(cyl):
+def test_connection_candidates_repair(cyl):
     m, F0, noisy = cyl
     ref = frame_metrics(noisy, m)
-    kw = {"paths": ("soft",), "dirichlet_weights": (8.0,), "rounds": 1, "iters": 5, "path_starts": ("reference",),
-          "repair_relax_iters": 30}
-    F, info = quality_polish(m, noisy, noisy, repair_dirichlet_weights=None, **kw)
-    assert guard_violations(frame_metrics(F, m), ref, slack=0.01) == []
+    opt = {"sh": (noisy, None)}
+    kw = {"paths": ("soft",), "dirichlet_weights": (8.0,), "rounds": 1, "iters": 5, "repair_relax_iters": 30}
+    cands, info = connection_candidates(m, opt, ref, **kw)
     rep = info["repairs"]
     assert len(rep) == 1 and rep[0]["complex_after"] < rep[0]["complex_before"] and rep[0]["paths_run"]
-    assert rep[0]["from"] in ("reference", "start", "soft")
-    # the repaired field and one path checkpoint from it are candidates, labelled with the repair start
-    from_repair = [c for c in info["checks"] if c[5] == "repair"]
-    assert [(c[0], c[1]) for c in from_repair] == [("repaired", None), ("soft", 8.0)]
-    assert rep[0]["complex_after"] == from_repair[0][6]
+    assert rep[0]["from"] in ("sh/optimized", "sh/soft@8")
+    # after the optimized field and its checkpoint: the repaired field and the path checkpoints from it
+    # (the repair paths' own weights, default 8, 2, 0.5), with the start of the field it repaired
+    assert [(c.kind, c.start, c.dirichlet_weight) for c in cands[2:]] == [
+        ("repaired", "sh", None), ("soft", "sh", 8.0), ("soft", "sh", 2.0), ("soft", "sh", 0.5)]
+    assert rep[0]["complex_after"] == cands[2].metrics["n_singular_faces_complex"]
     # the repair lowers the complex faces of the best candidate here
-    assert info["final"]["n_singular_faces_complex"] < min(c[6] for c in info["checks"] if c[5] != "repair")
-    # the repair paths' own weights (default 8, 2, 0.5)
-    _, own = quality_polish(m, noisy, noisy, **kw)
-    assert [c[1] for c in own["checks"] if c[5] == "repair"] == [None, 8.0, 2.0, 0.5]
-    # off: no repair entry, no candidate from it
-    _, off = quality_polish(m, noisy, noisy, repair_rounds=0, **kw)
-    assert off["repairs"] == [] and all(c[5] != "repair" for c in off["checks"])
-    # two rounds: the second starts from the new best field (labelled repair1) when it has complex faces
-    _, two = quality_polish(m, noisy, noisy, repair_rounds=2, repair_dirichlet_weights=None, **kw)
-    assert two["repairs"][0]["complex_after"] == rep[0]["complex_after"]
-    assert len(two["repairs"]) == (2 if two["repairs"][0]["complex_after"] else 1)
-    assert {c[5] for c in two["checks"]} >= {"repair"}
-    for bad, msg in [({"repair_rounds": -1}, "repair_rounds"), ({"repair_rounds": 1.5}, "repair_rounds"),
-                     ({"repair_relax_iters": 0}, "repair_relax_iters"),
-                     ({"repair_residual_weight": -1.0}, "repair_residual_weight"),
-                     ({"repair_dirichlet_weights": (1.0, -2.0)}, "dirichlet_weights")]:
-        with pytest.raises(ValueError, match=msg):
-            quality_polish(m, noisy, noisy, paths=("soft",), **bad)
+    best = cands[choose_by_proxies(m, cands)[0]]
+    assert best.metrics["n_singular_faces_complex"] < min(c.metrics["n_singular_faces_complex"] for c in cands[:2])
+    # two rounds, the repair paths with the paths' weights: the second round repairs the new best field
+    # when it has complex faces
+    two, itwo = connection_candidates(m, opt, ref, repair_rounds=2, repair_dirichlet_weights=None, **kw)
+    assert [(c.kind, c.dirichlet_weight) for c in two[2:4]] == [("repaired", None), ("soft", 8.0)]
+    assert itwo["repairs"][0]["complex_after"] == rep[0]["complex_after"]
+    assert len(itwo["repairs"]) == (2 if itwo["repairs"][0]["complex_after"] else 1)
+    # off: no repair entry, no candidate from it; no complex face: no repair
+    off, ioff = connection_candidates(m, opt, ref, repair_rounds=0, **kw)
+    assert ioff["repairs"] == [] and [c.kind for c in off] == ["optimized", "soft"]
+    clean, iclean = connection_candidates(m, {"sh": (F0, None)}, frame_metrics(F0, m), **kw)
+    assert iclean["repairs"] == [] and len(clean) == 2
 
 
 def test_repair_removes_complex_faces_on_a_hexme_model():
     """HexMe s06c (dodecahedron): the SH field's 10 complex faces survive every quality path from the
-    SH and MBO fields (docs/results/hexme.md); the repair start removes them within the guard."""
+    SH and MBO fields (docs/results/hexme.md); the repaired candidates have almost none, and one of them
+    is the proxies' choice."""
     if not (DATA_DIR / "hexme" / "meta" / "s06c_dodecahedron.yaml").is_file():
         pytest.skip(f"HexMe parameter files not found in {DATA_DIR / 'hexme'} (the shared data is missing)")
     pytest.importorskip("gmsh", reason="the HexMe meshes are made by gmsh (torchconn[cad])")
@@ -233,12 +229,13 @@ def test_repair_removes_complex_faces_on_a_hexme_model():
     m = load_case("hexme", "s06c_dodecahedron")
     F_sh = sh.sh_frame_field(m)
     ref = frame_metrics(F_sh, m)
-    F, info = quality_polish(m, F_sh, F_sh, reference_metrics=ref)
-    after = frame_metrics(F, m)
-    assert guard_violations(after, ref, slack=0.01) == []
+    cands, info = connection_candidates(m, {"sh": (F_sh, None)}, ref)
+    n_before = 1 + 2 * 6  # the field itself and one checkpoint per (path, weight)
+    best_i = choose_by_proxies(m, cands)[0]
+    best = cands[best_i].metrics
     assert ref["n_singular_faces_complex"] >= 8
-    assert info["accepted_start"] == "repair" and after["n_singular_faces_complex"] <= 2
     assert info["repairs"][0]["complex_before"] == 10
+    assert cands[n_before].kind == "repaired" and best_i >= n_before and best["n_singular_faces_complex"] <= 2
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -80,7 +80,7 @@ def test_end_to_end_in_process_on_s02c(tmp_path):
     out = tmp_path / "run"
     argv = ["--models", "s02c", "--methods", "sh,mbo,connection", "--out", str(out), "--no-hydra", "--in-process",
             "--data-dir", str(DATA_DIR), "--opt", "mbo.laplacian=nope", "--opt", "connection.steps=5",
-            "--opt", "connection.polish.steps=0", "--opt", "connection.sh.n_smooth_iters=0",
+            "--opt", "connection.sh.n_smooth_iters=0",
             "--opt", "sh.sh.n_smooth_iters=0"]  # short runs: the test is of the pipeline
     fh.main(argv)
     with open(out / "results.csv") as fh_:

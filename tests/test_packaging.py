@@ -131,7 +131,7 @@ def test_installed_wheel_runs_its_commands_outside_the_checkout(wheel, tmp_path)
     assert "bianchi_differential_max" in demo
     run(bindir / "torchconn-convergence", "experiment=quick", "plots=false", f"output_dir={work / 'conv'}")
     assert (work / "conv" / "slopes.csv").is_file() and (work / "conv" / "summary.md").is_file()
-    frames = run(bindir / "torchconn-frames", "mesh=box", "steps=2", "polish.steps=0", f"output_dir={work / 'frames'}")
+    frames = run(bindir / "torchconn-frames", "mesh=box", "steps=2", f"output_dir={work / 'frames'}")
     assert "[train_frames]" in frames and (work / "frames" / "metrics.json").is_file()
     hexes = run(bindir / "torchconn-hex", "mesh=box", "edge_length=0.5", "method=sh_baseline", "hex.edge_length=0.25",
                 "progress=false", f"output_dir={work / 'hex'}")

@@ -25,7 +25,7 @@ from training.train_frames import CONFIG_DIR, _validate, load_config, train
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"mesh": "box", "edge_length": 0.5, "sh": {"n_smooth_iters": 0}, "progress": False, "num_threads": 1,
-        "polish": {"steps": 0}, "steps": 1}
+        "steps": 1}
 
 
 def _cfg(tmp_path, name="run", **kw):
@@ -71,7 +71,6 @@ def test_steps_fraction_is_not_rounded():
 
 
 @pytest.mark.parametrize(("key", "value", "allowed"), [
-    ("polish.steps", -3, ">= 0"),
     ("sh.n_smooth_iters", -1, ">= 0"),
     ("lbfgs.max_iter", 0, ">= 1"),
     ("checkpoint_every", 0, ">= 1"),
@@ -142,8 +141,8 @@ def test_ints_are_accepted_for_floats():
 def test_unknown_keys_keep_raising():
     with pytest.raises(ConfigKeyError, match="stesp"):
         _validate({"stesp": 3, "output_dir": "x"})
-    with pytest.raises(ConfigError, match=r"'polish.stpes' is not a key of cfg.yaml"):
-        check_config({"polish": {"stpes": 1}}, config_check.TRAIN_FRAMES, "cfg.yaml")
+    with pytest.raises(ConfigError, match=r"'lbfgs.max_itr' is not a key of cfg.yaml"):
+        check_config({"lbfgs": {"max_itr": 1}}, config_check.TRAIN_FRAMES, "cfg.yaml")
 
 
 def test_unresolved_output_dir_is_named():

@@ -2,7 +2,7 @@
 
 Hydra's struct mode already rejects unknown keys, but not values: ``steps=abc`` used to fail deep in
 ``int()`` without the key, ``steps=1.5`` silently ran one step, ``resume=no`` resumed (a non-empty
-string is truthy) and ``polish.steps=-3`` or ``edge_length=nan`` passed. :func:`check_config`
+string is truthy) and ``sh.n_smooth_iters=-3`` or ``edge_length=nan`` passed. :func:`check_config`
 checks every key of a composed config against its :class:`Spec` once, before anything runs, and
 raises :class:`ConfigError` naming the key, the value, what is allowed and the config file.
 
@@ -136,9 +136,6 @@ TRAIN_FRAMES: dict[str, Spec] = {
     "lr_schedule": _choice(*LR_SCHEDULES),
     "lbfgs.history_size": _int(1),
     "lbfgs.max_iter": _int(1),
-    "polish.steps": _int(0),
-    "polish.lr": _positive(),
-    "polish.check_every": _int(1),
     "quality.enabled": _bool(),
     "quality.paths": _list(_choice(*PATH_KINDS)),
     "quality.dirichlet_weights": _list(_float(0)),

@@ -5,8 +5,8 @@ Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built o
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
 :mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.structure`
-(the singular-structure search over edge matchings), :mod:`.polish` (the guarded polishes),
-:mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.export` (VTU files:
+(the singular-structure search over edge matchings), :mod:`.polish` (the candidates of the connection
+method and their proxy choice), :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.export` (VTU files:
 :func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces and curves),
 :mod:`.formats` (``.fra``, mouette's ``.frame``), :mod:`.design` (the whole method in one call:
 :func:`design` -> :class:`FrameFieldResult`).
@@ -21,7 +21,7 @@ parallel propagation), :mod:`.model` (matched connection, trainable model), :mod
 The connection method in one call (no files written; ``method="sh"`` for the baseline):
 
 >>> from torchconn.frames import design
->>> result = design(mesh, steps=5, polish={"steps": 0}, sh={"n_smooth_iters": 2})
+>>> result = design(mesh, steps=5, sh={"n_smooth_iters": 2})
 >>> result.vertex_frames.shape, result.tet_frames.shape == (mesh.n_tets, 3, 3)
 (torch.Size([64, 3, 3]), True)
 >>> len(result.history["total"]), result.metrics["invariants"]["bianchi_ok"]

@@ -1,6 +1,6 @@
 """The boundary constraint of an octahedral frame field, built once per mesh and feature angle.
 
-Every frame-field component (the SH baseline, the loss, the polish, the metrics, the studies)
+Every frame-field component (the SH baseline, the loss, the quality paths, the metrics, the studies)
 constrains the same boundary data:
 
 * **feature vertices**: endpoints of the sharp boundary edges

@@ -10,8 +10,7 @@ design() -> writers``); nothing is written to disk. Methods:
   (connection + frames) is optimized against :class:`~torchconn.frames.loss.FrameFieldLoss`
   (smoothness, tie, symmetric flatness, √R torsion through the matchings, the averaged covariant
   exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
-  energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`; the
-  optional frames-only polish (:func:`~torchconn.frames.polish.polish_frames`, ``polish``; off);
+  energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`;
   then the candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized
   fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.refine`)
   and the singular-structure repair (:mod:`~torchconn.frames.structure`) of the best of them.
@@ -23,7 +22,7 @@ design() -> writers``); nothing is written to disk. Methods:
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
 Options are the keys of ``configs/train_frames.yaml`` that belong to the method (:data:`OPTIONS`,
-defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``polish``, ``quality``, ``sh``) are
+defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``quality``, ``sh``) are
 merged onto their defaults, so ``weights={"tie": 5.0}`` changes one weight. Unknown names raise
 ``TypeError`` listing the known ones.
 
@@ -62,7 +61,7 @@ from .loss import ALIGN_KINDS, FrameFieldLoss
 from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
-from .polish import choose_by_proxies, connection_candidates, polish_frames
+from .polish import choose_by_proxies, connection_candidates
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
@@ -91,7 +90,6 @@ DEFAULTS: dict[str, Any] = {
     "lr": 0.02,
     "lr_schedule": "cosine",
     "lbfgs": {"history_size": 20, "max_iter": 5},
-    "polish": {"steps": 0, "lr": 0.01, "check_every": 50},
     "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
                 "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
@@ -124,24 +122,24 @@ class FrameFieldResult:
         vertex_frames: ``(V, 3, 3)`` rotations; ``vertex_frames[i][:, k]`` is axis ``k`` at vertex ``i``.
         tet_frames: ``(T, 3, 3)`` rotations by the rule of :func:`tet_frames`.
         edge_rot: ``(E, 3, 3)`` the connection ``R_ij`` on ``mesh.edges``, ``F_i R_ij = F_j h_ij``,
-            ``h_ij in O`` (the optimized one; the matched connection of ``vertex_frames`` after an
-            accepted polish and for ``method="sh"``).
+            ``h_ij in O`` (the optimized one for an ``"optimized"`` candidate; the matched
+            connection of ``vertex_frames`` for the other candidates and for ``method="sh"``).
         matchings: ``(E,)`` long, ``g*_ij = octahedral.group()[matchings[e]]`` with ``F_i g*_ij ~ F_j``
             (:func:`~torchconn.frames.octahedral.match_edges`, the matchings of the metrics).
         singular_faces: ``(F,)`` bool, faces of ``mesh.faces`` with non-identity matched holonomy.
         singular_graph: the :class:`~torchconn.frames.singular.SingularGraph` of ``vertex_frames``
             (curves through the singular faces, their holonomy types, junctions; ``counts()``).
-        metrics: ``{"mesh", "method", "formulation", "final", "init", "edge_classes", "polish",
+        metrics: ``{"mesh", "method", "formulation", "final", "init", "edge_classes",
             "quality", "chosen", "final_loss_terms", "invariants"}``: ``final``/``init`` are
             :func:`~torchconn.frames.metrics.frame_metrics` of the result and of the SH field (or
             ``init_frames``), ``chosen`` the returned candidate (``label``, ``start``, ``kind``,
             ``dirichlet_weight``, ``by``, ``reason``, ``candidates``: every candidate's proxies),
             ``invariants`` the Bianchi residuals of ``edge_rot`` (``bianchi_ok``) and the singular
-            counts; ``final_loss_terms`` and ``polish`` are ``None`` for ``method="sh"``.
+            counts; ``final_loss_terms``, ``quality`` and ``chosen`` are ``None`` for ``method="sh"``.
         history: ``{loss term: [value per step]}`` of the optimization that made the returned field
             (unweighted terms, ``"total"`` weighted; empty for ``"sh"``); ``histories``:
             ``{start: history}`` of every start.
-        timings: ``{"wall_s", "init_s", "optimize_s", "polish_s", "quality_s", "choose_s",
+        timings: ``{"wall_s", "init_s", "optimize_s", "quality_s", "choose_s",
             "iterations", "total_steps", "s_per_iteration", "stopped_early"}`` (``iterations``:
             over every start).
     """
@@ -416,10 +414,10 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
 
     history: dict[str, list[float]] = {}
     histories: dict[str, dict] = {}
-    t_opt = t_polish = t_quality = t_choose = 0.0
+    t_opt = t_quality = t_choose = 0.0
     steps = iterations = 0
     stopped = False
-    polish_info = final_terms = quality_info = choice = None
+    final_terms = quality_info = choice = None
     if method == "sh":
         F = F_ref
         R = matched_connection(F, mesh.edges)
@@ -505,22 +503,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         histories = {k: done[k]["history"] for k in labels}
         optimized = {k: (done[k]["frames"], done[k]["edge_rot"]) for k in labels}
 
-        # 4. guarded frames-only polish (off by default) of each optimized field
-        if int(opts["polish"]["steps"]) > 0:
-            t0 = time.perf_counter()
-            p = opts["polish"]
-            polish_info = {}
-            for k, (Fk, Rk) in list(optimized.items()):
-                Fp, info = polish_frames(
-                    mesh, Fk, int(p["steps"]), lr=float(p["lr"]), check_every=int(p["check_every"]),
-                    feature_weight=float(opts["weights"]["feature"]),
-                    max_singular_faces=int(init_metrics["n_singular_faces"]), angle_deg=angle,
-                    align_eps=float(opts["align_eps"]))
-                if info["accepted_step"] > 0:
-                    optimized[k] = (Fp, matched_connection(Fp, mesh.edges))
-                polish_info[k] = info
-            t_polish = time.perf_counter() - t0
-        # 4b. the candidates: the optimized fields, the quality paths from them, the structure repair
+        # 4. the candidates: the optimized fields, the quality paths from them, the structure repair
         q = opts["quality"]
         t0 = time.perf_counter()
         cands, quality_info = connection_candidates(
@@ -535,7 +518,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
                                       else tuple(float(x) for x in q["repair_dirichlet_weights"])),
             angle_deg=angle, align_eps=float(opts["align_eps"]))
         t_quality = time.perf_counter() - t0
-        # 4c. the choice (default: the proxies; a hex chooser: the hex meshes they make)
+        # 5. the choice (default: the proxies; a hex chooser: the hex meshes they make)
         t0 = time.perf_counter()
         if choose is None:
             idx, cinfo = choose_by_proxies(mesh, cands, float(q["feature_curve_bound"]))
@@ -553,7 +536,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         with torch.no_grad():
             final_terms = {k: float(v) for k, v in loss_fns[win.start](R, F).items()}
 
-    # 5. matchings, per-tet frames, metrics, invariants
+    # 6. matchings, per-tet frames, metrics, invariants
     F, R = F.detach(), R.detach()
     matchings = octahedral.match_edges(F, mesh.edges)[0]
     mask, _ = octahedral.singular_faces(F, mesh)
@@ -566,7 +549,6 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "final": frame_metrics(F, mesh, angle),
         "init": init_metrics,
         "edge_classes": edge_class_breakdown(F, mesh, angle),
-        "polish": polish_info,
         "quality": quality_info,
         "chosen": choice,
         "final_loss_terms": final_terms,
@@ -576,7 +558,6 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         "wall_s": time.perf_counter() - t_start,
         "init_s": t_init,
         "optimize_s": t_opt,
-        "polish_s": t_polish,
         "quality_s": t_quality,
         "choose_s": t_choose,
         "iterations": iterations,

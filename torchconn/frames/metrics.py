@@ -131,7 +131,8 @@ def frame_metrics(frames: torch.Tensor, mesh, angle_deg: float = 30.0, *, curl: 
         mesh: a ``TetMesh``.
         angle_deg: feature-edge threshold (30 degrees in the fixed definition).
         curl: compute the integrability measure (``False``: ``curl_mean``/``curl_p95`` are
-            ``nan``; a guard that does not read them saves a pass over the faces).
+            ``nan``; a caller that does not read them, e.g. the scoring of the candidates, saves a
+            pass over the faces).
 
     Returns:
         dict with exactly the keys of :data:`METRIC_KEYS` (floats, counts as ints).

@@ -41,8 +41,8 @@ frames' own: the frames follow a singular structure chosen elsewhere (the repair
 
 Measured on the 35 HexMe ``c`` meshes (``docs/results/hexme.md``, ``studies/frame_quality.py``): the
 soft path gives the lowest energies but lets the tangent drift where a singular curve meets a
-feature curve; the tangent path holds the curves; the guard of
-:func:`~torchconn.frames.polish.quality_polish` picks among the checkpoints of both.
+feature curve; the tangent path holds the curves; the checkpoints of both are candidates of
+:func:`~torchconn.frames.polish.connection_candidates`.
 """
 from __future__ import annotations
 
@@ -216,7 +216,7 @@ def relax_to_matchings(mesh, frames: torch.Tensor, matchings: torch.Tensor, *, a
     instead of re-matched, by ``iters`` L-BFGS iterations from ``frames``; aligned boundary
     vertices rotate about their normal only. The singular structure of the result's own
     (re-computed) matchings is the prescribed one where the frames moved far enough; it is the
-    start of the repair paths of :func:`~torchconn.frames.polish.quality_polish`
+    start of the repair paths of :func:`~torchconn.frames.polish.connection_candidates`
     (:mod:`torchconn.frames.structure`).
 
     Args:

@@ -23,10 +23,11 @@ of O at once), and after each move only the edges of the faces around the moved 
 rescored (the only ones whose moves changed); the loop runs over moves, not mesh elements.
 
 The frames then follow the prescribed matchings by :func:`~torchconn.frames.refine.relax_to_matchings`
-(L-BFGS with the matchings held), and :func:`~torchconn.frames.polish.quality_polish` runs its quality
-paths from the result (the *repair* start) under the same guard as every other candidate.
+(L-BFGS with the matchings held), and :func:`~torchconn.frames.polish.connection_candidates` makes the
+result a candidate (kind ``"repaired"``) and runs the quality paths from it, scored like every
+other candidate.
 
-Measured on the 35 HexMe ``c`` meshes (docs/results/hexme.md): see :func:`~torchconn.frames.polish.quality_polish`.
+Measurements: docs/results/hexme.md.
 """
 from __future__ import annotations
 

@@ -33,8 +33,8 @@ intermediates, per-thread scatter buffers), else the generic code. Fake kernels 
 
 Measured (``python -m benchmarks.ops_kernels --rows edge_terms --dtype float64``, and on the
 1M-tet HexMe mesh ``i02c_m2@lmax=0.14``: 183,517 vertices, 1.22M edges, float64, 2 threads):
-forward + backward 0.052 s compiled against 0.70 s generic; the quality stage of that mesh
-(:func:`torchconn.frames.polish.quality_polish`, 24 L-BFGS rounds) 310 s -> 106 s.
+forward + backward 0.052 s compiled against 0.70 s generic; the quality paths of that mesh from
+its SH field (:func:`torchconn.frames.refine.quality_path`, 24 L-BFGS rounds) 310 s -> 106 s.
 """
 from __future__ import annotations
 
