@@ -277,7 +277,7 @@ def test_hanging_vertices_and_overlapping_hexes_are_not_conforming():
 def test_malformed_input_is_an_error_naming_the_rows():
     with pytest.raises(ValueError, match=r"shape \(H, 8\)"):
         hex_quality(CUBE, np.arange(7)[None])
-    with pytest.raises(ValueError, match=r"hexes \[1\].*outside \[0, 8\)"):
+    with pytest.raises(ValueError, match=r"hexes rows \[1\].*outside \[0, 8\)"):
         hex_quality(CUBE, np.array([np.arange(8), np.arange(1, 9)]))
     P = CUBE.copy()
     P[3, 1] = np.nan

@@ -239,15 +239,21 @@ class EdgeWalks:
     def holonomy(self, face_rot: np.ndarray) -> np.ndarray:
         """``(E,)`` index of ``H_e = R_{n-1} ... R_0`` for transitions ``face_rot (F,)``; ``-1`` on
         boundary edges."""
+        hol = self.products(face_rot)
+        hol[self.boundary] = -1
+        return hol
+
+    def products(self, face_rot: np.ndarray) -> np.ndarray:
+        """``(E,)`` index into O of ``R_{n-1} ... R_0`` over every edge's walk for transitions
+        ``face_rot (F,)``: the holonomy of interior edges, the fan's transport ``u_last = P u_first``
+        of boundary edges (:meth:`holonomy` without the ``-1`` on boundary edges)."""
         R = np.where(self.forward, face_rot[self.face], GROUP_INV[face_rot[self.face]])
-        E = self.start.size
-        hol = np.zeros(E, np.int64)
+        out = np.zeros(self.start.size, np.int64)
         lens = np.diff(self.ptr)
         for k in range(int(lens.max(initial=0))):  # loop over the steps (max valence)
             e = np.nonzero(lens > k)[0]
-            hol[e] = GROUP_MUL[R[self.ptr[e] + k], hol[e]]
-        hol[self.boundary] = -1
-        return hol
+            out[e] = GROUP_MUL[R[self.ptr[e] + k], out[e]]
+        return out
 
 
 def edge_walks(mesh) -> EdgeWalks:

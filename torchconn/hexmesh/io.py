@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..mesh.io import _guarded
-from .quality import HexQuality, hex_quality
+from .quality import HexQuality, _index_rows, hex_quality
 
 __all__ = ["write_hexex", "read_hexex", "write_hex_mesh", "read_hex_mesh", "plot_hex_mesh", "HEX_MESH_SUFFIXES",
            "PLOT_MAX_QUADS", "PLOT_MAX_EDGES", "PLOT_QUAD_OUTLINES_MAX"]
@@ -97,17 +97,7 @@ def _floats(x, name: str, shape: tuple) -> np.ndarray:
 
 
 def _indices(x, name: str, k: int, n: int) -> np.ndarray:
-    a = _array(x, name)
-    if a.ndim != 2 or a.shape[1] != k:
-        raise ValueError(f"{name} must have shape (*, {k}), got {a.shape}")
-    if a.size and not np.issubdtype(a.dtype, np.integer):
-        raise ValueError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
-    a = a.astype(np.int64)
-    bad = np.nonzero(((a < 0) | (a >= n)).any(axis=1))[0]
-    if bad.size:
-        raise ValueError(f"{name} rows {bad[:10].tolist()} (count {bad.size}) have vertex indices outside [0, {n}), "
-                         f"e.g. row {int(bad[0])} = {a[bad[0]].tolist()}")
-    return a
+    return _index_rows(x, name, k, n)
 
 
 # ----------------------------------------------------------------------------- .hexex

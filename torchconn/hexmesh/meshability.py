@@ -84,7 +84,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .cut import GROUP_INV, GROUP_MUL, TetCharts, edge_walks, group_matrices, tet_charts
+from .cut import GROUP_INV, TetCharts, edge_walks, group_matrices, tet_charts
 
 __all__ = ["Meshability", "meshability_report", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
            "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class",
@@ -564,12 +564,5 @@ def meshability_report(mesh, tet_frames, face_match: np.ndarray | None = None, *
 def walk_products(walks, face_rot: np.ndarray) -> np.ndarray:
     """``(E,)`` index into O of ``R_{n-1} ... R_0`` over every edge's walk for transitions
     ``face_rot (F,)``: the holonomy of interior edges, the fan's transport ``u_last = P u_first``
-    of boundary edges (:meth:`~.cut.EdgeWalks.holonomy` without the ``-1`` on boundary edges)."""
-    R = np.where(walks.forward, face_rot[walks.face], GROUP_INV[face_rot[walks.face]])
-    E = walks.start.size
-    out = np.zeros(E, np.int64)
-    lens = np.diff(walks.ptr)
-    for k in range(int(lens.max(initial=0))):  # loop over the steps (max valence)
-        e = np.nonzero(lens > k)[0]
-        out[e] = GROUP_MUL[R[walks.ptr[e] + k], out[e]]
-    return out
+    of boundary edges (:meth:`~.cut.EdgeWalks.products`)."""
+    return walks.products(face_rot)

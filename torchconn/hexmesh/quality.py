@@ -253,18 +253,24 @@ def _as_points(points) -> np.ndarray:
     return p
 
 
-def _as_hexes(hexes, n_points: int) -> np.ndarray:
-    h = hexes.detach().cpu().numpy() if torch.is_tensor(hexes) else np.asarray(hexes)
-    if h.ndim != 2 or h.shape[1] != 8:
-        raise ValueError(f"hexes must have shape (H, 8) (VTK hexahedra), got {h.shape}")
-    if h.size and not np.issubdtype(h.dtype, np.integer):
-        raise ValueError(f"hexes must hold integer vertex indices, got dtype {h.dtype}")
-    h = h.astype(np.int64)
-    bad = np.nonzero(((h < 0) | (h >= n_points)).any(axis=1))[0]
+def _index_rows(x, name: str, k: int, n: int, shape: str | None = None) -> np.ndarray:
+    """``x`` as an ``(N, k)`` int64 array of vertex indices in ``[0, n)``, or a ``ValueError`` naming
+    ``name``, the rows at fault and one of them (the one check of index arrays: here and ``io``)."""
+    a = x.detach().cpu().numpy() if torch.is_tensor(x) else np.asarray(x)
+    if a.ndim != 2 or a.shape[1] != k:
+        raise ValueError(f"{name} must have shape {shape or f'(*, {k})'}, got {a.shape}")
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
+    a = a.astype(np.int64)
+    bad = np.nonzero(((a < 0) | (a >= n)).any(axis=1))[0]
     if bad.size:
-        raise ValueError(f"hexes {bad[:10].tolist()} (count {bad.size}) have vertex indices outside "
-                         f"[0, {n_points}), e.g. hex {int(bad[0])} = {h[bad[0]].tolist()}")
-    return h
+        raise ValueError(f"{name} rows {bad[:10].tolist()} (count {bad.size}) have vertex indices outside [0, {n}), "
+                         f"e.g. row {int(bad[0])} = {a[bad[0]].tolist()}")
+    return a
+
+
+def _as_hexes(hexes, n_points: int) -> np.ndarray:
+    return _index_rows(hexes, "hexes", 8, n_points, "(H, 8) (VTK hexahedra)")
 
 
 def _diagonal(p: np.ndarray) -> float:
