@@ -144,9 +144,11 @@ def _parser_flags(module: str) -> set[str]:
 
 
 def test_every_benchmark_flag_in_the_readme_is_accepted():
-    """Each ``--flag`` the README passes to ``python -m benchmarks.<name>`` is one its parser declares."""
+    """Each ``--flag`` the README (and docs/results/performance.md, where its performance tables
+    moved) passes to ``python -m benchmarks.<name>`` is one its parser declares."""
     flags: dict[str, set[str]] = {}
-    for span in _inline_spans(README.read_text()):
+    text = README.read_text() + "\n" + (README.parent / "docs" / "results" / "performance.md").read_text()
+    for span in _inline_spans(text):
         for m in re.finditer(r"python -m (benchmarks\.\w+)((?:\s+(?:\[?--[\w-]+(?:\s+[^\s`\[\]-][^\s`\[\]]*)*\]?))*)", span):
             flags.setdefault(m.group(1), set()).update(re.findall(r"--[\w-]+", m.group(2)))
     assert "benchmarks.run" in flags and "--quick" in flags["benchmarks.run"], flags
