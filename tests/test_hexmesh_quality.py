@@ -12,9 +12,8 @@ import torch
 
 from conftest import data_path
 from torchconn import io
-from torchconn.hexmesh.quality import (COINCIDENT_TOL_REL, GOOD_IRREGULAR_MAX, HAUSDORFF_ABS_ACCURACY_REL,
-                                       HAUSDORFF_REL_ACCURACY, _point_triangle_distance, hex_quality,
-                                       hex_volumes, scaled_jacobian)
+from torchconn.hexmesh.distance import HAUSDORFF_ABS_ACCURACY_REL, HAUSDORFF_REL_ACCURACY, _point_triangle_distance
+from torchconn.hexmesh.quality import COINCIDENT_TOL_REL, GOOD_IRREGULAR_MAX, hex_quality, hex_volumes, scaled_jacobian
 from torchconn.mesh.cad import cad_tags_from_elements
 
 CUBE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
