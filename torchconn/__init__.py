@@ -21,8 +21,8 @@ Threads: when ``import torchconn`` is what loads torch (the console scripts, ``p
 training.*``, a script importing torchconn first) and ``OMP_WAIT_POLICY`` is unset, it is set to
 ``PASSIVE`` first: torch's OpenMP threads then sleep at a barrier instead of spinning ~300k
 iterations, so a core held by another process no longer multiplies the step time
-(``benchmarks/under_load.py``: a training step with two threads and a spinner on one core 15x the
-one-thread time with the variable unset, 1.4x with ``PASSIVE``). Where torch is imported first the
+(``benchmarks/under_load.py``: a training step with two threads and a spinner on one core 8-15x the
+one-thread time with the variable unset, 1.3-1.4x with ``PASSIVE``). Where torch is imported first the
 variable is left alone (libgomp reads it once, when torch loads it); set it yourself, or
 ``OMP_WAIT_POLICY=ACTIVE`` to keep the spinning.
 """
