@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .cut import TetCharts, group_matrices, tet_charts
+from .inputs import tet_frames_of
 from .quantize import param_volumes, round_greedy, solve_fixed
 from .seamless import SeamlessProblem, build_problem, default_edge_length
 
@@ -76,38 +77,6 @@ class IntegerGridMap:
         return orient3d(self.uvw[:, 0], self.uvw[:, 1], self.uvw[:, 2], self.uvw[:, 3]) <= 0
 
 
-def _frames_of(mesh, frames) -> torch.Tensor:
-    """Per-tet frames from a ``FrameFieldResult``, per-tet ``(T,3,3)`` or per-vertex ``(V,3,3)``."""
-    from ..frames.design import tet_frames
-
-    if hasattr(frames, "tet_frames") and hasattr(frames, "mesh"):
-        res_mesh = frames.mesh
-        if res_mesh is not mesh and (res_mesh.n_tets != mesh.n_tets or res_mesh.n_vertices != mesh.n_vertices):
-            raise ValueError(f"the frame field lives on another mesh ({res_mesh.n_vertices} vertices, "
-                             f"{res_mesh.n_tets} tets) than the one given ({mesh.n_vertices}, {mesh.n_tets})")
-        frames = frames.tet_frames
-    Fr = torch.as_tensor(frames)
-    if Fr.dim() != 3 or Fr.shape[1:] != (3, 3):
-        raise ValueError(f"frames must be a FrameFieldResult or a (T, 3, 3) / (V, 3, 3) tensor, got shape {tuple(Fr.shape)}")
-    Fr = Fr.detach().to("cpu", torch.float64)
-    if Fr.shape[0] == mesh.n_tets:
-        out = Fr
-    elif Fr.shape[0] == mesh.n_vertices:
-        out = tet_frames(Fr, mesh.to("cpu", torch.float64) if mesh.vertices.dtype != torch.float64 else mesh)
-    else:
-        raise ValueError(f"frames has {Fr.shape[0]} rows, but the mesh has {mesh.n_tets} tets and {mesh.n_vertices} "
-                         f"vertices: the field lives on another mesh")
-    if not torch.isfinite(out).all():
-        raise ValueError("frames has non-finite entries")
-    err = (out.transpose(1, 2) @ out - torch.eye(3, dtype=out.dtype)).abs().amax(dim=(1, 2))
-    det = torch.linalg.det(out)
-    bad = torch.nonzero((err > 1e-6) | (det <= 0)).flatten()
-    if bad.numel():
-        raise ValueError(f"frames must be rotations: {bad.numel()} are not (first rows {bad[:5].tolist()}, "
-                         f"orthogonality error up to {float(err.max()):.2e}); project them with so3.project_to_rotation")
-    return out
-
-
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
                      features: bool = True,
@@ -156,7 +125,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         raise ValueError(f"stiffening_iters must be >= 0, got {stiffening_iters}")
     timings = {}
     t0 = time.perf_counter()
-    Fr = _frames_of(mesh, frames)
+    Fr = tet_frames_of(mesh, frames)
     h = default_edge_length(mesh) if edge_length is None else float(edge_length)
     parent = np.arange(mesh.n_tets)
     splits, sinfo = {}, {}
