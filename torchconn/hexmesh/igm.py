@@ -1,8 +1,23 @@
-"""The integer-grid map of a frame field: charts, seamless solve, quantization, stiffening, snapping.
+"""The integer-grid map of a frame field, in gated stages: structure, seamless map, quantization.
 
-:func:`integer_grid_map` runs the steps of HEXMESH.md 1-6 on a ``TetMesh`` and per-tet frames and
-returns an :class:`IntegerGridMap`; :func:`torchconn.hexmesh.validity.check_map` says whether it is
-valid and, if not, where and why.
+:func:`integer_grid_map` runs HEXMESH.md steps 1-6 on a ``TetMesh`` and per-tet frames, each stage
+judged before the next (:class:`~.validity.Gate`):
+
+1. **structure** — the face matchings straightened (:mod:`.straighten`), edges split so that no
+   tet is flattened by the constraints (:mod:`.split`; the flat tets are found exactly,
+   :meth:`.seamless.SeamlessProblem.flat_tets`), the charts and the cut (:mod:`.cut`), the
+   constraints eliminated (:mod:`.seamless`). Passes when the singular graph meets LMFF's local
+   conditions (:mod:`.meshability`) and no tet is flat.
+2. **seamless map** — the frame-fitting least squares with every integer relaxed; where it folds,
+   the foldover-free solve (:mod:`.injective`: per-tet barrier, PSD-projected Newton). Snapped to
+   the grid and checked exactly (:func:`~.validity.check_seamless`): no inverted or flat tet,
+   seams, singular edges on parametric lines, boundary faces on parametric planes.
+3. **quantization** — from a valid seamless map, every integer rounded by injective moves
+   (:func:`~.quantize.round_injective`: no tet ever folds); from an invalid one, greedy rounding
+   with the least-squares re-solves (:func:`~.quantize.round_greedy`). Snapped and checked
+   (:func:`~.validity.check_map`).
+
+The map of an invalid stage is still carried to the end (its report says where it fails).
 
 Snapping (HexEx's sanitization): the continuous free unknowns are rounded to multiples of
 ``2**-grid_bits`` and the integer ones are exact integers; every corner parameter is a short
@@ -21,8 +36,9 @@ import torch
 
 from .cut import TetCharts, group_matrices, tet_charts
 from .inputs import tet_frames_of
-from .quantize import param_volumes, round_greedy, solve_fixed
+from .quantize import param_volumes, round_greedy, round_injective, solve_fixed, stiffen
 from .seamless import SeamlessProblem, build_problem, default_edge_length
+from .validity import Gate, MapValidity, check_map, check_seamless, structure_gate
 
 __all__ = ["IntegerGridMap", "integer_grid_map", "GRID_BITS"]
 
@@ -42,6 +58,8 @@ class IntegerGridMap:
         uvw: ``(T, 4, 3)`` float64, the parameter of local corner ``k`` of tet ``t``
             (vertex ``mesh.tets[t, k]``) in tet ``t``'s chart; dyadic, multiples of
             ``2**-grid_bits``.
+        seamless_uvw: ``(T, 4, 3)`` the seamless map before quantization (snapped to the same
+            grid; its translations real).
         face_rot: ``(F,)`` int64 index into :func:`torchconn.frames.octahedral.group` and
             ``face_shift (F, 3)`` int64: on every interior face ``f = (t0, t1)``
             (``mesh.face_tets``) ``u_t1 = G[face_rot[f]] u_t0 + face_shift[f]`` (the shift of a
@@ -50,23 +68,34 @@ class IntegerGridMap:
         edge_length: the hex edge length ``h`` (parameter unit = ``h`` world units).
         charts: the :class:`~.cut.TetCharts` (combed frames, cut, edge holonomy).
         energy: the frame-fitting energy ``sum vol ||grad u (h F) - I||^2`` of the final map
-            divided by the total volume, and ``energy_continuous`` of the unrounded optimum.
+            divided by the total volume; ``energy_seamless`` of the seamless map,
+            ``energy_continuous`` of the least-squares optimum (integers relaxed).
         grid_bits: the snapping grid.
-        stats: sizes of the problem (:attr:`SeamlessProblem.counts`), rounding and stiffening
-            figures, timings per step (seconds), the solver backend.
+        gates: ``{"structure", "seamless", "quantization"}`` -> :class:`~.validity.Gate`, each
+            stage's verdict (``quantization``'s is the final map's :func:`~.validity.check_map`).
+        validity: the :class:`~.validity.MapValidity` of the final map.
+        meshability: the :class:`~.meshability.Meshability` report of the singular graph the
+            map saw.
+        stats: sizes of the problem (:attr:`SeamlessProblem.counts`), splits, the structure
+            search, the foldover-free solve and the rounding, timings per step (seconds).
         problem: the :class:`~.seamless.SeamlessProblem` (constraints, objective).
     """
 
     mesh: object
     parent_tet: np.ndarray
     uvw: np.ndarray
+    seamless_uvw: np.ndarray
     face_rot: np.ndarray
     face_shift: np.ndarray
     edge_length: float
     charts: TetCharts
     energy: float
+    energy_seamless: float
     energy_continuous: float
     grid_bits: int
+    gates: dict = field(default_factory=dict)
+    validity: MapValidity | None = None
+    meshability: object | None = field(default=None, repr=False)
     stats: dict = field(default_factory=dict)
     problem: SeamlessProblem | None = field(default=None, repr=False)
 
@@ -76,45 +105,67 @@ class IntegerGridMap:
 
         return orient3d(self.uvw[:, 0], self.uvw[:, 1], self.uvw[:, 2], self.uvw[:, 3]) <= 0
 
+    @property
+    def first_failed(self) -> str | None:
+        """The first stage whose gate failed (``None``: the map is valid)."""
+        for name in ("structure", "seamless", "quantization"):
+            g = self.gates.get(name)
+            if g is not None and not g.passed:
+                return name
+        return None
+
+
+def _flat_keep_edges(mesh, charts: TetCharts) -> np.ndarray:
+    """Edges whose midpoint would be as constrained as their ends (boundary, singular, feature)."""
+    keep = charts.singular_edge.copy()
+    bfe = mesh.face_edges.cpu().numpy()[mesh.boundary_face_index.cpu().numpy()].reshape(-1)
+    keep[bfe] = True
+    return keep
+
 
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
-                     features: bool = True,
-                     feature_max_deg: float = 30.0, batch_error: float = 0.5, stiffening_iters: int = 10,
-                     stiffening_factor: float = 4.0, grid_bits: int = GRID_BITS, backend: str = "auto",
-                     progress: bool = False) -> IntegerGridMap:
-    """The integer-grid map of a frame field (HEXMESH.md steps 2-6).
+                     features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
+                     injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0,
+                     batch_error: float = 0.5, stiffening_iters: int = 10, stiffening_factor: float = 4.0,
+                     grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
+    """The integer-grid map of a frame field, in gated stages (module docstring).
 
     Args:
         mesh: a ``TetMesh``.
         frames: a :class:`~torchconn.frames.design.FrameFieldResult` on ``mesh``, or frames
-            ``(T, 3, 3)`` per tet or ``(V, 3, 3)`` per vertex (axes as columns; per-vertex frames
-            become per-tet ones by :func:`torchconn.frames.design.tet_frames`).
+            ``(T, 3, 3)`` per tet or ``(V, 3, 3)`` per vertex (:func:`~.inputs.tet_frames_of`).
         edge_length: the hex edge length ``h`` (default :func:`~.seamless.default_edge_length`:
-            the mean edge length of ``mesh``).
+            half the mean edge length of ``mesh``).
         straighten: repair the face matchings so that singular edges run along their turn axis
             (:func:`~.straighten.straighten_singular_edges`).
-        straighten_boundary: the search may also change faces with a boundary edge (it can then
-            push a singular curve that runs along the boundary onto it).
+        straighten_boundary: the search may also change faces with a boundary edge.
         touch_rounds: rounds of "split the singular edges that touch the boundary about a
             tangent axis, straighten again" (0: none).
         split: split the edges that would collapse or flatten (:func:`~.split.split_for_map`);
             the map is then of the refined mesh (``result.mesh``).
         features: constrain feature curves and CAD corners (:func:`~.seamless.build_problem`).
         feature_max_deg: see :func:`~.seamless.build_problem`.
-        batch_error, stiffening_iters, stiffening_factor: of the quantization
-            (:mod:`~.quantize`).
+        flat_rounds: rounds of "split an edge of every tet the constraints flatten (but do not
+            collapse)" (:meth:`~.seamless.SeamlessProblem.flat_tets`).
+        injective: untangle a folded least-squares map with the foldover-free solve and round a
+            valid seamless map by injective moves (``False``: the plain least-squares map, greedy
+            rounding and stiffening, as CubeCover).
+        fit_weight, sd_weight: weights of the frame fitting and the symmetric Dirichlet barrier
+            in the foldover-free solve (:mod:`.injective`).
+        batch_error, stiffening_iters, stiffening_factor: of the greedy rounding and the
+            stiffening (:mod:`.quantize`), used when the seamless map is not valid.
         grid_bits: the snapping grid (module docstring).
-        backend: sparse solver, ``"auto"`` / ``"cholmod"`` / ``"superlu"`` (:mod:`~.solver`).
-        progress: show a progress bar on the rounding (tqdm).
+        backend: sparse solver, ``"auto"`` / ``"cholmod"`` / ``"superlu"`` (:mod:`.solver`).
+        progress: a progress bar on the rounding (tqdm).
 
     Returns:
-        :class:`IntegerGridMap`. It may be invalid (flipped tets, a complex singular edge, a
-        contradiction among the constraints): :func:`~.validity.check_map` says where and why.
+        :class:`IntegerGridMap`, with each stage's :class:`~.validity.Gate`. It may be invalid
+        (a stage failed): its gates say which one first, where and why.
 
     Raises:
         ValueError: frames of the wrong shape or not rotations, a field on another mesh, a
-            non-positive edge length.
+            non-positive edge length, parameters too large for the snapping grid.
     """
     if edge_length is not None and not (isinstance(edge_length, (int, float)) and np.isfinite(edge_length)
                                         and edge_length > 0):
@@ -123,7 +174,12 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         raise ValueError(f"grid_bits must be an integer in [8, 40], got {grid_bits!r}")
     if stiffening_iters < 0:
         raise ValueError(f"stiffening_iters must be >= 0, got {stiffening_iters}")
+    if not (isinstance(flat_rounds, int) and flat_rounds >= 0):
+        raise ValueError(f"flat_rounds must be an integer >= 0, got {flat_rounds!r}")
     timings = {}
+    stats = {}
+
+    # ------------------------------------------------------------------ 1. structure
     t0 = time.perf_counter()
     Fr = tet_frames_of(mesh, frames)
     h = default_edge_length(mesh) if edge_length is None else float(edge_length)
@@ -155,21 +211,63 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         from .split import split_for_map
 
         sr = split_for_map(mesh, Fr, face_match)
-        mesh, Fr, splits, face_match = sr.mesh, sr.tet_frames, sr.splits, sr.face_match
+        mesh, Fr, splits, face_match = sr.mesh, sr.tet_frames, dict(sr.splits), sr.face_match
         parent = parent[sr.parent_tet]
     timings["split_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    charts = tet_charts(mesh, Fr, face_match)
-    timings["charts_s"] = time.perf_counter() - t0
+    splits["flat"] = 0
+    for rnd in range(flat_rounds + 1):
+        charts = tet_charts(mesh, Fr, face_match)
+        prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
+        flat, collapsed = prob.flat_tets()
+        if rnd == flat_rounds or not (~collapsed).any() or not split:
+            break
+        from .split import split_tets_edges
+
+        mesh, Fr, par, face_match, n = split_tets_edges(mesh, Fr, flat[~collapsed], face_match,
+                                                        _flat_keep_edges(mesh, charts))
+        parent = parent[par]
+        splits["flat"] += n
+    timings["charts_and_constraints_s"] = time.perf_counter() - t0
+    from .meshability import meshability_report
 
     t0 = time.perf_counter()
-    prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
-    timings["constraints_s"] = time.perf_counter() - t0
+    mesh_report = meshability_report(mesh, charts.frames, charts=charts)
+    timings["meshability_s"] = time.perf_counter() - t0
+    gates = {"structure": structure_gate(mesh, mesh_report, flat, collapsed)}
 
+    # ------------------------------------------------------------------ 3. seamless map
     t0 = time.perf_counter()
+    from .injective import DET_SAFE, TetJacobians, minimize_barrier
+
     A, b, c = prob.energy_matrices()
     int_mask = prob.free_is_int
+    vol_total = float(prob.vol.sum())
+    y_ls = solve_fixed(A, b, np.zeros_like(int_mask), np.zeros(0), backend=backend)
+    e_cont = float(y_ls @ (A @ y_ls) - 2 * b @ y_ls + c) / vol_total
+    jac = TetJacobians.of_problem(prob)
+    det_ls = np.linalg.det(jac(y_ls))
+    y_s = y_ls
+    inj = None
+    if injective and (det_ls <= DET_SAFE).any():
+        inj = minimize_barrier(jac, y_ls, w_fit=fit_weight, w_sd=sd_weight, backend=backend)
+        y_s = inj.y
+    scale = float(2 ** grid_bits)
+    uvw_s = prob.corner_params(np.round(y_s * scale) / scale)
+    _check_magnitude(uvw_s, h)
+    seamless_validity = check_seamless(mesh, charts, uvw_s, prob)
+    gates["seamless"] = Gate.of_validity("seamless", seamless_validity)
+    e_seam = float(y_s @ (A @ y_s) - 2 * b @ y_s + c) / vol_total
+    stats["seamless"] = {"inverted_least_squares": int((det_ls <= 0).sum()),
+                         "injective": None if inj is None else {
+                             "inverted_after": inj.n_inverted, "rounds": inj.rounds, "iterations": inj.iterations,
+                             "converged": inj.converged, "min_det": inj.min_det, "seconds": inj.seconds}}
+    timings["seamless_s"] = time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ 4. quantization
+    t0 = time.perf_counter()
     bar = None
+    cb = None
     if progress:
         from tqdm.auto import tqdm
 
@@ -178,58 +276,62 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         def cb(done, total):
             bar.n = done
             bar.refresh()
-    else:
-        cb = None
+    qstats = {"integers": int(int_mask.sum())}
     try:
-        y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
-                                flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))
+        if injective and seamless_validity.valid and (np.linalg.det(jac(y_s)) > 0).all():
+            y, rinfo = round_injective(jac, y_s, int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend,
+                                       progress=cb)
+            qstats.update(method="injective", rounded=rinfo["rounded"], failed=len(rinfo["failed"]),
+                          rounded_away=rinfo["rounded_away"], moves=rinfo["moves"],
+                          max_rounding=rinfo["max_rounding"])
+            if rinfo["failed"]:
+                # what could not be rounded without a fold is rounded anyway, the rest untangled as far
+                # as it goes: the map's report says where it folds
+                I = np.asarray(rinfo["failed"], np.int64)
+                y[I] = np.round(y[I])
+                y = minimize_barrier(jac, y, fixed=int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend).y
+        else:
+            y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
+                                    flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))
+            n_flip = int((param_volumes(prob.corner_params(y)) <= 0).sum())
+            y, iters = stiffen(prob, y, int_mask, iters=stiffening_iters, factor=stiffening_factor, backend=backend)
+            qstats.update(method="greedy", rounding_steps=rinfo["steps"], max_rounding=rinfo["max_rounding"],
+                          undetermined_integers=rinfo["undetermined"], flipped_after_rounding=n_flip,
+                          stiffening_iterations=iters)
     finally:
         if bar is not None:
             bar.close()
-    vol_total = float(prob.vol.sum())
-    # the continuous optimum's energy (before rounding): from the same factorization route
-    y_cont = solve_fixed(A, b, np.zeros_like(int_mask), np.zeros(0), backend=backend) if int_mask.any() else y
-    e_cont = float(y_cont @ (A @ y_cont) - 2 * b @ y_cont + c) / vol_total
-    timings["solve_and_round_s"] = time.perf_counter() - t0
-
-    # stiffening: raise the weight of tets that are not positively oriented, re-solve
-    t0 = time.perf_counter()
-    weights = np.ones(prob.vol.size)
-    uvw = prob.corner_params(y)
-    n_flip_rounded = int((param_volumes(uvw) <= 0).sum())
-    iters = 0
-    for _ in range(stiffening_iters):
-        flip = param_volumes(uvw) <= 0
-        if not flip.any():
-            break
-        weights[flip] *= stiffening_factor
-        Aw, bw, _ = prob.energy_matrices(weights)
-        y = solve_fixed(Aw, bw, int_mask, y[int_mask], backend=backend)
-        uvw = prob.corner_params(y)
-        iters += 1
-    timings["stiffening_s"] = time.perf_counter() - t0
+    timings["quantization_s"] = time.perf_counter() - t0
 
     # snapping to the dyadic grid: exact corner parameters and transitions
-    scale = float(2 ** grid_bits)
     ys = y.copy()
     ys[~int_mask] = np.round(y[~int_mask] * scale) / scale
     ys[int_mask] = np.round(y[int_mask])
     uvw = prob.corner_params(ys)
+    _check_magnitude(uvw, h)
+    energy = float(ys @ (A @ ys) - 2 * b @ ys + c) / vol_total
+    face_shift = _face_shifts(mesh, charts, uvw)
+    out = IntegerGridMap(mesh=mesh, parent_tet=parent, uvw=uvw, seamless_uvw=uvw_s, face_rot=charts.face_rot.copy(),
+                         face_shift=face_shift, edge_length=h, charts=charts, energy=energy, energy_seamless=e_seam,
+                         energy_continuous=e_cont, grid_bits=grid_bits, gates=gates, meshability=mesh_report,
+                         stats=stats, problem=prob)
+    t0 = time.perf_counter()
+    out.validity = check_map(mesh, out)
+    gates["quantization"] = Gate.of_validity("quantization", out.validity, before=seamless_validity.valid)
+    timings["validity_s"] = time.perf_counter() - t0
+    stats.update(prob.counts)
+    stats["splits"] = splits
+    stats["straighten"] = sinfo
+    stats["quantization"] = qstats
+    stats["solver"] = backend
+    stats["timings"] = timings
+    return out
+
+
+def _check_magnitude(uvw: np.ndarray, h: float) -> None:
     if np.abs(uvw).max(initial=0.0) >= 2.0 ** 30:
         raise ValueError(f"the parameters reach {np.abs(uvw).max():.3g} >= 2**30: edge_length {h:g} is too small "
                          f"for this mesh")
-    energy = float(ys @ (A @ ys) - 2 * b @ ys + c) / vol_total
-    face_shift = _face_shifts(mesh, charts, uvw)
-    stats = dict(prob.counts)
-    stats["splits"] = splits
-    stats["straighten"] = sinfo
-    stats.update({"rounding_steps": rinfo["steps"], "integers": rinfo["n_integers"],
-                  "max_rounding": rinfo["max_rounding"], "undetermined_integers": rinfo["undetermined"],
-                  "flipped_after_rounding": n_flip_rounded, "stiffening_iterations": iters,
-                  "solver": rinfo["backend"], "timings": timings})
-    return IntegerGridMap(mesh=mesh, parent_tet=parent, uvw=uvw, face_rot=charts.face_rot.copy(), face_shift=face_shift, edge_length=h,
-                          charts=charts, energy=energy, energy_continuous=e_cont, grid_bits=grid_bits, stats=stats,
-                          problem=prob)
 
 
 def _face_shifts(mesh, charts: TetCharts, uvw: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 
 from .solver import factorize
 
-__all__ = ["round_greedy", "solve_fixed", "param_volumes"]
+__all__ = ["round_greedy", "round_injective", "stiffen", "solve_fixed", "param_volumes"]
 
 _RHS_BATCH = 256
 
@@ -190,3 +190,105 @@ def solve_fixed(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, int_value
         rhs = b[Cn] - A[Cn][:, I] @ y[I]
         y[Cn] = factorize(Acc, backend).solve(rhs)
     return y
+
+
+def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1, 0.2, 0.3, 0.4, 0.5),
+                    w_fit: float = 1.0, w_sd: float = 1.0, backend: str = "auto", progress=None) -> tuple[np.ndarray, dict]:
+    """Round the integer unknowns of a map with no inverted tet, keeping it so.
+
+    The integers are rounded in batches: those within ``thresholds[k]`` of an integer (at least
+    the closest one), all at once; each batch is moved to its integers by the injective solve
+    (:func:`~.injective.move_fixed`: the other unknowns follow, the line search never crosses a
+    zero determinant, the integers rounded before are held). A batch that cannot move without a
+    fold is halved; an integer that cannot move alone to its nearest integer tries the other
+    neighbour; one that can do neither waits until the others are rounded and is tried again
+    once (the others' moves change what it meets). After each threshold the distances are
+    recomputed from the current map.
+
+    Args:
+        jac: the :class:`~.injective.TetJacobians` of the seamless problem.
+        y: ``(m,)`` the free unknowns of a map with every ``det J > 0``.
+        int_mask: ``(m,)`` bool, the integer unknowns.
+        thresholds: the distance thresholds of the batches.
+        w_fit, w_sd, backend: of the injective solve.
+        progress: optional ``progress(n_rounded, n_total)``.
+
+    Returns:
+        ``(y, info)``: ``y`` with every integer it could round an exact integer and no tet
+        inverted; ``info``: ``n_integers``, ``rounded``, ``failed`` (free indices of the integers
+        left unrounded: the map is then not an integer-grid map), ``rounded_away`` (to the farther
+        neighbour), ``moves`` (injective solves), ``max_rounding``.
+    """
+    from .injective import move_fixed
+
+    y = np.array(y, np.float64, copy=True)
+    I = np.nonzero(int_mask)[0]
+    done = np.zeros(y.size, bool)
+    info = {"n_integers": int(I.size), "rounded": 0, "failed": [], "rounded_away": 0, "moves": 0, "max_rounding": 0.0}
+    kw = dict(w_fit=w_fit, w_sd=w_sd, backend=backend)
+
+    def try_move(idx, tgt):
+        nonlocal y
+        info["moves"] += 1
+        y_new, ok, _ = move_fixed(jac, y, idx, tgt, held=done, **kw)
+        if ok:
+            y = y_new
+            done[idx] = True
+            info["rounded"] += idx.size
+            info["max_rounding"] = max(info["max_rounding"], float(np.abs(tgt - y0_of[idx]).max()))
+            if progress is not None:
+                progress(info["rounded"], I.size)
+        return ok
+
+    def round_batch(idx):
+        """Round ``idx`` to their nearest integers, halving on failure; returns the ones left."""
+        tgt = np.round(y[idx])
+        if try_move(idx, tgt):
+            return np.zeros(0, np.int64)
+        if idx.size > 1:
+            h = idx.size // 2
+            left = round_batch(idx[:h])
+            return np.concatenate([left, round_batch(idx[h:])])
+        i = idx[:1]
+        near = float(tgt[0])
+        other = near + (1.0 if y[i[0]] > near else -1.0)
+        if try_move(i, np.array([other])):
+            info["rounded_away"] += 1
+            return np.zeros(0, np.int64)
+        return i
+
+    y0_of = y.copy()
+    for th in thresholds:
+        rem = I[~done[I]]
+        if not rem.size:
+            break
+        d = np.abs(y[rem] - np.round(y[rem]))
+        sel = rem[d <= th] if (d <= th).any() else rem[np.argsort(d)[:1]]
+        sel = sel[np.argsort(np.abs(y[sel] - np.round(y[sel])), kind="stable")]
+        round_batch(sel)  # what fails here is tried again below, after the others
+    rem = I[~done[I]]
+    left = round_batch(rem) if rem.size else np.zeros(0, np.int64)
+    info["failed"] = [int(i) for i in left]
+    return y, info
+
+
+def stiffen(prob, y: np.ndarray, int_mask: np.ndarray, *, iters: int = 10, factor: float = 4.0,
+            backend: str = "auto") -> tuple[np.ndarray, int]:
+    """Stiffening: multiply the fitting weight of the tets that are not positively oriented by
+    ``factor`` and solve the continuous unknowns again (integers kept), up to ``iters`` times.
+
+    Returns ``(y, iterations run)``.
+    """
+    weights = np.ones(prob.vol.size)
+    uvw = prob.corner_params(y)
+    done = 0
+    for _ in range(iters):
+        flip = param_volumes(uvw) <= 0
+        if not flip.any():
+            break
+        weights[flip] *= factor
+        Aw, bw, _ = prob.energy_matrices(weights)
+        y = solve_fixed(Aw, bw, int_mask, y[int_mask], backend=backend)
+        uvw = prob.corner_params(y)
+        done += 1
+    return y, done

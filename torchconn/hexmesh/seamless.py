@@ -134,6 +134,41 @@ class SeamlessProblem:
     def _corner_rows(self) -> np.ndarray:
         return self.corner_var.reshape(-1)
 
+    def flat_tets(self, samples: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """The tets that the constraints flatten: zero parametric volume for **every** value of the
+        free unknowns. No map is valid while one is left.
+
+        Decided with exact arithmetic at random points: the corner parameters are affine in the
+        free unknowns with dyadic coefficients, so at integer unknowns they are dyadic and the
+        exact :func:`~.predicates.orient3d` decides each tet's volume; a tet whose volume (a cubic
+        polynomial in the unknowns) is zero at ``samples`` independent random points in
+        ``[-2^10, 2^10]^m`` is identically zero but with a probability below ``(3/2049)^samples``
+        per tet (Schwartz-Zippel). ``seed`` makes it deterministic.
+
+        Returns:
+            ``(flat (k,), collapsed (k,) bool)``: the flat tets, and those among them with two
+            corners that the constraints send to **one point** (a collapsed edge: two singular
+            or feature curves, or a zig-zag of one, that the constraints make meet; no refinement
+            of the tet opens it, the singular structure must change). The others are coplanar:
+            splitting an edge whose midpoint is free opens them.
+        """
+        from .predicates import orient3d
+
+        rng = np.random.default_rng(seed)
+        m = self.elim.free.size
+        T = self.corner_var.shape[0]
+        flat = np.ones(T, bool)
+        same = np.ones((T, 6), bool)  # corner pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3) equal so far
+        pa, pb = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
+        for _ in range(samples):
+            y = rng.integers(-1024, 1025, size=m).astype(np.float64)
+            uvw = self.corner_params(y)
+            flat &= orient3d(uvw[:, 0], uvw[:, 1], uvw[:, 2], uvw[:, 3]) == 0
+            same &= (uvw[:, pa] == uvw[:, pb]).all(-1)
+            if not flat.any():
+                break
+        idx = np.nonzero(flat)[0]
+        return idx, same[idx].any(1)
 
 # ----------------------------------------------------------------------------- building
 def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool = True,

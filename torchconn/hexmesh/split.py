@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["SplitResult", "split_for_map", "split_edges", "SPLIT_RULES"]
+__all__ = ["SplitResult", "split_for_map", "split_edges", "split_tets_edges", "SPLIT_RULES"]
 
 SPLIT_RULES = ("singular", "boundary")
 
@@ -227,3 +227,26 @@ def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rul
         rounds += 1
     return SplitResult(mesh=mesh, tet_frames=Fr, parent_tet=parent, splits=counts, rounds=rounds,
                        face_match=face_match)
+
+
+def split_tets_edges(mesh, tet_frames, tets: np.ndarray, face_match: np.ndarray | None = None,
+                     keep_edges: np.ndarray | None = None):
+    """Split one edge of each of the tets ``tets`` (one round: edges that share no tet).
+
+    The edge split in a tet is its longest edge not in ``keep_edges (E,)`` bool (edges whose
+    midpoint would be as constrained as their ends: boundary, singular and feature edges), else
+    its longest edge. Returns ``(mesh, tet_frames, parent (T',), face_match, n_split)``.
+    """
+    tets = np.asarray(tets, np.int64)
+    if tets.size == 0:
+        return mesh, tet_frames, np.arange(mesh.n_tets), face_match, 0
+    X = mesh.vertices.detach().cpu().double().numpy()
+    edges = mesh.edges.cpu().numpy()
+    te = mesh.tet_edges.cpu().numpy()[tets]  # (k, 6)
+    length = np.linalg.norm(X[edges[te, 1]] - X[edges[te, 0]], axis=2)
+    if keep_edges is not None:
+        length = np.where(np.asarray(keep_edges, bool)[te], -1.0 / (1.0 + length), length)
+    pick = np.unique(te[np.arange(tets.size), length.argmax(1)])
+    chosen = _independent(mesh.tet_edges.cpu().numpy(), pick, edges.shape[0])
+    new, Fr, parent, fm = split_edges(mesh, tet_frames, chosen, face_match)
+    return new, Fr, parent, fm, int(chosen.size)
