@@ -53,6 +53,7 @@ DET_SAFE = 1e-6
 1 at the target size); below, it keeps a shift, so that a nearly flat tet does not make the
 barrier's Hessian overflow the solve."""
 _STEP_FRACTION = 0.9  # of the first root of det(J + s dJ) + eps = 0
+_DET_MOVE_MIN = 1e-9  # a move that squeezes a tet below this has failed (its barrier would overflow)
 
 
 # ----------------------------------------------------------------------------- the Jacobians
@@ -111,6 +112,66 @@ def _sd(j: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
     return j.square().sum(-1) + A.square().sum((-2, -1)) / (det + eps).square() - 6.0
 
 
+def _chi(d: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """``chi(d, eps) = (d + sqrt(eps^2 + d^2)) / 2``: a smooth positive stand-in for ``max(d, 0)``."""
+    return 0.5 * (d + torch.sqrt(eps * eps + d * d))
+
+
+def _untangling(j: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """Garanzha et al.'s regularized distortion per row of ``j (T, 9)`` (``eps`` scalar tensor):
+    ``|J|^2 / (3 chi^(2/3)) + (det^2 + 1) / (2 chi)``, finite for every ``J``, inverted ones
+    included, and ``2`` at a rotation."""
+    J = j.reshape(-1, 3, 3)
+    det = torch.linalg.det(J)
+    c = _chi(det, eps)
+    return j.square().sum(-1) / (3.0 * c.pow(2.0 / 3.0)) + (det * det + 1.0) / (2.0 * c)
+
+
+def _rowwise_derivatives(fn, j: torch.Tensor, eps: torch.Tensor, hessian: bool):
+    """``(f (T,), g (T, 9), H (T, 9, 9) or None)`` of a per-row function by batched autograd (rows
+    are independent: one backward for the gradient, nine more for the Hessian's columns)."""
+    with torch.enable_grad():
+        jj = j.detach().requires_grad_(True)
+        f = fn(jj, eps)
+        (g,) = torch.autograd.grad(f.sum(), jj, create_graph=hessian)
+        H = None
+        if hessian:
+            H = torch.stack([torch.autograd.grad(g[:, k].sum(), jj, retain_graph=k < 8)[0] for k in range(9)], 1)
+    return f.detach(), g.detach(), H
+
+
+def _project_psd(H: torch.Tensor) -> torch.Tensor:
+    """Symmetrize ``(T, 9, 9)`` blocks and clamp the negative eigenvalues of those a Cholesky
+    attempt rejects (each block eigen-decomposed at O(1) scale: its own round-off, not the
+    largest block's)."""
+    if not bool(torch.isfinite(H).all()):
+        raise FloatingPointError("the barrier's Hessian overflowed (a tet is nearly flat)")
+    H = 0.5 * (H + H.transpose(1, 2))
+    _, info = torch.linalg.cholesky_ex(H)
+    bad = torch.nonzero(info != 0).flatten()
+    if bad.numel():
+        Hb = H[bad]
+        sc = Hb.abs().amax(dim=(1, 2), keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
+        w, V = torch.linalg.eigh(Hb / sc)
+        H[bad] = ((V * w.clamp_min(0.0)[:, None, :]) @ V.transpose(1, 2)) * sc
+    return H
+
+
+def untangling_terms(J: torch.Tensor, eps: float, w_fit: float, *, hessian: bool = True):
+    """Per-tet energy, gradient and PSD-projected Hessian of the untangling energy
+    ``w_fit |J - I|^2 + |J|^2 / (3 chi^(2/3)) + (det^2 + 1) / (2 chi)`` (``chi`` of ``det J`` and the
+    global ``eps``; Garanzha et al. 2021), in the Jacobian's 9 entries: the shapes of
+    :func:`barrier_terms`."""
+    j = J.reshape(-1, 9)
+    eye = torch.eye(3, dtype=J.dtype, device=J.device).reshape(9)
+    f, g, H = _rowwise_derivatives(_untangling, j, torch.tensor(float(eps), dtype=J.dtype), hessian)
+    f = f + w_fit * (j - eye).square().sum(1)
+    g = g + 2.0 * w_fit * (j - eye)
+    if hessian:
+        H = _project_psd(H) + 2.0 * w_fit * torch.eye(9, dtype=J.dtype, device=J.device)
+    return f, g, H
+
+
 def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float, *, hessian: bool = True):
     """Per-tet energy, gradient and (PSD-projected) Hessian in the Jacobian's 9 entries.
 
@@ -132,45 +193,57 @@ def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float,
     g = 2.0 * w_fit * r
     Hs = None
     if w_sd:
-        # per-row derivatives by batched autograd (rows are independent): one backward for the
-        # gradient, nine more for the Hessian's columns
-        with torch.enable_grad():
-            jj = j.detach().requires_grad_(True)
-            fs = _sd(jj, eps)
-            (gs,) = torch.autograd.grad(fs.sum(), jj, create_graph=hessian)
-            if hessian:
-                Hs = torch.stack([torch.autograd.grad(gs[:, k].sum(), jj, retain_graph=k < 8)[0] for k in range(9)], 1)
-        f = f + w_sd * fs.detach()
-        g = g + w_sd * gs.detach()
+        fs, gs, Hs = _rowwise_derivatives(_sd, j, eps, hessian)
+        f = f + w_sd * fs
+        g = g + w_sd * gs
     if not hessian:
         return f, g, None
     H = 2.0 * w_fit * torch.eye(9, dtype=J.dtype, device=J.device).expand(j.shape[0], 9, 9)
     if w_sd:
-        Hs = 0.5 * (Hs + Hs.transpose(1, 2))
-        _, info = torch.linalg.cholesky_ex(Hs)
-        bad = torch.nonzero(info != 0).flatten()
-        if bad.numel():
-            # each block eigen-decomposed at O(1) scale: its own round-off, not the largest block's
-            Hb = Hs[bad]
-            sc = Hb.abs().amax(dim=(1, 2), keepdim=True).clamp_min(torch.finfo(J.dtype).tiny)
-            w, V = torch.linalg.eigh(Hb / sc)
-            Hs[bad] = ((V * w.clamp_min(0.0)[:, None, :]) @ V.transpose(1, 2)) * sc
-        H = H + w_sd * Hs
+        H = H + w_sd * _project_psd(Hs)
     return f, g, H
 
 
-def _energy(jac: TetJacobians, y: np.ndarray, eps: np.ndarray, w_fit: float, w_sd: float) -> float:
-    """``E(y)`` (``inf`` where a tet is not feasible)."""
-    J = jac(y)
-    det = np.linalg.det(J)
-    if not np.all(det + eps > 0):
-        return math.inf
-    Jt = torch.from_numpy(J)
-    f, _, _ = barrier_terms(Jt, torch.from_numpy(eps), w_fit, w_sd, hessian=False)
-    return float((jac.vol * f.numpy()).sum())
+class _Barrier:
+    """The shifted-barrier energy (:func:`barrier_terms`) with per-tet shifts ``eps (T,)``."""
+
+    def __init__(self, eps: np.ndarray, w_fit: float, w_sd: float):
+        self.eps, self.w_fit, self.w_sd = eps, w_fit, w_sd
+
+    def terms(self, J: np.ndarray, hessian: bool = True):
+        return barrier_terms(torch.from_numpy(J), torch.from_numpy(self.eps), self.w_fit, self.w_sd, hessian=hessian)
+
+    def energy(self, J: np.ndarray, vol: np.ndarray) -> float:
+        if not np.all(np.linalg.det(J) + self.eps > 0):
+            return math.inf
+        f, _, _ = self.terms(J, hessian=False)
+        return float((vol * f.numpy()).sum())
+
+    def cap(self, J: np.ndarray, dJ: np.ndarray) -> float:
+        """The longest step along ``dJ`` that stays ``_STEP_FRACTION`` of the way to a zero of
+        ``det + eps`` (at most 1)."""
+        a, b, c, d = _det_cubic(J, dJ)
+        root = float(first_root(a + self.eps, b, c, d, 1.0 / _STEP_FRACTION).min(initial=np.inf))
+        return min(1.0, _STEP_FRACTION * root)
 
 
-# ----------------------------------------------------------------------------- line search bound
+class _Untangling:
+    """The untangling energy (:func:`untangling_terms`) with the global regularization ``eps``."""
+
+    def __init__(self, eps: float, w_fit: float):
+        self.eps, self.w_fit = eps, w_fit
+
+    def terms(self, J: np.ndarray, hessian: bool = True):
+        return untangling_terms(torch.from_numpy(J), self.eps, self.w_fit, hessian=hessian)
+
+    def energy(self, J: np.ndarray, vol: np.ndarray) -> float:
+        f, _, _ = self.terms(J, hessian=False)
+        return float((vol * f.numpy()).sum())
+
+    def cap(self, J: np.ndarray, dJ: np.ndarray) -> float:
+        return 1.0
+
+
 def _det_cubic(J: np.ndarray, dJ: np.ndarray):
     """Coefficients of ``det(J + s dJ) = a + b s + c s^2 + d s^3`` per tet."""
     def adj(M):
@@ -286,49 +359,46 @@ class _Hessian:
         return 0.5 * (H + H.T)
 
 
-def _newton(jac, y, eps, w_fit, w_sd, free, *, max_iter, tol, backend, history, rnd, fixed_dir=None):
-    """Newton steps on the unfixed unknowns ``free`` (bool mask) from a feasible ``y``; returns
-    ``(y, iterations, converged)``."""
+def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd):
+    """Newton steps of ``model``'s energy on the unfixed unknowns ``free`` (bool mask) from a
+    feasible ``y``: PSD-projected Hessian, one sparse solve, the step capped by ``model.cap``,
+    Armijo backtracking. Returns ``(y, iterations, converged)``."""
     hess = _Hessian(jac, np.nonzero(free)[0])
     vol = jac.vol
     Etot = vol.sum()
     it = 0
     converged = False
-    E = _energy(jac, y, eps, w_fit, w_sd)
+    E = model.energy(jac(y), vol)
     for it in range(1, max_iter + 1):
         J = jac(y)
-        f, g, H = barrier_terms(torch.from_numpy(J), torch.from_numpy(eps), w_fit, w_sd)
-        gJ = g.numpy() * vol[:, None]
-        grad = jac.GZ.T @ gJ.reshape(-1)
-        gf = grad[free]
-        Hb = H.numpy() * vol[:, None, None]
-        A = hess(Hb)
+        try:
+            _, g, H = model.terms(J)
+        except FloatingPointError:
+            break
+        gf = (jac.GZ.T @ (g.numpy() * vol[:, None]).reshape(-1))[free]
+        A = hess(H.numpy() * vol[:, None, None])
         # a tiny Tikhonov term keeps the factorization definite where the energy is flat
-        A = A + sp.identity(A.shape[0], format="csr") * (1e-12 * max(float(np.abs(A.diagonal()).max(initial=0.0)), 1e-300))
+        scale = max(float(np.abs(A.diagonal()).max(initial=0.0)), 1e-300)
+        A = A + sp.identity(A.shape[0], format="csr") * (1e-12 * scale)
         try:
             df = -factorize(A, backend).solve(gf)
         except NotPositiveDefinite:
-            A = A + sp.identity(A.shape[0], format="csr") * (1e-8 * max(float(np.abs(A.diagonal()).max(initial=0.0)), 1e-300))
-            df = -factorize(A, backend).solve(gf)
+            df = -factorize(A + sp.identity(A.shape[0], format="csr") * (1e-8 * scale), backend).solve(gf)
         dec = float(-gf @ df)
-        if dec <= tol * max(E, 1e-300):
+        if dec <= tol * max(abs(E), 1e-300):
             converged = True
             it -= 1
             break
         d = np.zeros_like(y)
         d[free] = df
-        dJ = jac.step(d)
-        a, b, c, dd = _det_cubic(J, dJ)
-        s_max = min(1.0, _STEP_FRACTION * float(first_root(a + eps, b, c, dd, 1.0 / _STEP_FRACTION).min(initial=np.inf)))
-        s = s_max
+        s = model.cap(J, jac.step(d))
         while s > 1e-12:
             y_new = y + s * d
-            E_new = _energy(jac, y_new, eps, w_fit, w_sd)
+            E_new = model.energy(jac(y_new), vol)
             if E_new <= E - 1e-4 * s * dec:
                 break
             s *= 0.5
         else:
-            history.append((rnd, E / Etot, int((np.linalg.det(J) <= 0).sum()), 0.0))
             break
         y, E = y_new, E_new
         history.append((rnd, E / Etot, int((np.linalg.det(jac(y)) <= 0).sum()), s))
@@ -340,19 +410,31 @@ def _shifts(det: np.ndarray, penalty: float) -> np.ndarray:
 
 
 def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | None = None, w_fit: float = 1.0,
-                     w_sd: float = 1.0, rounds: int = 4, max_iter: int = 50, tol: float = 1e-6,
-                     backend: str = "auto") -> InjectiveResult:
-    """Minimize the barrier energy of the module docstring from ``y0``.
+                     w_sd: float = 1.0, untangle_rounds: int = 30, rounds: int = 4, max_iter: int = 50,
+                     tol: float = 1e-6, backend: str = "auto") -> InjectiveResult:
+    """A map with no inverted tet near ``y0``, and the barrier energy of the module docstring
+    minimized there.
+
+    Three phases:
+
+    1. where a tet is not safely positive (``det J <= DET_SAFE``): untangling (Garanzha et al.
+       2021): Newton on the untangling energy (:func:`untangling_terms`), finite for inverted
+       tets too, with its regularization ``eps`` lowered after each solve so that ``chi`` of the
+       smallest determinant falls by the relative energy decrease (at least 10%), until every
+       tet is positive or ``untangle_rounds`` solves are spent;
+    2. if tets are still inverted: AlgoHex's shifted barrier (per-tet shifts, ``rounds``
+       rounds: a tet that became positive loses its shift, the others get a new one);
+    3. with every tet positive: Newton on the barrier energy with no shift (no tet can fold).
 
     Args:
         jac: the :class:`TetJacobians` of the seamless problem.
-        y0: ``(m,)`` start (inverted tets allowed: they get shifts).
+        y0: ``(m,)`` start (inverted tets allowed).
         fixed: ``(m,)`` bool, unknowns held at their value in ``y0``.
-        w_fit, w_sd: weights of the fitting and symmetric Dirichlet terms.
-        rounds: shift updates (each a Newton solve); stops after the first round that leaves
-            every ``det J > DET_SAFE``.
-        max_iter: Newton steps per round; tol: a round ends when the Newton decrement
-            ``-g^T d`` is below ``tol`` times the energy.
+        w_fit, w_sd: weights of the fitting and symmetric Dirichlet terms (phase 3; ``w_fit``
+            also in phase 1).
+        untangle_rounds, rounds: the budgets of phases 1 and 2.
+        max_iter: Newton steps per solve; tol: a solve ends when the Newton decrement ``-g^T d``
+            is below ``tol`` times the energy.
         backend: sparse solver (:mod:`.solver`).
 
     Returns:
@@ -363,26 +445,51 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
     y = np.array(y0, np.float64, copy=True)
     m = y.size
     free = np.ones(m, bool) if fixed is None else ~np.asarray(fixed, bool)
-    det = np.linalg.det(jac(y))
-    eps = _shifts(det, PENALTY_START)
     history = []
     iters = 0
     converged = False
     rnd = 0
-    for rnd in range(1, rounds + 1):
-        if free.any():
-            y, it, converged = _newton(jac, y, eps, w_fit, w_sd, free, max_iter=max_iter, tol=tol, backend=backend,
-                                       history=history, rnd=rnd)
+    det = np.linalg.det(jac(y))
+    # ---- phase 1: untangling with a shrinking regularization
+    if free.any() and (det <= DET_SAFE).any():
+        dmin = float(det.min())
+        eps = math.sqrt(1e-12 + 0.04 * min(dmin, 0.0) ** 2) if dmin <= 0 else 1e-3
+        for k in range(untangle_rounds):
+            model = _Untangling(eps, w_fit)
+            E0 = model.energy(jac(y), jac.vol)
+            y, it, _ = _newton(jac, y, model, free, max_iter=10, tol=tol, backend=backend, history=history,
+                               rnd=("untangle", k))
             iters += it
-        det = np.linalg.det(jac(y))
-        if (det > DET_SAFE).all():
-            break
-        # tets that became positive lose their shift (they can never fold again); the others get a new one
-        eps = _shifts(det, PENALTY_ROUND)
+            det = np.linalg.det(jac(y))
+            if (det > DET_SAFE).all():
+                break
+            E1 = model.energy(jac(y), jac.vol)
+            sigma = max(1.0 - E1 / E0, 0.1) if E0 > 0 else 0.1
+            dmin = float(det.min())
+            mu = (1.0 - sigma) * 0.5 * (dmin + math.sqrt(eps * eps + dmin * dmin))
+            eps = 2.0 * math.sqrt(mu * (mu - dmin)) if dmin < mu else 1e-10
+    # ---- phase 2: shifted barrier where tets are still inverted
+    if free.any() and (det <= DET_SAFE).any():
+        eps_t = _shifts(det, PENALTY_START)
+        for rnd in range(1, rounds + 1):
+            y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd), free, max_iter=max_iter, tol=tol,
+                                       backend=backend, history=history, rnd=("shifted", rnd))
+            iters += it
+            det = np.linalg.det(jac(y))
+            if (det > DET_SAFE).all():
+                break
+            # tets that became positive lose their shift (they can never fold again); the others get a new one
+            eps_t = _shifts(det, PENALTY_ROUND)
+    # ---- phase 3: the barrier energy, every tet held positive
+    eps_t = _shifts(det, PENALTY_ROUND)
+    if free.any():
+        y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd), free, max_iter=max_iter, tol=tol,
+                                   backend=backend, history=history, rnd=("barrier", 0))
+        iters += it
     J = jac(y)
     det = np.linalg.det(J)
     fit = float((jac.vol * ((J - np.eye(3)) ** 2).sum((1, 2))).sum() / jac.vol.sum())
-    E = _energy(jac, y, eps, w_fit, w_sd)
+    E = _Barrier(_shifts(det, PENALTY_ROUND), w_fit, w_sd).energy(J, jac.vol)
     return InjectiveResult(y=y, inverted=np.nonzero(det <= 0)[0], energy=E / jac.vol.sum(), fit_energy=fit,
                            min_det=float(det.min(initial=np.inf)), rounds=rnd, iterations=iters, converged=converged,
                            history=history, seconds=time.perf_counter() - t0)
@@ -427,7 +534,10 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
         if not np.any(delta):
             break
         J = jac(y)
-        _, g, H = barrier_terms(torch.from_numpy(J), torch.from_numpy(eps), w_fit, w_sd)
+        try:
+            _, g, H = barrier_terms(torch.from_numpy(J), torch.from_numpy(eps), w_fit, w_sd)
+        except FloatingPointError:
+            break
         Hb = H.numpy() * vol[:, None, None]
         A = hess(Hb)
         A = A + sp.identity(A.shape[0], format="csr") * (1e-12 * max(float(np.abs(A.diagonal()).max(initial=0.0)), 1e-300))
@@ -448,12 +558,15 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
         s = min(1.0, _STEP_FRACTION * root)
         if s < 1e-6:
             break
-        y = y + s * d
+        y_try = y + s * d
         if s >= 1.0:
-            y[idx] = target
+            y_try[idx] = target
+        if np.linalg.det(jac(y_try)).min() < _DET_MOVE_MIN:  # the move squeezes a tet flat: it would fold
+            break
+        y = y_try
         info["steps"] += 1
-        y, it, _ = _newton(jac, y, eps, w_fit, w_sd, free, max_iter=max_iter, tol=tol, backend=backend,
-                           history=history, rnd=step)
+        y, it, _ = _newton(jac, y, _Barrier(eps, w_fit, w_sd), free, max_iter=max_iter, tol=tol, backend=backend,
+                           history=history, rnd=("move", step))
         info["iterations"] += it
     ok = bool(np.array_equal(y[idx], target)) and bool((np.linalg.det(jac(y)) > 0).all())
     if not ok:
