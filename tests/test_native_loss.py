@@ -1,4 +1,4 @@
-"""The compiled frame-field loss kernel (csrc/frame_loss.c, torchconn.ops.frame_loss) against the torch path of FrameFieldLoss
+"""The compiled frame-field loss kernel (frames/kernels/csrc/frame_loss.c, torchconn.frames.kernels.frame_loss) against the torch path of FrameFieldLoss
 (switch off: the generic torch kernel of the op, itself checked against the loss's term functions in
 tests/test_ops_library_frame_loss.py).
 
@@ -15,7 +15,7 @@ import torch
 import torchconn.ops
 from torchconn import io, so3
 from torchconn.ops import native
-from torchconn.ops.frame_loss import COMPILED_TERMS, frame_loss_terms
+from torchconn.frames.kernels.frame_loss import COMPILED_TERMS, frame_loss_terms
 from torchconn.frames import octahedral
 from torchconn.frames.loss import FrameFieldLoss, TERMS
 from torchconn.tolerances import get_eps

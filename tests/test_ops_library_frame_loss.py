@@ -22,8 +22,8 @@ from torchconn.dec import torsion as dec_torsion
 from torchconn.frames import octahedral
 from torchconn.mesh.tet import TetMesh
 from torchconn.frames.loss import FrameFieldLoss, TERMS, smoothness_loss, symmetric_flatness_loss, tie_loss
-from torchconn.ops import _frame_loss_torch as T
-from torchconn.ops import frame_loss as FL
+from torchconn.frames.kernels import _frame_loss_torch as T
+from torchconn.frames.kernels import frame_loss as FL
 from torchconn.ops import native
 
 HAS_C = native.library("frame_loss") is not None

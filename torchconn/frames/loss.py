@@ -68,7 +68,7 @@ from typing import Mapping
 
 import torch
 
-from ..ops import frame_loss as _ops_frame_loss
+from .kernels import frame_loss as _ops_frame_loss
 from ..ops import torsion as _ops_torsion
 from . import octahedral
 from .constraints import BoundaryConstraint

@@ -57,19 +57,20 @@ Index and geometry tables are immutable, built once per mesh, dtype and device (
 from __future__ import annotations
 
 import ctypes
+from pathlib import Path
 import threading
 from typing import Mapping, Optional
 
 import torch
 
+from ...ops import native as _native
+from ...ops._cache import require as _require
+from ...ops._cache import traced_constant
+from ...ops._library import jvp as _library_jvp
+from ...ops._library import leading_vmap, qualname
+from ...ops.backend import can_use_compiled
+from ...ops.curvature import _sorted_triangles
 from . import _frame_loss_torch as _T
-from . import native as _native
-from ._cache import require as _require
-from ._cache import traced_constant
-from ._library import jvp as _library_jvp
-from ._library import leading_vmap, qualname
-from .backend import can_use_compiled
-from .curvature import _sorted_triangles
 
 __all__ = ["COMPILED_TERMS", "frame_loss_terms", "mesh_tables", "terms_generic", "release_scratch"]
 
@@ -80,6 +81,7 @@ _vp, _long, _int, _dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_
 # frame_loss_<T>(B, E, V, F, nt, R, Fr, edges, fidx, vec, area, group, do_smooth, do_tie, do_flat,
 #                do_torsion, grad, power, eps, wts, sums, gR, gF, work, theta, gtheta, unrel)
 _ARGTYPES = [_long] * 4 + [_int] + [_vp] * 7 + [_int] * 5 + [_dbl] * 2 + [_vp] * 8
+_native.register_source("frame_loss", Path(__file__).resolve().parent / "csrc" / "frame_loss.c")
 _C_SWEEP = {torch.float32: _native.declare("frame_loss", "frame_loss_f32", _ARGTYPES, _int),
             torch.float64: _native.declare("frame_loss", "frame_loss_f64", _ARGTYPES, _int)}
 
