@@ -331,6 +331,18 @@ def _subsample(n: int, cap: int) -> tuple[np.ndarray, int]:
     return np.arange(0, n, stride), stride
 
 
+def _wrapped(text: str, width: int = 125, most: int = 5) -> list[str]:
+    """``text`` as title lines of at most ``width`` characters; beyond ``most`` lines cut with '...'."""
+    lines = textwrap.wrap(text, width)
+    return lines if len(lines) <= most else lines[:most - 1] + [lines[most - 1][:width - 4] + " ..."]
+
+
+def _top(lines: list, height_in: float) -> float:
+    """The axes' top (figure fraction) below a suptitle of ``lines`` at 10 pt on a figure
+    ``height_in`` inches high, leaving room for the views' own titles."""
+    return 1.0 - (len(lines) * 10 * 1.25 / 72 + 0.45) / height_in
+
+
 def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *, title: str | None = None,
                   verdict: str | None = None) -> Path:
     """Write a PNG of a hex mesh: its boundary quads lightly shaded (see-through) and its
@@ -416,7 +428,7 @@ def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *,
                        f"({q.irregular_fraction:.1%})")
     if q.hausdorff_rel is not None:
         figures.append(f"Hausdorff {q.hausdorff_rel:.2%} of the diagonal, volume ratio {q.volume_ratio:.3f}")
-    lines = ([title] if title else []) + textwrap.wrap(verdict, 120)[:3] + ["; ".join(figures)]
+    lines = ([title] if title else []) + _wrapped(verdict) + ["; ".join(figures)]
     fig.suptitle("\n".join(lines), fontsize=10)
     notes = []
     if q_stride > 1:
@@ -425,7 +437,7 @@ def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *,
         notes.append(f"1 in {e_stride} irregular edges drawn")
     if notes:
         fig.text(0.99, 0.01, "; ".join(notes), ha="right", va="bottom", fontsize=8, color="0.3")
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.1, top=0.97 - 0.027 * len(lines), wspace=0.0)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.1, top=_top(lines, 6.8), wspace=0.0)
     return _atomic(path_png, lambda tmp: fig.savefig(tmp, format="png"))
 
 
@@ -542,7 +554,7 @@ def plot_failure(path_png, mesh, igm, extraction=None, *, verdict_text: str = ""
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), frameon=False, fontsize=9,
                title=f"input tets ({mesh.n_tets}) by what fails there (the map lives on {igm.mesh.n_tets} tets: "
                      f"the input refined by its edge splits)", title_fontsize=9)
-    lines = ([title] if title else []) + textwrap.wrap(verdict_text, 130)[:4]
+    lines = ([title] if title else []) + _wrapped(verdict_text)
     fig.suptitle("\n".join(lines), fontsize=10)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.16, top=0.97 - 0.027 * len(lines), wspace=0.0)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.16, top=_top(lines, 7.2), wspace=0.0)
     return _atomic(path_png, lambda tmp: fig.savefig(tmp, format="png"))
