@@ -246,6 +246,16 @@ def test_console_error_is_a_message_not_a_traceback_unless_asked(tmp_path, monke
     assert not out.exists() and list(cwd.iterdir()) == []
 
 
+def test_without_output_dir_an_input_error_leaves_no_run_directory(tmp_path, monkeypatch, capsys):
+    from training import hex_mesh as job
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    args = ["mesh=box", "edge_length=0.5", "method=sh_baseline", "progress=false", "hex.edge_length=1e-12"]
+    assert _main_in_process(job, args, tmp_path, monkeypatch) == 1
+    assert "edge_length 1e-12 is too small" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # Hydra's outputs/hex_mesh/<date>/<time> is gone again
+
+
 def test_frame_job_errors_are_messages_too(tmp_path, monkeypatch, capsys):
     from training import train_frames as job
 

@@ -274,11 +274,19 @@ def main() -> None:
     def app(cfg: DictConfig) -> None:
         debug = OmegaConf.select(cfg, "debug", default=False) is True
         with io_utils.report_errors("hex_mesh", debug=debug, how="debug=true or HYDRA_FULL_ERROR=1"):
-            if cfg.output_dir is None:  # Hydra's run directory: outputs/hex_mesh/<date>/<time>
+            created = []  # Hydra's run directory and its parents below the working directory
+            if cfg.output_dir is None:  # the outputs go to Hydra's run directory: outputs/hex_mesh/<date>/<time>
                 from hydra.core.hydra_config import HydraConfig
 
-                cfg.output_dir = HydraConfig.get().runtime.output_dir
-            m = run(cfg)
+                run_dir = Path(HydraConfig.get().runtime.output_dir)
+                cfg.output_dir = str(run_dir)
+                cwd = Path.cwd().resolve()
+                created = [d for d in (run_dir, *run_dir.parents) if cwd in d.resolve().parents]
+            try:
+                m = run(cfg)
+            except BaseException:
+                io_utils.remove_empty_dirs(created)  # an input error leaves no (empty) output directory behind
+                raise
         print(summary_line(m, cfg.output_dir))
 
     app()

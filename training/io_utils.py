@@ -42,6 +42,7 @@ __all__ = [
     "OutputDirError",
     "OutputDirLockedError",
     "output_dir_for_run",
+    "remove_empty_dirs",
     "full_errors_wanted",
     "report_errors",
     "StaleLockWarning",
@@ -230,12 +231,18 @@ def output_dir_for_run(path):
         with lock_output_dir(out):
             yield out
     except BaseException:
-        for d in created:  # deepest first
-            try:
-                d.rmdir()
-            except OSError:
-                break
+        remove_empty_dirs(created)  # deepest first
         raise
+
+
+def remove_empty_dirs(dirs) -> None:
+    """``rmdir`` each of ``dirs`` in order (deepest first), stopping at the first that is not
+    empty (or cannot be removed): what a failed run created and left empty goes again."""
+    for d in dirs:
+        try:
+            Path(d).rmdir()
+        except OSError:
+            break
 
 
 def full_errors_wanted(debug: bool = False) -> bool:
