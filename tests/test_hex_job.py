@@ -191,21 +191,37 @@ def test_unknown_key_fails(tmp_path):
         run(_cfg(tmp_path / "out", hex={"edge_lenght": 0.3}))
 
 
-def test_console_command_writes_nothing_in_the_working_directory(tmp_path):
-    cwd, out = tmp_path / "cwd", tmp_path / "out"
-    cwd.mkdir()
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    r = subprocess.run([sys.executable, "-m", "training.hex_mesh", "mesh=box", "edge_length=0.5", "method=sh_baseline",
-                        "hex.edge_length=0.25", "progress=false", f"output_dir={out}"],
-                       cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("[hex_mesh]")]
+CLI_BOX = ["mesh=box", "edge_length=0.5", "method=sh_baseline", "hex.edge_length=0.25", "progress=false"]
+
+
+def _check_console_run(stdout: str, cwd: Path, out: Path) -> None:
+    lines = [ln for ln in stdout.splitlines() if ln.startswith("[hex_mesh]")]
     assert lines[0] == "[hex_mesh] good hex mesh"
     assert lines[1].startswith("[hex_mesh] map valid (edge length 0.25); 64 hexes (0 cubes dropped); scaled Jacobian "
                                "min 1.000 mean 1.000; irregular interior edges 0 of 108 (0.0%); Hausdorff 0.00% of "
                                "the diagonal; volume ratio 1.000; wall ")
     assert list(cwd.iterdir()) == []  # no outputs/<date>, no .hydra, no log
     assert (out / "hex_metrics.json").is_file() and not (out / ".hydra").exists()
+
+
+def test_console_command_writes_nothing_in_the_working_directory(tmp_path, monkeypatch, capsys):
+    from training import hex_mesh as job
+
+    cwd, out = tmp_path / "cwd", tmp_path / "out"
+    cwd.mkdir()
+    assert _main_in_process(job, [*CLI_BOX, f"output_dir={out}"], cwd, monkeypatch) == 0
+    _check_console_run(capsys.readouterr().out, cwd, out)
+
+
+@pytest.mark.slow  # a subprocess (about 10 s of imports on a loaded machine); in-process: the test above
+def test_console_command_in_a_fresh_process(tmp_path):
+    cwd, out = tmp_path / "cwd", tmp_path / "out"
+    cwd.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run([sys.executable, "-m", "training.hex_mesh", *CLI_BOX, f"output_dir={out}"],
+                       cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    _check_console_run(r.stdout, cwd, out)
 
 
 def _main_in_process(job, args, cwd, monkeypatch):
