@@ -13,8 +13,9 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
 * :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
 * :mod:`.tet`: ``tet_dd``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (``csrc/tet.c``; generic SoA
   kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
-* :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot``, the same with ``θ̃`` (and ``√R``) formed
-  inside the kernel, and ``tet_dd_solder``, the mesh-level entry point.
+* :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot`` / ``tet_dd_frames``, the same with ``θ̃`` (and
+  ``√R``, or the solder form in a frame field) formed inside the kernel, and ``tet_dd_solder``, the
+  mesh-level entry point.
 
 The ops that only the frame-field method uses (``frame_loss``, ``matched_edge_terms``) are
 declared the same way in :mod:`torchconn.frames.kernels`, with their C sources there

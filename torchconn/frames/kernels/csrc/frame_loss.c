@@ -101,11 +101,17 @@ static inline int SFX(best)(const T* M) {
     return best;
 }
 
+/* rho and d rho / d d2 (power 2: the identity; power 1, the default of the method: a square root,
+ * not pow, which costs ~10x as much per edge) */
 static inline double SFX(rho)(double d2, double p, double eps) {
-    return p == 2.0 ? d2 : pow(d2 + eps * eps, 0.5 * p) - pow(eps, p);
+    if (p == 2.0) return d2;
+    if (p == 1.0) return sqrt(d2 + eps * eps) - eps;
+    return pow(d2 + eps * eps, 0.5 * p) - pow(eps, p);
 }
 static inline double SFX(drho)(double d2, double p, double eps) {
-    return p == 2.0 ? 1.0 : 0.5 * p * pow(d2 + eps * eps, 0.5 * p - 1.0);
+    if (p == 2.0) return 1.0;
+    if (p == 1.0) return 0.5 / sqrt(d2 + eps * eps);
+    return 0.5 * p * pow(d2 + eps * eps, 0.5 * p - 1.0);
 }
 
 /* S = sqrt(A) (see the header), c returned */
