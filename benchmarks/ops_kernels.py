@@ -85,6 +85,7 @@ def _reset_peak() -> bool:
 
 def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torch.dtype, repeats: int,
          memory: bool) -> dict:
+    import torchconn.frames.kernels  # noqa: F401  (registers the frame kernels' C sources with ops.native)
     import torchconn.ops
     from torchconn import so3
     from torchconn.ops import curvature, native, torsion
@@ -103,7 +104,7 @@ def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torc
             x.grad = None
     elif name == "edge_terms":
         from torchconn.frames import octahedral
-        from torchconn.ops import edge_terms
+        from torchconn.frames.kernels import edge_terms
 
         mesh = _Mesh(torch.load(mesh_path))
         V = mesh.vertices.shape[0]

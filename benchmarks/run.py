@@ -28,13 +28,17 @@ Cases
    ``Σ‖Ω_f‖² + Σ‖d∇d∇θ̃_t‖²``, backward to the params. Reference: the generic path (dense
    per-tet tables ``dnabla.tet_transports`` / ``tet_solder_sqrt`` / ``averaged_dd_tet``, loop
    curvature ``orient`` + ``curvature.two_prong``, matrix-route ``exp`` / ``sqrt``).
-3. The frame-field loss (:class:`torchconn.frames.loss.FrameFieldLoss`, every term weight 1) at the
-   same sizes, forward+backward to connection params and per-vertex frame params, against an
-   eager composition of the same terms kept here (:func:`_ref_frame_loss`, generic curvature
-   and torsion). Reported as "not measured" if ``torchconn.frames.loss`` lacks ``FrameFieldLoss``.
-   The reference calls the library's single-term functions (``tie_loss``,
-   ``symmetric_flatness_loss``, hence ``octahedral.match``), so speed-ups there lower both
-   columns; the ratio measures the fused curvature/torsion and the sharing between terms.
+3. The frame-field loss (:class:`torchconn.frames.loss.FrameFieldLoss`) at the same sizes, forward +
+   backward to connection params and per-vertex frame params: ``frame_field_loss(default)``, the
+   loss ``design()`` runs by default (:func:`loss_cases`: its weights and options; torsion through
+   the matchings on every face, the averaged d∇ on the regular tets), and
+   ``frame_field_loss(all terms)``, every term weighted 1. Each against an eager composition of
+   the library's single-term functions kept here (:func:`ref_frame_loss_terms`: generic curvature
+   and torsion loops, dense d∇ tables, ``matrix_exp``), which must agree with the loss to
+   ``LOSS_AGREEMENT_RTOL`` relative on every term and the total (:func:`loss_agreement`, measured
+   in the row's dtype; ``tests/test_losses.py`` asserts it on a small mesh): a row whose reference
+   disagrees is reported as failed (``failed``, no time). ``frame_field_loss(default)_vs_modules``:
+   the same loss with the compiled kernels off (its term modules, each through its own ops).
 4. End to end (not with ``--quick``): ``python -m training.train_frames`` on
    ``../shared/data/78322_gear.2.mesh`` (one subprocess run, wall time) and mouette's Ray et al.
    2016 ``VolumeFrameField(mesh, "vertices")`` on the same mesh when ``mouette`` is installed (in a
@@ -438,81 +442,133 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
                      max_abs_diff=d_tor, unit="tets", note=note))
 
 
-def _ref_frame_loss(loss, edge_rot, frames):
-    """Eager composition of the terms of ``FrameFieldLoss`` (generic curvature and torsion)."""
-    from torchconn.frames import loss as L
+#: Largest relative difference between a loss row and its eager reference (per term and total):
+#: a row above it is reported as failed (the two do not compute one loss).
+LOSS_AGREEMENT_RTOL = 1e-6
+
+
+def loss_cases(mesh) -> list:
+    """``[(row name, FrameFieldLoss)]``: the loss :func:`torchconn.frames.design` builds with its
+    defaults (``DEFAULTS``: weights, ``smooth_power``, ``smooth_eps``, ``align_kind``, ``align_eps``,
+    ``feature_angle_deg``; ``tests/test_losses.py`` checks it against the loss ``design()`` itself
+    constructs) and the same options with every term of ``TERMS`` weighted 1."""
+    from torchconn.frames.design import DEFAULTS
+    from torchconn.frames.loss import TERMS, FrameFieldLoss
+
+    opts = {k: DEFAULTS[k] for k in ("feature_angle_deg", "smooth_power", "smooth_eps", "align_kind", "align_eps")}
+    return [("frame_field_loss(default)", FrameFieldLoss(mesh, dict(DEFAULTS["weights"]), **opts)),
+            ("frame_field_loss(all terms)", FrameFieldLoss(mesh, {k: 1.0 for k in TERMS}, **opts))]
+
+
+def _ref_dd_frames(R, mesh, frames):
+    """Generic dense ``𝔡∇ Alt 𝔡∇ Alt θ̃`` with the solder form in ``frames`` (``(T, 4, 4, 3, 3)`` tables)."""
+    return dnabla.averaged_dd_tet(dnabla.tet_transports(R, mesh), dnabla.tet_solder_sqrt(R, mesh, frames))
+
+
+def ref_frame_loss_terms(loss, edge_rot, frames) -> dict:
+    """Eager composition of the terms of ``loss`` (a ``FrameFieldLoss``) from the library's single-term
+    functions (:mod:`torchconn.frames.terms`, :mod:`torchconn.frames.octahedral`) and the generic
+    operators kept here (loop curvature and torsion, dense ``d∇`` tables): ``{term: value}`` of the
+    weighted terms and ``"total"``. The reference the loss rows are timed and checked against."""
+    from torchconn.frames import octahedral
+    from torchconn.frames import terms as T
 
     mesh, w = loss.mesh, loss.weights
+    e = mesh.edges
+    p, eps = loss.smooth_power, loss.smooth_eps
     out = {}
     if w["smooth"]:
-        out["smooth"] = L.smoothness_loss(edge_rot, loss.smooth_power, loss.smooth_eps)
-    unrel = None
-    if w["tie"] or w["torsion"]:
-        out["tie"], unrel = L.tie_loss(edge_rot, frames, mesh.edges, loss.smooth_power, loss.smooth_eps)
+        out["smooth"] = T.smoothness_loss(edge_rot, p, eps)
+    if w["tie"]:
+        out["tie"] = T.tie_loss(edge_rot, frames, e, p, eps)[0]
+    if w["flat"] or w["dnabla"]:
+        hol = _ref_face_curvature(edge_rot, mesh, kind="holonomy") + torch.eye(3, dtype=edge_rot.dtype)
     if w["flat"]:
-        hol = _ref_face_curvature(edge_rot, mesh, kind="holonomy")
-        out["flat"] = L.symmetric_flatness_loss(hol + torch.eye(3, dtype=hol.dtype))
+        out["flat"] = T.symmetric_flatness_loss(hol)
     if w["torsion"]:
-        tor = _ref_face_torsion(edge_rot, mesh, frames)
-        ok = unrel[mesh.face_edges].all(-1)
-        per = (tor ** 2).sum(-1) / loss.face_area.to(tor.dtype)
-        out["torsion"] = per[ok].mean() if bool(ok.any()) else per.sum() * 0.0
-    if w["align"]:
-        out["align"] = L.normal_alignment_loss(frames[loss.align_vertices], loss.align_normals.to(frames.dtype))
-    if w["feature"]:
-        out["feature"] = L.normal_alignment_loss(frames[loss.feature_vertices_rep],
-                                                 loss.feature_normals.to(frames.dtype))
-    if w.get("dirichlet"):
-        out["dirichlet"] = L.matched_dirichlet_loss(frames, mesh.edges)
-    return sum(w[k] * v for k, v in out.items() if w[k])
+        M = T.matched_rotations_of(edge_rot, frames, e)
+        tor = _ref_face_torsion(M, mesh, frames)
+        out["torsion"] = ((tor**2).sum(-1) / loss.face_area.to(tor.dtype)).mean()
+    if w["dnabla"]:
+        with torch.no_grad():
+            regular = (octahedral.closest_element(hol.detach())[0] == 0)[mesh.tet_faces].all(-1)
+        t = mesh.vertices.to(torch.float64)[mesh.tets]
+        scale = (torch.linalg.det(t[:, 1:] - t[:, :1]).abs() / 6.0).pow(2.0 / 3.0).to(edge_rot.dtype)
+        per = (_ref_dd_frames(edge_rot, mesh, frames) ** 2).sum(-1) / scale
+        out["dnabla"] = per[regular].sum() / max(1, int(regular.sum()))
+    for k, verts, normals in (("align", loss.align_vertices, loss.align_normals),
+                              ("feature", loss.feature_vertices_rep, loss.feature_normals)):
+        if w[k]:
+            n = normals.to(frames.dtype)
+            out[k] = (T.axis_angle_loss(frames[verts], n, loss.align_eps) if loss.align_kind == "angle"
+                      else T.normal_alignment_loss(frames[verts], n))
+    if w["dirichlet"]:
+        out["dirichlet"] = T.matched_dirichlet_loss(frames, e)
+    out["total"] = sum(w[k] * v for k, v in out.items())
+    return out
+
+
+def loss_agreement(loss, edge_rot, frames) -> tuple[float, str]:
+    """``(largest relative difference, term)`` between ``loss(edge_rot, frames)`` and
+    :func:`ref_frame_loss_terms` over the terms and the total (no gradients)."""
+    with torch.no_grad():
+        a = loss(edge_rot, frames)
+        b = ref_frame_loss_terms(loss, edge_rot, frames)
+    if a.keys() != b.keys():
+        return math.inf, f"terms differ: {sorted(a)} vs {sorted(b)}"
+    rel = {k: abs(float(a[k]) - float(b[k])) / max(abs(float(b[k])), 1e-30) for k in b}
+    worst = max(rel, key=rel.get)
+    return rel[worst], worst
 
 
 def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
+    """The loss rows (module doc, case 3): design()'s default loss and the all-terms variant against
+    the eager reference, and the default loss against its own modules (the fused kernel off)."""
     dname = str(dtype).replace("torch.", "")
-    try:
-        from torchconn.frames.loss import TERMS, FrameFieldLoss
-    except ImportError as exc:
-        rows.append(_row("frame_field_loss", tets, dname, None, None, None, note=f"not measured: {exc}"))
-        return
     mesh = _box(tets, dtype)
     T = int(mesh.tets.shape[0])
-    # the six terms of the figure kept since 2026-11-21 (the matched Dirichlet term of the frames,
-    # added later with weight 0 by default, is not part of it)
-    loss = FrameFieldLoss(mesh, {k: (0.0 if k == "dirichlet" else 1.0) for k in TERMS})
     g = torch.Generator().manual_seed(2)
     w = (0.2 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
     phi = (0.2 * torch.randn(mesh.vertices.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
     big = T >= 500_000
-
-    def fast_fn():
-        w.grad = phi.grad = None
-        loss(so3.exp(w), so3.exp(phi))["total"].backward()
-
-    def ref_fn():
-        w.grad = phi.grad = None
-        _ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)).backward()
-
-    with torch.no_grad():
-        a = float(loss(so3.exp(w), so3.exp(phi))["total"])
-        b = float(_ref_frame_loss(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi)))
-    t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
-    path = "compiled kernel csrc/frame_loss.c" if torchconn.ops.can_use_compiled("frame_loss", w, phi) \
-        else "torch kernels (no compiled kernel)"
-    rows.append(_row("frame_field_loss", T, dname, t, tr, _peak_mb(fast_fn), unit="tets",
-                     reference="eager composition of the same terms (generic curvature/torsion, matrix_exp)",
-                     max_abs_diff=abs(a - b), note=f"all six terms, weight 1; fwd+bwd to edge and vertex params; {path}"))
-    # the same loss with the compiled kernels switched off (what runs without a C compiler / off the CPU)
-    def torch_fn():
-        w.grad = phi.grad = None
-        with torchconn.ops.compiled(False):
+    path = "compiled kernel frames/kernels/csrc/frame_loss.c" if torchconn.ops.can_use_compiled("frame_loss", w, phi) \
+        else "modules (no compiled kernel)"
+    for name, loss in loss_cases(mesh):
+        def fast_fn(loss=loss):
+            w.grad = phi.grad = None
             loss(so3.exp(w), so3.exp(phi))["total"].backward()
 
-    with torch.no_grad(), torchconn.ops.compiled(False):
-        c = float(loss(so3.exp(w), so3.exp(phi))["total"])
-    t2, tr2 = _side_by_side(fast_fn, torch_fn, repeats)
-    rows.append(_row("frame_field_loss_vs_torch_path", T, dname, t2, tr2, None, unit="tets",
-                     reference="FrameFieldLoss with torchconn.ops.compiled(False): the fused torch kernels", max_abs_diff=abs(a - c),
-                     note="compiled kernel vs the torch path of the same class, side by side"))
+        def ref_fn(loss=loss):
+            w.grad = phi.grad = None
+            ref_frame_loss_terms(loss, _ref_exp_matrix(w), _ref_exp_matrix(phi))["total"].backward()
+
+        rel, worst = loss_agreement(loss, so3.exp(w.detach()), so3.exp(phi.detach()))
+        weights = ", ".join(f"{k} {v:g}" for k, v in loss.weights.items() if v)
+        note = (f"{weights}; smooth_power {loss.smooth_power:g}, align {loss.align_kind}; fwd+bwd to edge and "
+                f"vertex params; {path}" + ("; reference: 1 run after warm-up" if big else ""))
+        if rel > LOSS_AGREEMENT_RTOL:
+            rows.append(_row(name, T, dname, None, None, None, unit="tets", max_rel_diff=rel,
+                             failed=f"reference disagrees: {worst} differs by {rel:.2g} relative "
+                                    f"(> {LOSS_AGREEMENT_RTOL:g})", note=note))
+            continue
+        t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
+        rows.append(_row(name, T, dname, t, tr, _peak_mb(fast_fn), unit="tets", max_rel_diff=rel,
+                         reference="eager composition of the library's single-term functions (generic "
+                                   "curvature/torsion loops, dense d∇ tables, matrix_exp)", note=note))
+        if name.endswith("(default)"):
+            # the same loss with the compiled kernels off: its term modules through their own ops' kernels
+            def modules_fn(loss=loss):
+                w.grad = phi.grad = None
+                with torchconn.ops.compiled(False):
+                    loss(so3.exp(w), so3.exp(phi))["total"].backward()
+
+            with torch.no_grad(), torchconn.ops.compiled(False):
+                c = loss(so3.exp(w), so3.exp(phi))
+                rel_m, _ = loss_agreement(loss, so3.exp(w), so3.exp(phi))
+            t2, tr2 = _side_by_side(fast_fn, modules_fn, repeats)
+            rows.append(_row(name + "_vs_modules", T, dname, t2, tr2, None, unit="tets", max_rel_diff=rel_m,
+                             reference="the same FrameFieldLoss with torchconn.ops.compiled(False): its term modules",
+                             note="fused kernel vs the loss's modules, side by side"))
 
 
 _E2E_KEYS = ("smoothness_mean_deg", "alignment_mean_deg", "feature_alignment_mean_deg", "n_singular_faces")
@@ -585,14 +641,18 @@ def _fmt(x, spec):
 
 
 def table(rows: list) -> str:
-    lines = ["| case | size | dtype | fast (s) | reference (s) | ratio | peak (MB) | max abs diff | note |",
+    lines = ["| case | size | dtype | fast (s) | reference (s) | ratio | peak (MB) | max diff | note |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         size = r["size"] if not isinstance(r["size"], int) else f"{r['size']:,} {r.get('unit', '')}".strip()
+        diff = (f"{_fmt(r.get('max_rel_diff'), '.1e')} rel" if r.get("max_rel_diff") is not None
+                else _fmt(r.get("max_abs_diff"), ".1e"))
+        note = r.get("note", "") or r.get("reference", "")
+        if r.get("failed"):
+            note = f"**FAILED**: {r['failed']}; {note}"
         lines.append(f"| {r['name']} | {size} | {r['dtype']} | {_fmt(r['seconds'], '.4f')} | "
                      f"{_fmt(r['reference_seconds'], '.4f')} | {_fmt(r['ratio'], '.1f')}"
-                     f"{'×' if r['ratio'] else ''} | {_fmt(r['peak_mb'], '.0f')} | "
-                     f"{_fmt(r.get('max_abs_diff'), '.1e')} | {r.get('note', '') or r.get('reference', '')} |")
+                     f"{'×' if r['ratio'] else ''} | {_fmt(r['peak_mb'], '.0f')} | {diff} | {note} |")
     return "\n".join(lines)
 
 

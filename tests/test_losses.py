@@ -1,4 +1,5 @@
-"""Frame-field losses (torchconn.frames.loss) and parallel frame propagation (torchconn.frames.propagate)."""
+"""Frame-field losses (torchconn.frames.loss, the term modules of torchconn.frames.terms) and parallel
+frame propagation (torchconn.frames.propagate)."""
 from __future__ import annotations
 
 import math
@@ -19,9 +20,13 @@ from torchconn.frames.loss import (
     symmetric_flatness_loss,
     tie_loss,
 )
+from torchconn import nn as tnn
+from torchconn import ops
 from torchconn.mesh import TetMesh
+from torchconn.ops import native
 
 D = torch.float64
+HAS_C = native._compiler() is not None
 
 
 @pytest.fixture(scope="module")
@@ -202,6 +207,133 @@ def test_boundary_terms_vanish_for_aligned_box_frames(box, align_kind):
     out = lf(R, F)
     for k in ("align", "feature", "smooth", "flat"):
         assert float(out[k]) < 1e-24, k
+
+
+# ----------------------------------------------------------------------------- the loss's modules
+def test_loss_is_a_module_made_of_the_library_modules(box):
+    """FrameFieldLoss is an nn.Module; its terms are modules, those of the connection's geometry the
+    library's own (Curvature, Torsion, AveragedCovariantD), all on one shared copy of the topology."""
+    loss = FrameFieldLoss(box, {k: 1.0 for k in TERMS})
+    assert isinstance(loss, torch.nn.Module) and set(loss.terms) == set(TERMS)
+    assert isinstance(loss.terms["flat"].curvature, tnn.Curvature) and loss.terms["flat"].curvature.kind == "holonomy"
+    assert isinstance(loss.terms["torsion"].torsion, tnn.Torsion) and loss.terms["torsion"].torsion.kind == "sqrt"
+    assert isinstance(loss.terms["dnabla"].dd, tnn.AveragedCovariantD)
+    shared = [loss.terms["tie"].mesh, loss.terms["flat"].curvature.mesh, loss.terms["torsion"].torsion.mesh,
+              loss.terms["dnabla"].dd.mesh, loss.terms["dnabla"].curvature.mesh, loss.terms["dirichlet"].mesh]
+    assert all(m is loss.mesh for m in shared)
+    assert set(FrameFieldLoss(box, {"tie": 1.0, "align": 2.0}).terms) == {"tie", "align"}  # unweighted: not built
+    f32 = FrameFieldLoss(box, {"torsion": 1.0, "dnabla": 1.0}).float()  # the buffers follow the module
+    assert f32.mesh.vertices.dtype == torch.float32 and f32.terms["torsion"].face_area.dtype == torch.float32
+
+
+@pytest.mark.parametrize("compiled", [pytest.param(True, marks=pytest.mark.skipif(not HAS_C, reason="no C compiler")),
+                                      False], ids=["fused", "modules"])
+def test_loss_takes_the_models_connection_field(box, gen, compiled):
+    """The connection may be the model's ConnectionField (or a Connection): the same terms as its tensor,
+    and the gradient reaches the field's parameters."""
+    field = tnn.ConnectionField(box.edges, box.n_vertices, init=so3.exp(0.2 * torch.randn(box.n_edges, 3, generator=gen,
+                                                                                          dtype=D)))
+    F = _random_frames(box.n_vertices, gen)
+    loss = FrameFieldLoss(box, {k: 1.0 for k in TERMS})
+    with ops.compiled(compiled):
+        a = loss(field, F)
+        b = loss(field.edge_rotations().detach(), F)
+        a["total"].backward()
+    for k in b:
+        torch.testing.assert_close(a[k].detach(), b[k], atol=1e-14, rtol=0)
+    assert field.params.grad is not None and bool(field.params.grad.abs().sum() > 0)
+
+
+@pytest.mark.skipif(not HAS_C, reason="no C compiler: the fused kernel cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("power,align_kind", [(1.0, "angle"), (2.0, "quartic")])
+def test_fused_kernel_equals_the_modules(gen, dtype, power, align_kind):
+    """The fast path behind the modules: the fused kernel's terms and gradients equal the term modules'
+    (the switch off) to round-off, every term weighted."""
+    mesh = tio.box(3).to(dtype=dtype)
+    loss = FrameFieldLoss(mesh, {k: 0.5 + 0.25 * i for i, k in enumerate(TERMS)}, smooth_power=power,
+                          align_kind=align_kind)
+    w = 0.3 * torch.randn(mesh.n_edges, 3, generator=gen, dtype=D)
+    phi = 0.3 * torch.randn(mesh.n_vertices, 3, generator=gen, dtype=D)
+    res = {}
+    for on in (True, False):
+        ww, pp = w.to(dtype).requires_grad_(), phi.to(dtype).requires_grad_()
+        with ops.compiled(on):
+            out = loss(so3.exp(ww), so3.exp(pp))
+            grads = torch.autograd.grad(out["total"], (ww, pp))
+        res[on] = ({k: v.detach() for k, v in out.items()}, grads)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    assert res[True][0].keys() == res[False][0].keys() == {*TERMS, "total"}
+    for k, v in res[False][0].items():
+        torch.testing.assert_close(res[True][0][k], v, atol=tol * max(1.0, float(v.abs())), rtol=0, msg=k)
+    for a, b in zip(res[True][1], res[False][1]):
+        torch.testing.assert_close(a, b, atol=tol * max(1.0, float(b.abs().max())), rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_benchmark_reference_agrees_with_the_loss(dtype):
+    """Issue 30: the eager reference of ``benchmarks.run`` (the library's single-term functions and the
+    generic operators) computes the loss rows' losses -- every term and the total to
+    ``LOSS_AGREEMENT_RTOL`` relative, and the gradients -- so the benchmark cannot drift from the loss."""
+    from benchmarks.run import LOSS_AGREEMENT_RTOL, _ref_exp_matrix, loss_agreement, loss_cases, ref_frame_loss_terms
+
+    mesh = tio.box(3).to(dtype=dtype)
+    g = torch.Generator().manual_seed(2)
+    w = 0.2 * torch.randn(mesh.n_edges, 3, generator=g, dtype=dtype)
+    phi = 0.2 * torch.randn(mesh.n_vertices, 3, generator=g, dtype=dtype)
+    cases = loss_cases(mesh)
+    assert [name for name, _ in cases] == ["frame_field_loss(default)", "frame_field_loss(all terms)"]
+    for name, loss in cases:
+        rel, worst = loss_agreement(loss, so3.exp(w), so3.exp(phi))
+        assert rel <= (1e-13 if dtype == torch.float64 else LOSS_AGREEMENT_RTOL), (name, worst, rel)
+        ww, pp = w.clone().requires_grad_(), phi.clone().requires_grad_()
+        ga = torch.autograd.grad(loss(so3.exp(ww), so3.exp(pp))["total"], (ww, pp))
+        gb = torch.autograd.grad(ref_frame_loss_terms(loss, _ref_exp_matrix(ww), _ref_exp_matrix(pp))["total"],
+                                 (ww, pp))
+        for a, b in zip(ga, gb):
+            # float32: the angle alignment term's sqrt(d2 + eps^2), eps = 1e-3, amplifies the ~1e-7
+            # difference of the two exps (so3.exp against matrix_exp) in its gradient
+            tol = (1e-12 if dtype == torch.float64 else 1e-3) * float(b.abs().max())
+            torch.testing.assert_close(a, b, atol=tol, rtol=0)
+    # the check sees a loss that is not the reference's: the modules' torsion doubled
+    loss = cases[1][1]
+    torsion = loss.terms["torsion"]
+    with ops.compiled(False):
+        torsion.forward = lambda *args, _f=torsion.forward: 2.0 * _f(*args)
+        rel, worst = loss_agreement(loss, so3.exp(w), so3.exp(phi))
+    assert worst in ("torsion", "total") and rel > 0.01
+
+
+def test_benchmark_default_loss_is_the_loss_design_builds(monkeypatch):
+    """``benchmarks.run.loss_cases``' default row has the weights and options of the FrameFieldLoss
+    ``design()`` constructs with its defaults (captured at construction, the run stopped there)."""
+    import importlib
+
+    from benchmarks.run import loss_cases
+
+    design_mod = importlib.import_module("torchconn.frames.design")  # the module (frames.design is the function)
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    class Recording(FrameFieldLoss):
+        def __init__(self, mesh, weights, **kw):
+            super().__init__(mesh, weights, **kw)
+            seen.update(weights=self.weights, kw=kw)
+            raise Stop
+
+    monkeypatch.setattr(design_mod, "FrameFieldLoss", Recording)
+    mesh = tio.box(1)
+    with pytest.raises(Stop):
+        design_mod.design(mesh, steps=1, sh={"n_smooth_iters": 1})
+    bench = loss_cases(mesh)[0][1]
+    assert bench.weights == seen["weights"]
+    assert {k: seen["kw"][k] for k in ("feature_angle_deg", "smooth_power", "smooth_eps", "align_kind", "align_eps")} \
+        == {"feature_angle_deg": bench.constraint.feature_angle_deg, "smooth_power": bench.smooth_power,
+            "smooth_eps": bench.smooth_eps, "align_kind": bench.align_kind, "align_eps": bench.align_eps}
+    assert not seen["kw"].get("extra_terms")  # design()'s default: no extra term
 
 
 # ----------------------------------------------------------------------------- propagation

@@ -20,31 +20,55 @@ def fresh(monkeypatch, tmp_path):
 def test_builds_once_into_the_cache(fresh):
     if native._compiler() is None:
         pytest.skip("no C compiler on this machine")
-    lib = native.library("frame_loss")
-    assert lib is not None and hasattr(lib, "frame_loss_f32") and hasattr(lib, "frame_loss_f64")
-    built = sorted(fresh.glob("frame_loss-*.so"))
+    lib = native.library("curvature")
+    assert lib is not None and hasattr(lib, "curv_fwd_f32") and hasattr(lib, "curv_fwd_f64")
+    built = sorted(fresh.glob("curvature-*.so"))
     assert len(built) == 1 and not list(fresh.glob("*.so.tmp*"))
     mtime = built[0].stat().st_mtime_ns
     native._LIBS.clear()  # a new process: loads the cached library, no rebuild
-    assert native.library("frame_loss") is not None
-    assert built[0].stat().st_mtime_ns == mtime and sorted(fresh.glob("frame_loss-*.so")) == built
+    assert native.library("curvature") is not None
+    assert built[0].stat().st_mtime_ns == mtime and sorted(fresh.glob("curvature-*.so")) == built
+
+
+def test_registered_source_outside_csrc_builds_with_the_pool(fresh, monkeypatch, tmp_path):
+    """A kernel package outside ops/ registers its C file (frames/kernels does): it is built like
+    the core sources, finds ``pool.c`` on the include path and gets the pool when loaded; a name
+    that is taken is refused."""
+    if native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setattr(native, "_SOURCES", dict(native._SOURCES))
+    src = tmp_path / "src" / "plus_one.c"
+    src.parent.mkdir()
+    src.write_text('#define TC_POOL_CLIENT\n#include "pool.c"\nint plus_one(int x) { return x + 1; }\n')
+    native.register_source("plus_one", src)
+    native.register_source("plus_one", src)  # the same file again: a no-op
+    lib = native.library("plus_one")
+    assert lib is not None and lib.plus_one(41) == 42 and hasattr(lib, "tc_pool_attach")
+    assert b"tc_parallel" in native._source_bytes(src)  # the key covers pool.c, found in CSRC
+    with pytest.raises(ValueError, match="taken"):
+        native.register_source("plus_one", tmp_path / "other.c")
+    with pytest.raises(ValueError, match="taken"):
+        native.register_source("so3", src)  # a core source's name
+    import torchconn.frames.kernels as fk  # the frame kernels' sources are registered on import
+
+    assert native._source("frame_loss") == fk.CSRC / "frame_loss.c"
 
 
 def test_failed_build_warns_once_and_falls_back(fresh, monkeypatch):
     monkeypatch.setenv("CC", "false")  # a "compiler" that always fails
-    with pytest.warns(RuntimeWarning, match="building frame_loss.c failed"):
-        assert native.library("frame_loss") is None
+    with pytest.warns(RuntimeWarning, match="building curvature.c failed"):
+        assert native.library("curvature") is None
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert native.library("frame_loss") is None  # cached decision, no second warning
+        assert native.library("curvature") is None  # cached decision, no second warning
     x = torch.zeros(3, 3, dtype=torch.float64)
-    assert not can_use_compiled("frame_loss", x)
+    assert not can_use_compiled("curvature", x)
 
 
 def test_missing_compiler(fresh, monkeypatch):
     monkeypatch.setattr(native, "_compiler", lambda: None)
     with pytest.warns(RuntimeWarning, match="no C compiler"):
-        assert native.library("frame_loss") is None
+        assert native.library("curvature") is None
 
 
 def test_unwritable_cache_falls_back(fresh, monkeypatch, tmp_path):
@@ -54,21 +78,21 @@ def test_unwritable_cache_falls_back(fresh, monkeypatch, tmp_path):
     blocker.write_text("not a folder")
     monkeypatch.setenv("TORCHCONN_CACHE", str(blocker / "sub"))
     with pytest.warns(RuntimeWarning, match="cannot build"):
-        assert native.library("frame_loss") is None
+        assert native.library("curvature") is None
 
 
 def test_can_use_compiled_checks_device_and_dtype():
     import torchconn.ops
 
-    if native.library("frame_loss") is None:
+    if native.library("curvature") is None:
         pytest.skip("no C compiler on this machine")
     f64, f32 = torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float32)
     with torchconn.ops.compiled(True):
-        assert can_use_compiled("frame_loss", f64, f64) and can_use_compiled("frame_loss", f32)
-        assert not can_use_compiled("frame_loss", f64, f32)  # mixed dtypes
-        assert not can_use_compiled("frame_loss", torch.zeros(2, dtype=torch.float16))
-        assert not can_use_compiled("frame_loss", torch.zeros(2, device="meta"))
-        assert not can_use_compiled("frame_loss")
+        assert can_use_compiled("curvature", f64, f64) and can_use_compiled("curvature", f32)
+        assert not can_use_compiled("curvature", f64, f32)  # mixed dtypes
+        assert not can_use_compiled("curvature", torch.zeros(2, dtype=torch.float16))
+        assert not can_use_compiled("curvature", torch.zeros(2, device="meta"))
+        assert not can_use_compiled("curvature")
     with pytest.raises(ValueError, match="contiguous"):
         native.ptr(torch.zeros(3, 3).t())
 

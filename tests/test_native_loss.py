@@ -1,6 +1,6 @@
-"""The compiled frame-field loss kernel (csrc/frame_loss.c, torchconn.ops.frame_loss) against the torch path of FrameFieldLoss
-(switch off: the generic torch kernel of the op, itself checked against the loss's term functions in
-tests/test_ops_library_frame_loss.py).
+"""The compiled frame-field loss kernel (frames/kernels/csrc/frame_loss.c, torchconn.frames.kernels.frame_loss)
+against the modules of FrameFieldLoss (switch off: the fused kernel does not serve and the loss runs
+its term modules, torchconn.frames.terms, through the library's operators).
 
 Layers: values and gradients (through so3.exp parameters) equal the torch path to round-off on
 a small box and on a shared mesh, float32 and float64, every term alone and together, both
@@ -15,7 +15,7 @@ import torch
 import torchconn.ops
 from torchconn import io, so3
 from torchconn.ops import native
-from torchconn.ops.frame_loss import COMPILED_TERMS, frame_loss_terms
+from torchconn.frames.kernels.frame_loss import COMPILED_TERMS, frame_loss_terms
 from torchconn.frames import octahedral
 from torchconn.frames.loss import FrameFieldLoss, TERMS
 from torchconn.tolerances import get_eps
@@ -35,7 +35,7 @@ def _compiled_on():
 
 
 def _torch_path(loss):
-    """``loss`` evaluated with the compiled kernels switched off (the torch terms)."""
+    """``loss`` evaluated with the compiled kernels switched off (its term modules)."""
     def call(R, F):
         with torchconn.ops.compiled(False):
             return loss(R, F)
@@ -84,15 +84,17 @@ def test_all_terms_match_torch_path(dtype, power):
 
 
 @pytest.mark.parametrize("weights", [{"smooth": 1.0}, {"tie": 2.0}, {"flat": 0.5}, {"torsion": 1.0},
+                                     {"dirichlet": 1.0}, {"dnabla": 1.0, "smooth": 1.0},
                                      {"tie": 1.0, "torsion": 3.0}, {"smooth": 1.0, "align": 1.0}])
 def test_single_terms_match_torch_path(weights):
     _compare(io.box(3), weights, torch.float64, 1.0)
 
 
-@pytest.mark.parametrize("key", ["tie", "flat", "torsion", "smooth"])
+@pytest.mark.parametrize("key", ["tie", "flat", "torsion", "smooth", "dirichlet", "dnabla"])
 def test_backward_of_one_term_is_exact(key):
     """A backward of one returned term (weights not proportional to the loss weights) re-runs the kernel."""
-    _compare(io.box(3), {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01}, torch.float64, 1.0, key=key)
+    _compare(io.box(3), {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "dnabla": 0.01, "dirichlet": 0.5},
+             torch.float64, 1.0, key=key)
 
 
 def test_matches_torch_path_on_shared_mesh():
@@ -104,7 +106,8 @@ def test_matches_torch_path_on_shared_mesh():
 
 def test_gradcheck_through_exp_params():
     mesh = io.box(1)
-    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0}, smooth_power=1.0)
+    loss = FrameFieldLoss(mesh, {"smooth": 1.0, "tie": 1.0, "flat": 1.0, "torsion": 1.0, "dirichlet": 1.0},
+                          smooth_power=1.0)
     w, phi = _params(mesh, torch.float64, seed=5, scale=0.3)
     assert _applies(mesh, so3.exp(w), so3.exp(phi))
 
@@ -167,20 +170,21 @@ def test_fallback_and_errors():
     mesh = io.box(1)
     w, phi = _params(mesh, torch.float64)
     R, Fr = so3.exp(w), so3.exp(phi)
-    # wrong shapes / no term of the op: the op does not apply (the caller's torch terms run); float16
-    # runs the op's generic torch kernel (no C kernel for it)
+    # wrong shapes / no term of the op / float16 (no C kernel for it): the fast path does not serve
+    # (the loss's modules run)
     assert _applies(mesh, R, Fr)
     assert not _applies(mesh, R[:-1], Fr)
     assert not torchconn.ops.can_use_compiled("frame_loss", R.half(), Fr.half())
+    assert not _applies(mesh, R.half(), Fr.half())
     assert not _applies(mesh, R, Fr, {"align": 1.0})
     with pytest.raises(TypeError):
         FrameFieldLoss(mesh, ALL, native=True)  # the kernel is chosen by the switch, not by a flag
-    # switched off: the op runs its generic torch kernel, same values
+    # switched off: the modules run, same values
     auto = FrameFieldLoss(mesh, ALL)
     v_native = float(auto(R, Fr)["total"])
     with torchconn.ops.compiled(False):
         assert not torchconn.ops.can_use_compiled("frame_loss", R, Fr)
-        assert _applies(mesh, R, Fr)
+        assert not _applies(mesh, R, Fr)
         assert abs(float(auto(R, Fr)["total"]) - v_native) <= 1e-12
 
 

@@ -92,15 +92,20 @@ def test_environment_variable_initializes_the_switch(value, expected):
     assert out.stdout.strip() == str(expected)
 
 
+#: The kernel packages: the core ops and the frame-field ops (torchconn/frames/kernels, whose C
+#: sources ops.native builds). Only they may load compiled code; each op asks ops.backend.
+KERNEL_PACKAGES = (("ops",), ("frames", "kernels"))
+
+
 def _modules_outside_ops():
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE)
-        if rel.parts[0] != "ops":
+        if not any(rel.parts[:len(k)] == k for k in KERNEL_PACKAGES):
             yield rel, path.read_text(encoding="utf-8")
 
 
 def test_no_kernel_choice_outside_ops():
-    """Only torchconn/ops/ mentions the compiled kernels; nobody else imports ops.native."""
+    """Only the kernel packages mention the compiled kernels; nobody else imports ops.native."""
     offenders = []
     for rel, text in _modules_outside_ops():
         if "native" in text:
@@ -113,6 +118,20 @@ def test_no_kernel_choice_outside_ops():
             elif isinstance(node, ast.Import) and any(a.name.endswith("ops.native") for a in node.names):
                 offenders.append(f"{rel}: imports ops.native")
     assert not offenders, offenders
+
+
+def test_frame_kernels_choose_through_the_one_switch():
+    """The frame-field kernels load their C code through ops.native and ask ops.backend (no switch
+    of their own); their libraries build from frames/kernels/csrc."""
+    import torchconn.frames.kernels as fk
+
+    for path in sorted((PACKAGE / "frames" / "kernels").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        if "_native.declare" in text:
+            assert "can_use_compiled" in text, path.name
+        assert "set_compiled" not in text and "TORCHCONN_NATIVE" not in text, path.name
+    for name in ("frame_loss", "edge_terms"):
+        assert native._source(name) == fk.CSRC / f"{name}.c"
 
 
 def test_ops_imports_no_upper_layer():

@@ -18,7 +18,7 @@ from torch.autograd import gradcheck, gradgradcheck
 import torchconn.ops
 from torchconn import io, so3
 from torchconn.frames import octahedral
-from torchconn.ops import edge_terms as ops_et
+from torchconn.frames.kernels import edge_terms as ops_et
 
 DTYPES = [torch.float32, torch.float64]
 SWITCH = [True, False]

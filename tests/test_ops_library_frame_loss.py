@@ -1,10 +1,11 @@
-"""The custom ops ``torchconn::frame_loss`` / ``torchconn::frame_loss_backward`` (issue 11).
+"""The custom ops ``torchconn::frame_loss`` / ``torchconn::frame_loss_backward`` (issues 11, 30).
 
 Layers: opcheck of both ops (float32/float64, switch on/off, with and without the forward's
-gradient); the generic torch kernel against a slow reference made of the frame-field loss's own
-term functions (:mod:`torchconn.frames.loss`, :mod:`torchconn.dec.torsion`); the hand-written
-generic gradient and the C sweep against autograd of the torch terms on matrices that are not
-rotations; gradcheck + gradgradcheck (float64, switch on/off); a Hessian-vector product against
+gradient); both kernels against a slow reference made of the frame-field loss's own term
+functions (:mod:`torchconn.frames.terms`, :mod:`torchconn.dec.torsion`, the torsion mean over the
+faces in a Python loop); the generic gradient (``torch.func.vjp`` inside the kernel) and the C
+sweep against autograd of the torch terms on matrices that are not rotations, every subset of
+the terms; gradcheck + gradgradcheck (float64, switch on/off); a Hessian-vector product against
 central differences with the C kernel on; vmap and batched calls against loops; jvp;
 ``torch.compile(fullgraph=True)`` (no graph break, the C kernel runs at runtime); meta tensors;
 the reuse of the forward's gradient (one C sweep for ``total.backward()``); two threads at once.
@@ -21,9 +22,10 @@ from torchconn.dec import curvature as dec_curvature
 from torchconn.dec import torsion as dec_torsion
 from torchconn.frames import octahedral
 from torchconn.mesh.tet import TetMesh
-from torchconn.frames.loss import FrameFieldLoss, TERMS, smoothness_loss, symmetric_flatness_loss, tie_loss
-from torchconn.ops import _frame_loss_torch as T
-from torchconn.ops import frame_loss as FL
+from torchconn.frames.loss import FrameFieldLoss, TERMS
+from torchconn.frames.terms import matched_dirichlet_loss, smoothness_loss, symmetric_flatness_loss, tie_loss
+from torchconn.frames.kernels import _frame_loss_torch as T
+from torchconn.frames.kernels import frame_loss as FL
 from torchconn.ops import native
 
 HAS_C = native.library("frame_loss") is not None
@@ -31,9 +33,10 @@ NEEDS_C = pytest.mark.skipif(not HAS_C, reason="no C compiler (or TORCHCONN_NATI
 SWITCH = [pytest.param(True, marks=NEEDS_C, id="compiled"), pytest.param(False, id="torch")]
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                  reason="no CUDA device"))]
-W4 = {"smooth": 0.7, "tie": 1.3, "flat": 0.4, "torsion": 0.9}
-ON = (True, True, True, True)
-OPTS = (*ON, 0.7, 1.3, 0.4, 0.9, 1.0, 1e-3)  # on flags, weights, power, eps
+W4 = {"smooth": 0.7, "tie": 1.3, "flat": 0.4, "torsion": 0.9, "dirichlet": 0.6}  # every term of the op
+ON = (True, True, True, True, True)
+OPTS_BWD = (*ON, 0.7, 1.3, 0.4, 0.9, 0.6, 1.0, 1e-3)  # on flags, weights, power, eps
+OPTS = (*ON, True, *OPTS_BWD[5:])  # the forward op's: the regular-face flags too
 
 
 def _inputs(mesh, dtype, batch=(), seed=0, scale=0.25, noise=0.0, device="cpu"):
@@ -53,10 +56,11 @@ def _tables(mesh, dtype, device="cpu"):
 
 
 def _terms(R, F, mesh, weights=W4, power=1.0):
-    return FL.frame_loss_terms(R, F, mesh, octahedral.group(torch.float64), weights, power, 1e-3)
+    """The op, whichever kernel the switch picks (:func:`FL.call`)."""
+    return FL.call(R, F, mesh, octahedral.group(torch.float64), weights, power, 1e-3)
 
 
-def _weighted(R, F, mesh, coef=(0.3, -1.1, 2.0, 0.6), weights=W4, power=1.0):
+def _weighted(R, F, mesh, coef=(0.3, -1.1, 2.0, 0.6, -0.7), weights=W4, power=1.0):
     """A combination of the returned terms other than the loss weights (the backward re-sweeps)."""
     out = _terms(R, F, mesh, weights, power)
     return sum(c * out[k] for c, k in zip(coef, FL.COMPILED_TERMS) if k in out)
@@ -66,7 +70,7 @@ def _count_sweeps(monkeypatch):
     calls = []
     for dt, fn in list(FL._C_SWEEP.items()):
         def counted(*args, _fn=fn):
-            calls.append(args[16])  # the grad flag
+            calls.append(args[18])  # the grad flag
             return _fn(*args)
         monkeypatch.setitem(FL._C_SWEEP, dt, counted)
     return calls
@@ -85,12 +89,12 @@ def _backward_args(dtype, case):
     mesh = io.box(1)
     R, F = _inputs(mesh, dtype, batch=(2,))
     tabs = _tables(mesh, dtype)
-    _, gR, gF = torch.ops.torchconn.frame_loss(R, F, *tabs, *OPTS, True)
-    g = torch.tensor(OPTS[4:8], dtype=dtype).expand(2, 4) * torch.tensor([[2.0], [-0.5]], dtype=dtype)
+    _, gR, gF, _ = torch.ops.torchconn.frame_loss(R, F, *tabs, *OPTS, True)
+    g = torch.tensor(OPTS_BWD[5:10], dtype=dtype).expand(2, 5) * torch.tensor([[2.0], [-0.5]], dtype=dtype)
     if case != "reuse":
-        g = torch.randn(2, 4, generator=torch.Generator().manual_seed(3)).to(dtype)
+        g = torch.randn(2, 5, generator=torch.Generator().manual_seed(3)).to(dtype)
     saved = (None, None) if case == "no_saved" else (gR, gF)
-    return (R.requires_grad_(), F.requires_grad_(), *tabs, g.requires_grad_(), *saved, *OPTS)
+    return (R.requires_grad_(), F.requires_grad_(), *tabs, g.requires_grad_(), *saved, *OPTS_BWD)
 
 
 @pytest.mark.parametrize("compiled", SWITCH)
@@ -127,17 +131,22 @@ def test_opcheck_backward_aot_dispatch(compiled, dtype):
 # ----------------------------------------------------------------------------- against references
 
 def _reference_terms(R, F, mesh, power):
-    """Slow reference: the frame-field loss's own term functions (generic torsion loop, masks by hand)."""
+    """Slow reference: the frame-field loss's own term functions; the matched connection and the
+    torsion mean per face in Python loops."""
     out = {"smooth": smoothness_loss(R, power, 1e-3)}
-    out["tie"], unrel = tie_loss(R, F, mesh.edges, power, 1e-3)
+    out["tie"], _ = tie_loss(R, F, mesh.edges, power, 1e-3)
     hol = dec_curvature.face_curvature(R, mesh, kind="holonomy")
     out["flat"] = symmetric_flatness_loss(hol + torch.eye(3, dtype=R.dtype))
-    tor = dec_torsion.face_torsion(R, mesh, kind="sqrt", frames=F)
+    G = octahedral.group(R.dtype)
+    M = []
+    for e, (i, j) in enumerate(mesh.edges.tolist()):  # h_e = argmax_h tr(h^T F_j^T F_i R_e), per edge
+        scores = [float((g * (F[j].T @ F[i] @ R[e])).detach().sum()) for g in G]
+        M.append(R[e] @ G[scores.index(max(scores))].T)
+    tor = dec_torsion.face_torsion(torch.stack(M), mesh, kind="sqrt", frames=F)
     p = mesh.vertices.to(R.dtype)[mesh.faces]
     area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-    ok = [bool(unrel[e].all()) for e in mesh.face_edges]  # per face, in a Python loop
-    per = [(tor[f] ** 2).sum() / area[f] for f in range(len(ok)) if ok[f]]
-    out["torsion"] = torch.stack(per).mean() if per else tor.sum() * 0.0
+    out["torsion"] = torch.stack([(tor[f] ** 2).sum() / area[f] for f in range(tor.shape[0])]).mean()
+    out["dirichlet"] = matched_dirichlet_loss(F, mesh.edges)
     return out
 
 
@@ -161,25 +170,27 @@ def test_values_and_gradients_match_the_frame_loss_term_functions(compiled, powe
         torch.testing.assert_close(a, b, atol=1e-11, rtol=1e-10)
 
 
-@pytest.mark.parametrize("on", [c for c in itertools.product([False, True], repeat=4) if any(c)])
-def test_hand_written_and_compiled_gradients_equal_autograd_off_rotations(on):
-    """Every subset of terms, batched, matrices that are not rotations, per-item weights."""
+@pytest.mark.parametrize("on", [c for c in itertools.product([False, True], repeat=5) if any(c)])
+def test_generic_and_compiled_gradients_equal_autograd_off_rotations(on):
+    """Every subset of terms, batched, matrices that are not rotations, per-item weights: the
+    backward op's generic kernel (``torch.func.vjp`` inside the kernel) and its C sweep."""
     mesh = io.box(2)
     R, F = _inputs(mesh, torch.float64, batch=(2,), seed=1, scale=0.3, noise=0.05)
     tabs = _tables(mesh, torch.float64)
-    wts = torch.randn(2, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    wts = torch.randn(2, 5, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     for power in (2.0, 1.0):
         Rr, Fr = R.clone().requires_grad_(), F.clone().requires_grad_()
         vals = T.terms(Rr, Fr, *tabs, on, power, 1e-3)
         ref = torch.autograd.grad((vals * wts).sum(), (Rr, Fr), allow_unused=True)
         ref = [torch.zeros_like(x) if g is None else g for x, g in zip((R, F), ref)]
-        v2, *hand = T.sweep(R, F, *tabs, on, power, 1e-3, wts)
-        got = [hand]
-        if HAS_C:
-            with torchconn.ops.compiled(True):
+        got = []
+        for c in ([False, True] if HAS_C else [False]):
+            with torchconn.ops.compiled(c):
                 got.append(torch.ops.torchconn.frame_loss_backward(R, F, *tabs, wts, None, None, *on,
-                                                                   1.0, 1.0, 1.0, 1.0, power, 1e-3))
-        torch.testing.assert_close(v2, vals.detach(), atol=0, rtol=0)
+                                                                   1.0, 1.0, 1.0, 1.0, 1.0, power, 1e-3))
+                v2 = torch.ops.torchconn.frame_loss(R, F, *tabs, *on, False, 1.0, 1.0, 1.0, 1.0, 1.0, power, 1e-3,
+                                                    False)[0]
+            torch.testing.assert_close(v2, vals.detach(), atol=1e-13, rtol=1e-13)
         for g in got:
             for a, b in zip(g, ref):
                 torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
@@ -430,10 +441,21 @@ def test_two_threads_at_once_give_the_serial_results():
 def test_does_not_apply_and_release():
     mesh = io.box(1)
     R, F = _inputs(mesh, torch.float64)
-    assert _terms(R, F, mesh) is not None
-    assert _terms(R, F, mesh, {"align": 1.0}) is None  # no term of the op
-    assert _terms(R[:-1], F, mesh) is None  # wrong number of edges
-    assert _terms(R, F.float(), mesh) is None  # mixed dtypes
-    assert set(_terms(R, F, mesh, {"torsion": 1.0})) == {"tie", "torsion"}  # tie supplies the mask
+    group = octahedral.group(torch.float64)
+
+    def fast(R, F, weights=W4):
+        return FL.frame_loss_terms(R, F, mesh, group, weights, 1.0, 1e-3)
+
+    with torchconn.ops.compiled(True):
+        assert (fast(R, F) is not None) == HAS_C
+        assert fast(R, F, {"align": 1.0}) is None  # no term of the op
+        assert fast(R[:-1], F) is None  # wrong number of edges
+        assert fast(R, F.float()) is None  # mixed dtypes
+        if HAS_C:
+            assert set(fast(R, F, {"torsion": 1.0})) == {"torsion"}  # the matching runs without the tie term
+            regular = FL.frame_loss_terms(R, F, mesh, group, {"smooth": 1.0}, 1.0, 1e-3, regular=True)
+            assert regular["face_regular"].dtype == torch.bool and regular["face_regular"].shape == (mesh.n_faces,)
+    with torchconn.ops.compiled(False):
+        assert fast(R, F) is None  # the switch off: the loss's modules run
     FL.release_scratch()
-    assert _terms(R, F, mesh) is not None
+    assert set(_terms(R, F, mesh)) == set(W4)

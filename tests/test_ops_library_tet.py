@@ -448,6 +448,137 @@ def test_tet_dd_rot_gradcheck_and_gradgradcheck(on):
         assert gradgradcheck(lambda A: fr(A, vec).square(), rg(R), fast_mode=True)
 
 
+# ---------------------------------------------------------------- tet_dd_frames (the solder form in a frame field)
+
+def _frames_data(mesh, dtype=DT, seed=0, batch=(), relabel=True):
+    """Rotations near the octahedral group (relabeled edges: quarter and half turns, the roots'
+    large-angle branches) and frames."""
+    from torchconn.frames import octahedral
+
+    g = torch.Generator().manual_seed(seed)
+    E, V = mesh.edges.shape[0], mesh.n_vertices
+    R = so3.exp(0.3 * torch.randn(*batch, E, 3, generator=g, dtype=torch.float64))
+    if relabel:
+        R = R @ octahedral.group(torch.float64)[torch.randint(0, 24, (*batch, E), generator=g)]
+    F = so3.exp(0.6 * torch.randn(*batch, V, 3, generator=g, dtype=torch.float64))
+    vec = torch.randn(E, 3, generator=g, dtype=torch.float64)
+    return R.to(dtype), F.to(dtype), vec.to(dtype)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tet_dd_frames_opcheck(on, dtype):
+    """Schema, autograd registration and fake tensors of ``torchconn::tet_dd_frames`` and its backward."""
+    from torchconn.ops._cache import edge_index
+
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, F, vec = _frames_data(mesh, dtype, relabel=False)
+    e = edge_index(mesh, "cpu")
+    g = torch.randn(2, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        for Rb, Fb in ((R, F), (torch.stack((R, R.flip(0))), torch.stack((F, F)))):
+            torch.library.opcheck(ops_tet_solder._tet_dd_frames_op, (*rg(Rb, Fb, vec), e, *k.tables()),
+                                  test_utils=_FAST_UTILS)
+        torch.library.opcheck(ops_tet_solder._tet_dd_frames_backward_op,
+                              (*rg(torch.stack((R, R)), torch.stack((F, F)), vec), g.clone().requires_grad_(), e,
+                               *k.tables()), test_utils=_FAST_UTILS)
+
+
+@pytest.mark.skipif(not _has_c, reason="no C compiler: csrc/tet.c cannot be built")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tet_dd_frames_compiled_equals_generic_and_the_dense_operators(dtype):
+    """The C kernels (edge stripes with their own frame buffers, colored chunks of 5 tets, a batch of
+    2, relabeled edges) against the generic kernels; and the mesh-level entry against the dense
+    operators of the report with frames (tet_transports, tet_solder_sqrt) through skew parameters."""
+    from torchconn.ops._cache import edge_index
+
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=5)
+    R, F, vec = _frames_data(mesh, dtype, seed=11, batch=(2,))
+    e = edge_index(mesh, "cpu")
+    G = torch.randn(2, mesh.tets.shape[0], 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64).to(dtype)
+    res = {}
+    for on in (True, False):
+        with compiled(on):
+            res[on] = (ops_tet_solder._tet_dd_frames_op(R, F, vec, e, *k.tables()),
+                       *ops_tet_solder._tet_dd_frames_backward_op(R, F, vec, G, e, *k.tables()))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol * max(1.0, float(b.abs().max())), rtol=0)
+    # the dense operators: along SO(3) (skew parameters), where the two agree
+    from torchconn.frames import octahedral
+
+    gen = torch.Generator().manual_seed(12)
+    w = 0.3 * torch.randn(mesh.n_edges, 3, generator=gen, dtype=torch.float64)
+    P = octahedral.group(torch.float64)[torch.randint(0, 24, (mesh.n_edges,), generator=gen)]
+    p = 0.6 * torch.randn(mesh.n_vertices, 3, generator=gen, dtype=torch.float64)
+    C = torch.randn(mesh.tets.shape[0], 3, generator=gen, dtype=torch.float64)
+    m = mesh.to(dtype=dtype)
+    out = []
+    for dense in (False, True):
+        ww, pp = w.to(dtype).requires_grad_(), p.to(dtype).requires_grad_()
+        Rr, Fr = so3.exp(ww) @ P.to(dtype), so3.exp(pp)
+        d = (dnabla.averaged_dd_tet(dnabla.tet_transports(Rr, m), dnabla.tet_solder_sqrt(Rr, m, Fr)) if dense
+             else dnabla.averaged_dd_solder(Rr, m, frames=Fr))
+        out.append((d.detach(), *torch.autograd.grad((d * C.to(dtype)).sum(), (ww, pp))))
+    for a, b in zip(*out):
+        torch.testing.assert_close(a, b, atol=(1e-5 if dtype == torch.float32 else 1e-12) * float(b.abs().max()), rtol=0)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_tet_dd_frames_gradcheck_and_gradgradcheck(on):
+    from torchconn.ops._cache import edge_index
+
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, F, vec = _frames_data(mesh, seed=5)
+    e = edge_index(mesh, "cpu")
+    ff = lambda A, B, v: ops_tet_solder.tet_dd_frames(A, B, v, e, k)  # noqa: E731
+    rg = lambda *ts: tuple(t.clone().requires_grad_() for t in ts)  # noqa: E731
+    with _switch(on):
+        assert gradcheck(ff, rg(R, F, vec))
+        assert gradgradcheck(ff, rg(R, F, vec), fast_mode=True)
+        assert gradgradcheck(lambda A, B: ff(A, B, vec).square(), rg(R, F), fast_mode=True)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_tet_dd_frames_vmap_and_batch_match_loops(on):
+    from torchconn.ops._cache import edge_index
+
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, F, vec = _frames_data(mesh, seed=7, batch=(3,))
+    e = edge_index(mesh, "cpu")
+    f = lambda A, B: ops_tet_solder.tet_dd_frames(A, B, vec, e, k)  # noqa: E731
+    with _switch(on):
+        loop = torch.stack([f(R[b], F[b]) for b in range(3)])
+        torch.testing.assert_close(f(R, F), loop, atol=1e-13, rtol=0)
+        torch.testing.assert_close(torch.func.vmap(f)(R, F), loop, atol=1e-13, rtol=0)
+        gl = torch.func.vmap(torch.func.grad(lambda A, B: f(A, B).square().sum(), argnums=(0, 1)))(R, F)
+        for b in range(3):
+            Rb, Fb = R[b].clone().requires_grad_(), F[b].clone().requires_grad_()
+            ref = torch.autograd.grad(f(Rb, Fb).square().sum(), (Rb, Fb))
+            for a, r in zip(gl, ref):
+                torch.testing.assert_close(a[b], r, atol=1e-12, rtol=0)
+
+
+def test_tet_dd_frames_meta_and_shape_errors():
+    from torchconn.ops._cache import edge_index
+
+    mesh = _two_tets()
+    k = ops_tet.tet_kernel(mesh)
+    R, F, vec = _frames_data(mesh)
+    e = edge_index(mesh, "cpu")
+    out = ops_tet_solder.tet_dd_frames(R.to("meta"), F.to("meta"), vec.to("meta"), e.to("meta"), k.to("meta"))
+    assert out.device.type == "meta" and out.shape == (mesh.tets.shape[0], 3)
+    with pytest.raises(ValueError, match="frames must have shape"):
+        ops_tet_solder.tet_dd_frames(R, torch.stack((F, F)), vec, e, k)
+    with pytest.raises(ValueError, match="edge_vec and edges"):
+        ops_tet_solder.tet_dd_frames(R, F, vec[:-1], e, k)
+
+
 # ---------------------------------------------------------------- torch.func, tables built inside transforms
 
 def _tet_functions(mesh):

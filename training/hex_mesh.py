@@ -10,20 +10,33 @@ Outputs in ``output_dir``:
   own vertices first, in their order, then the midpoints of the edges the map split; per tet
   its 4 corners' parameters, in units of the hex edge length);
 * ``hex.vtu`` and ``hex.mesh``: the hexahedra (VTK order, positively oriented), when any;
-* ``hex_metrics.json``: the map's validity (``map.valid``, ``map.reasons``: which check fails and
-  where), its figures (energy, integers, singular edges, splits, timings), the extraction's
-  counts (hexes, cubes dropped and why), the hex quality (scaled Jacobian min/mean, irregular
-  interior edges, Hausdorff distance, volume ratio, CAD corners and curves meshed, ``valid``,
-  ``good``), the field's metrics and the times;
-* ``hex.png``: the hex mesh's boundary and its singular (irregular) edges;
+* ``hex_metrics.json``: the ``verdict`` (:func:`torchconn.hexmesh.report.verdict`: ``good``,
+  ``status``, ``reasons``, ``text``; ``good`` repeats its ``good``), the map's validity
+  (``map.valid``, ``map.reasons``: which check fails and where), its figures (energy, integers,
+  singular edges, splits, the image's volume in unit cubes, timings), the extraction's counts
+  (hexes, cubes dropped and why, oversized tets), the hex quality (scaled Jacobian min/mean,
+  irregular interior edges, Hausdorff distance, volume ratio, CAD corners and curves meshed,
+  ``valid``, ``good``; ``null`` without hexes), the field's metrics and the times;
+* ``hex.png``: the hex mesh's boundary and its singular (irregular) edges, the verdict as subtitle;
+* after an invalid map, what shows the failure: ``map_failure.vtu`` (the input tets with their
+  flags: inverted, degenerate, on a complex singular edge, oversized, cubes dropped, counted over
+  their sub-tets in the map's refined mesh; the singular graph as line cells) and
+  ``map_failure.png`` (the input's boundary with the flagged tets and the singular graph);
 * ``frames.npz`` (vertices, tets, frames): the field, reusable with ``frames=`` (and by
   ``resume=true``, which skips the field's computation when the file is there).
 
-An invalid map is a result, not an error: the job exits 0 and writes the map, the report and the
-hex mesh extracted where the map allows it. Bad input stops before anything is written, with an
-error that names the problem: an unknown or mistyped key (``ConfigError``), a frames file that is
-unreadable, has no ``frames`` array or belongs to another mesh, a non-positive ``hex.edge_length``,
-an unreadable or invalid mesh. The outputs appear together (staged, ``hex_metrics.json`` last).
+The console prints the verdict (``good hex mesh``, ``not a good hex mesh: <reasons>``, or ``no hex
+mesh: <reasons>``: the invalid map, an edge length too small or too large for the mesh, every cube
+dropped) and the figures that exist. An invalid map is a result, not an error: the job exits 0
+and writes the map, the report and the hex mesh extracted where the map allows it. Bad input
+stops with a message that names the problem (and exit status 1; the traceback only with
+``debug=true`` or ``HYDRA_FULL_ERROR=1``): an unknown or mistyped key (``ConfigError``), a frames
+file that is not an ``.npz``, has no ``frames`` array, has another shape than the mesh's (both
+named) or belongs to another mesh, holds NaN/inf or frames that are not rotations (how many per
+vertex or tet, reflections named as such), a non-positive or absurdly small ``hex.edge_length``,
+an unreadable or invalid mesh. An input error leaves no output directory behind; with
+``output_dir`` given nothing is written under the working directory (``configs/hex_mesh.yaml``'s
+``hydra`` section). The outputs appear together (staged, ``hex_metrics.json`` last).
 
 Usage::
 
@@ -34,6 +47,7 @@ Usage::
 from __future__ import annotations
 
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -43,9 +57,12 @@ from omegaconf import DictConfig, OmegaConf
 from . import config_check, io_utils
 from .train_frames import _load_mesh, design_options
 
-__all__ = ["run", "main", "load_config", "FramesFileError", "CONFIG_DIR"]
+__all__ = ["run", "main", "load_config", "read_frames_file", "summary_line", "FramesFileError", "CONFIG_DIR", "SCHEMA"]
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+#: The keys of ``configs/hex_mesh.yaml``: :data:`training.config_check.HEX_MESH` and this job's
+#: ``debug`` (kept here until config_check lists it).
+SCHEMA = {**config_check.HEX_MESH, "debug": config_check.Spec("bool")}
 
 
 class FramesFileError(ValueError):
@@ -76,41 +93,70 @@ def _validate(cfg) -> DictConfig:
     OmegaConf.set_struct(schema, True)
     user = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     user = OmegaConf.masked_copy(user, [k for k in user.keys() if k != "hydra"]) if "hydra" in user else user
-    if "output_dir" not in user or OmegaConf.is_missing(user, "output_dir"):
+    if "output_dir" not in user or OmegaConf.is_missing(user, "output_dir") or user.output_dir is None:
         raise config_check.ConfigError("output_dir must be set")
     merged = OmegaConf.merge(schema, user)  # raises ConfigKeyError on unknown keys
-    config_check.check_config(merged, config_check.HEX_MESH, "configs/hex_mesh.yaml")
+    config_check.check_config(merged, SCHEMA, "configs/hex_mesh.yaml")
     return merged
 
 
+_NPZ_HOW = "an .npz file (a zip of numpy arrays, as np.savez writes) with a 'frames' array"
+
+
+def _not_npz(path: Path) -> str | None:
+    """Why ``path`` is not an ``.npz`` file, or ``None`` (read from its first bytes)."""
+    with open(path, "rb") as f:
+        head = f.read(6)
+    if head.startswith(b"\x93NUMPY"):
+        return f"a .npy file (one array), not {_NPZ_HOW}: np.savez(path, frames=frames)"
+    if not zipfile.is_zipfile(path):
+        kind = "an empty file" if not head else "not a zip archive"
+        return f"not an .npz file ({kind}); expected {_NPZ_HOW}"
+    return None
+
+
 def read_frames_file(path, mesh) -> np.ndarray:
-    """The ``(V, 3, 3)`` frames of a ``frames.npz`` written for ``mesh`` (checked: same vertices
-    and tets, finite rotations). Raises :class:`FramesFileError` naming the file and the problem."""
+    """The ``(V, 3, 3)`` or ``(T, 3, 3)`` frames of a ``frames.npz`` written for ``mesh``, checked:
+    an ``.npz`` (never unpickled) with a ``frames`` array of the mesh's shape, of the same mesh
+    (when it stores ``vertices`` and ``tets``), finite and rotations
+    (:func:`torchconn.hexmesh.inputs.frames_defects`). Raises :class:`FramesFileError` naming the
+    file and the problem."""
+    from torchconn.hexmesh.inputs import frames_defects
+
     path = Path(path).expanduser()
+    where = f"frames={str(path)!r}"
     if not path.is_file():
-        raise FramesFileError(f"frames={str(path)!r}: no such file")
+        raise FramesFileError(f"{where}: no such file")
+    why = _not_npz(path)
+    if why is not None:
+        raise FramesFileError(f"{where}: {why}")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is the same error for the user
-        raise FramesFileError(f"frames={str(path)!r}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    except Exception as exc:  # noqa: BLE001 - any unreadable array is the same error for the user
+        detail = "an array of Python objects (not loaded: that would unpickle)" if "pickle" in str(exc) else (
+            f"{type(exc).__name__}: {exc}")
+        raise FramesFileError(f"{where}: an unreadable .npz file: {detail}") from None
     if "frames" not in data:
-        raise FramesFileError(f"frames={str(path)!r}: no 'frames' array (keys: {sorted(data)})")
+        raise FramesFileError(f"{where}: no 'frames' array (keys: {sorted(data)})")
     F = np.asarray(data["frames"])
     V, T = mesh.n_vertices, mesh.n_tets
     if F.ndim != 3 or F.shape[1:] != (3, 3) or F.shape[0] not in (V, T):
-        raise FramesFileError(f"frames={str(path)!r}: 'frames' has shape {F.shape}, but this mesh needs ({V}, 3, 3) "
-                              f"per vertex or ({T}, 3, 3) per tet: the field is for another mesh")
+        _, problem = frames_defects(F, mesh)
+        raise FramesFileError(f"{where}: {problem}")
     if "vertices" in data and "tets" in data:
         vx, tt = np.asarray(data["vertices"]), np.asarray(data["tets"])
         same = (vx.shape == (V, 3) and tt.shape == (T, 4)
                 and np.array_equal(tt, mesh.tets.cpu().numpy())
                 and np.allclose(vx, mesh.vertices.detach().cpu().double().numpy(), rtol=0, atol=1e-9))
         if not same:
-            raise FramesFileError(f"frames={str(path)!r}: the file's mesh ({vx.shape[0]} vertices, {tt.shape[0]} tets) "
+            raise FramesFileError(f"{where}: the file's mesh ({vx.shape[0]} vertices, {tt.shape[0]} tets) "
                                   f"is not this mesh ({V} vertices, {T} tets): the field is for another mesh")
-    if not np.isfinite(F).all():
-        raise FramesFileError(f"frames={str(path)!r}: 'frames' has non-finite entries")
+    if not np.issubdtype(F.dtype, np.number) or np.issubdtype(F.dtype, np.complexfloating):
+        raise FramesFileError(f"{where}: 'frames' must hold real numbers, got dtype {F.dtype}")
+    _, problem = frames_defects(F.astype(np.float64), mesh)
+    if problem is not None:
+        raise FramesFileError(f"{where}: {problem}")
     return F.astype(np.float64)
 
 
@@ -146,8 +192,7 @@ def run(cfg) -> dict:
     """Run the hex job described by ``cfg``; return the dict written to ``hex_metrics.json``."""
     t_start = time.perf_counter()
     cfg = _validate(cfg)
-    out = io_utils.check_output_dir(cfg.output_dir)
-    with io_utils.lock_output_dir(out):
+    with io_utils.output_dir_for_run(cfg.output_dir) as out:  # an input error leaves no directory
         threads = config_check.resolve_num_threads(cfg.num_threads)
         if threads is not None:
             torch.set_num_threads(threads)
@@ -168,8 +213,9 @@ def run(cfg) -> dict:
 
 
 def _save(out: Path, mesh, result, metrics: dict, frames) -> None:
-    from torchconn.hexmesh.io import plot_hex_mesh, write_hex_mesh, write_hexex
+    from torchconn.hexmesh.io import plot_failure, plot_hex_mesh, write_failure_vtu, write_hex_mesh, write_hexex
 
+    text = metrics["verdict"]["text"]
     with io_utils.staged_outputs(out, last=("hex_metrics.json",)) as stage:
         m = result.map
         if frames is not None:
@@ -181,35 +227,66 @@ def _save(out: Path, mesh, result, metrics: dict, frames) -> None:
             write_hex_mesh(stage / "hex.vtu", result.points, result.hexes)
             write_hex_mesh(stage / "hex.mesh", result.points, result.hexes)
             plot_hex_mesh(stage / "hex.png", result.points, result.hexes, result.quality,
-                          title=_title(metrics))
+                          title=_title(metrics), verdict=text)
+        if not result.validity.valid:
+            write_failure_vtu(stage / "map_failure.vtu", mesh, m, result.extraction)
+            plot_failure(stage / "map_failure.png", mesh, m, result.extraction, verdict_text=text,
+                         title=_title(metrics), where_xyz=result.validity.where_xyz)
         io_utils.atomic_write_json(stage / "hex_metrics.json", metrics)
 
 
 def _title(metrics: dict) -> str:
-    q = metrics.get("quality") or {}
-    return (f"{'valid' if metrics['map']['valid'] else 'invalid'} map, {q.get('n_hexes', 0)} hexes, "
-            f"scaled Jacobian min {q.get('sj_min', float('nan')):.2f}")
+    """The pictures' first line: the mesh, the field and the edge length."""
+    field = metrics.get("field") or {}
+    src = field.get("method") or Path(str(field.get("source", "?"))).name
+    return (f"{Path(str(metrics['mesh']['source'])).name} ({metrics['mesh']['tets']} tets), field {src}, "
+            f"hex edge length {metrics['map']['edge_length']:.3g}")
 
 
 def summary_line(metrics: dict, output_dir) -> str:
-    """The console summary of a run."""
-    mp, q, ex = metrics["map"], metrics.get("quality") or {}, metrics.get("extraction") or {}
-    why = "" if mp["valid"] else " (" + "; ".join(mp["reasons"]) + ")"
-    return (f"[hex_mesh] map {'valid' if mp['valid'] else 'INVALID'}{why}; {ex.get('hexes', 0)} hexes "
-            f"({ex.get('cubes_dropped', 0)} cubes dropped), scaled Jacobian min {q.get('sj_min', float('nan')):.3f} "
-            f"mean {q.get('sj_mean', float('nan')):.3f}, irregular interior edges "
-            f"{100 * (q.get('irregular_fraction') or 0):.1f}%, Hausdorff {100 * (q.get('hausdorff_rel') or 0):.2f}% "
-            f"of the diagonal, good hex mesh: {metrics['good']}; wall {metrics['timings']['wall_s']:.1f} s, "
+    """The console summary of a run: the verdict (:func:`torchconn.hexmesh.report.summary`), the
+    figures that exist, the wall time and the output directory."""
+    from torchconn.hexmesh.report import summary
+
+    verdict, figures = summary(metrics)
+    return (f"[hex_mesh] {verdict}\n[hex_mesh] {figures}; wall {metrics['timings']['wall_s']:.1f} s, "
             f"output {output_dir}")
 
 
+def _resolve_run_dir(output_dir, default):
+    """``hydra.run.dir`` of ``configs/hex_mesh.yaml``: the working directory (which exists, so Hydra
+    creates nothing) when ``output_dir`` is given, else ``default`` (the job's outputs go there)."""
+    return default if output_dir in (None, "") else "."
+
+
+if not OmegaConf.has_resolver("torchconn_run_dir"):  # before any composition of configs/hex_mesh.yaml
+    OmegaConf.register_resolver("torchconn_run_dir", _resolve_run_dir)
+
+
 def main() -> None:
-    """Console entry point ``torchconn-hex``: Hydra composes ``configs/hex_mesh.yaml`` + overrides."""
+    """Console entry point ``torchconn-hex``: Hydra composes ``configs/hex_mesh.yaml`` + overrides.
+
+    Errors are printed as a message (exit status 1), the traceback only with ``debug=true`` or
+    ``HYDRA_FULL_ERROR=1`` (:func:`training.io_utils.report_errors`)."""
     import hydra
 
     @hydra.main(config_path="../configs", config_name="hex_mesh", version_base="1.3")
     def app(cfg: DictConfig) -> None:
-        m = run(cfg)
+        debug = OmegaConf.select(cfg, "debug", default=False) is True
+        with io_utils.report_errors("hex_mesh", debug=debug, how="debug=true or HYDRA_FULL_ERROR=1"):
+            created = []  # Hydra's run directory and its parents below the working directory
+            if cfg.output_dir is None:  # the outputs go to Hydra's run directory: outputs/hex_mesh/<date>/<time>
+                from hydra.core.hydra_config import HydraConfig
+
+                run_dir = Path(HydraConfig.get().runtime.output_dir)
+                cfg.output_dir = str(run_dir)
+                cwd = Path.cwd().resolve()
+                created = [d for d in (run_dir, *run_dir.parents) if cwd in d.resolve().parents]
+            try:
+                m = run(cfg)
+            except BaseException:
+                io_utils.remove_empty_dirs(created)  # an input error leaves no (empty) output directory behind
+                raise
         print(summary_line(m, cfg.output_dir))
 
     app()

@@ -9,6 +9,10 @@ moved in only when all of them exist, so a run stopped by an error adds no parti
 
 One run at a time per output directory (:func:`lock_output_dir`): two runs writing into one
 folder would mix their files (a checkpoint of one mesh beside the frames of another).
+:func:`output_dir_for_run` adds that a run failing on its input leaves no directory behind.
+
+A job's errors reach the user as one message, not a traceback (:func:`report_errors`), unless
+``HYDRA_FULL_ERROR=1`` or the job's ``debug`` flag asks for the traceback.
 
 Checkpoints hold only tensors and plain containers (dict, list, tuple, str, int, float, bool,
 None) and are loaded with ``torch.load(weights_only=True)``: loading one never runs code from the
@@ -37,6 +41,10 @@ import torch
 __all__ = [
     "OutputDirError",
     "OutputDirLockedError",
+    "output_dir_for_run",
+    "remove_empty_dirs",
+    "full_errors_wanted",
+    "report_errors",
     "StaleLockWarning",
     "CheckpointError",
     "check_output_dir",
@@ -201,6 +209,64 @@ def lock_output_dir(path):
         except FileNotFoundError:
             pass
         os.close(fd)
+
+
+@contextlib.contextmanager
+def output_dir_for_run(path):
+    """Create, check and lock ``path`` for one run (:func:`check_output_dir`,
+    :func:`lock_output_dir`); yield it. If the block raises, the directories this call created
+    (``path`` and any missing parents) are removed again where they are empty, so a run that
+    fails on its input leaves no empty output directory behind; a directory that existed, or
+    holds files, is kept."""
+    p = Path(path).expanduser()
+    created = []
+    q = p.absolute()
+    while not q.exists():
+        created.append(q)
+        if q.parent == q:
+            break
+        q = q.parent
+    out = check_output_dir(p)
+    try:
+        with lock_output_dir(out):
+            yield out
+    except BaseException:
+        remove_empty_dirs(created)  # deepest first
+        raise
+
+
+def remove_empty_dirs(dirs) -> None:
+    """``rmdir`` each of ``dirs`` in order (deepest first), stopping at the first that is not
+    empty (or cannot be removed): what a failed run created and left empty goes again."""
+    for d in dirs:
+        try:
+            Path(d).rmdir()
+        except OSError:
+            break
+
+
+def full_errors_wanted(debug: bool = False) -> bool:
+    """Whether a job shows its errors' tracebacks: ``debug`` or ``HYDRA_FULL_ERROR=1``."""
+    return bool(debug) or os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+@contextlib.contextmanager
+def report_errors(job: str, *, debug: bool = False, how: str = "HYDRA_FULL_ERROR=1"):
+    """Around a job's body: an exception is printed to stderr as ``[job] error: message`` with its
+    class and how to see the traceback (``how``), and the process exits with status 1; with
+    ``debug`` or ``HYDRA_FULL_ERROR=1`` (:func:`full_errors_wanted`) it propagates (Hydra prints
+    the traceback). ``KeyboardInterrupt`` and ``SystemExit`` always propagate."""
+    try:
+        yield
+    except Exception as exc:  # noqa: BLE001 - every error of a job is reported the same way
+        if full_errors_wanted(debug):
+            raise
+        msg = str(exc).strip() or repr(exc)
+        if isinstance(exc, KeyError) and msg.startswith(("'", '"')):  # KeyError quotes its message
+            msg = msg[1:-1]
+        print(f"[{job}] error: {msg}", file=sys.stderr)
+        print(f"[{job}] ({type(exc).__name__}; for the traceback run again with {how})", file=sys.stderr)
+        raise SystemExit(1) from None
 
 
 @contextlib.contextmanager

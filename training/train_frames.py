@@ -260,7 +260,8 @@ def main() -> None:
 
     @hydra.main(config_path="../configs", config_name="train_frames", version_base="1.3")
     def app(cfg: DictConfig) -> None:
-        m = train(cfg)
+        with io_utils.report_errors("train_frames"):  # the message, not a traceback (unless HYDRA_FULL_ERROR=1)
+            m = train(cfg)
         f, i = m["final"], m["init"]
         print(f"[train_frames] {cfg.method}: smoothness {i['smoothness_mean_deg']:.2f} -> "
               f"{f['smoothness_mean_deg']:.2f} deg, alignment mean {f['alignment_mean_deg']:.3f} deg, "

@@ -1,4 +1,4 @@
-"""Losses for octahedral frame fields from a differentiable connection (the ``train_frames`` method).
+"""The loss of the frame-field method: :class:`FrameFieldLoss`, an ``nn.Module`` made of the term modules.
 
 Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`):
 
@@ -13,7 +13,9 @@ Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`):
   (a 90 or 180 degree turn), a regular face near ``I``.
 
 Terms (each a mean over its elements, so that weights do not depend on the mesh size; all are
-dimensionless):
+dimensionless; each is a module of :mod:`torchconn.frames.terms`, built on the library's own
+:class:`~torchconn.nn.Curvature`, :class:`~torchconn.nn.Torsion` and
+:class:`~torchconn.nn.AveragedCovariantD` where the term reads the connection's geometry):
 
 * ``smooth``  — ``mean_e rho(||R_e - I||_F)``: ``rho(x) = x^2`` (``= 8 sin^2(angle/2)``, the chordal
   Dirichlet energy of the connection) or a smoothed ``x^p`` (``smooth_power``; ``p = 1`` is
@@ -64,166 +66,84 @@ dimensionless):
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Any, Mapping
 
 import torch
+from torch import nn
 
-from ..ops import frame_loss as _ops_frame_loss
-from ..ops import torsion as _ops_torsion
+from ..nn import MeshBuffers, edge_rotations
 from . import octahedral
 from .constraints import BoundaryConstraint
+from .kernels import frame_loss as _fused
+from .terms import (  # noqa: F401  (the term functions, importable from here as before)
+    ALIGN_KINDS,
+    AxisAlignment,
+    ConnectionSmoothness,
+    FrameTie,
+    MatchedDirichlet,
+    MatchedTorsion,
+    RegularCovariantD,
+    SymmetricFlatness,
+    axis_angle_loss,
+    matched_dirichlet_loss,
+    normal_alignment_loss,
+    smoothness_loss,
+    symmetric_flatness_loss,
+    tie_loss,
+)
 
-__all__ = [
-    "TERMS",
-    "smoothness_loss",
-    "tie_loss",
-    "symmetric_flatness_loss",
-    "normal_alignment_loss",
-    "axis_angle_loss",
-    "ALIGN_KINDS",
-    "FrameFieldLoss",
-    "matched_dirichlet_loss",
-]
+__all__ = ["TERMS", "FrameFieldLoss"]
 
 #: Names of the loss terms, in display order.
 TERMS = ("smooth", "tie", "flat", "torsion", "dnabla", "align", "feature", "dirichlet")
-#: Forms of the ``align``/``feature`` terms (:func:`normal_alignment_loss`, :func:`axis_angle_loss`).
-ALIGN_KINDS = ("quartic", "angle")
+#: The terms the fused kernel computes (:mod:`torchconn.frames.kernels.frame_loss`).
+_FUSED = _fused.COMPILED_TERMS
 
 
-def smoothness_loss(edge_rot: torch.Tensor, power: float = 2.0, eps: float = 1e-3,
-                    weight: torch.Tensor | None = None) -> torch.Tensor:
-    """``mean_e w_e rho(||R_e - I||_F)`` for ``edge_rot (E, 3, 3)`` (``weight (E,)``, default 1).
-
-    ``rho(x) = x^2`` for ``power=2`` (Dirichlet energy of the connection, ``x^2 = 8 sin^2(t/2)``
-    for angle ``t``); otherwise the smoothed ``rho(x) = (x^2 + eps^2)^(power/2) - eps^power``
-    (``power=1``: total variation, ~ ``2 sqrt(2) sin(t/2)``, which concentrates the turning of
-    the frames near singular curves instead of spreading it; ``eps`` keeps the gradient finite
-    at ``R = I``).
-    """
-    eye = torch.eye(3, dtype=edge_rot.dtype, device=edge_rot.device)
-    d = _rho(((edge_rot - eye) ** 2).sum((-2, -1)), power, eps)
-    return (d * weight).sum() / weight.sum() if weight is not None else d.mean()
-
-
-def _rho(d2: torch.Tensor, power: float, eps: float) -> torch.Tensor:
-    """``d2`` for ``power=2``, else ``(d2 + eps^2)^(power/2) - eps^power`` (smoothed ``|x|^power``)."""
-    if power == 2.0:
-        return d2
-    return (d2 + eps * eps) ** (0.5 * power) - eps**power
-
-
-def tie_loss(edge_rot: torch.Tensor, frames: torch.Tensor, edges: torch.Tensor, power: float = 2.0,
-             eps: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
-    """``mean_e rho(min_{h in O} ||F_i R_ij - F_j h||_F)`` (``rho`` as in :func:`smoothness_loss`).
-
-    Args:
-        edge_rot: ``(E, 3, 3)`` ``R_ij`` of the canonical edges ``edges (E, 2)``.
-        frames: ``(V, 3, 3)``.
-
-    Returns:
-        ``(loss, unrelabeled (E,) bool)``: the loss and where the best ``h`` is the identity.
-        ``h`` is chosen by :func:`octahedral.match` without gradient (a piecewise-constant choice).
-    """
-    Fi = frames.index_select(0, edges[:, 0]) @ edge_rot  # frame at i transported to j
-    Fj = frames.index_select(0, edges[:, 1])
-    return _tie_from(Fi, Fj, power, eps)
-
-
-def _tie_from(FiR: torch.Tensor, Fj: torch.Tensor, power: float, eps: float
-              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`tie_loss` from the per-edge ``F_i R_ij (E, 3, 3)`` and ``F_j (E, 3, 3)``."""
-    with torch.no_grad():
-        idx, g = octahedral.match(Fj, FiR)  # F_j h ~ F_i R_ij
-    d = _rho(((FiR - Fj @ g) ** 2).sum((-2, -1)), power, eps)
-    return d.mean(), idx == 0
-
-
-def matched_dirichlet_loss(frames: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """``mean_e ||F_i g_ij - F_j||_F^2`` for ``frames (V, 3, 3)`` and ``edges (E, 2)`` rows ``(i, j)``.
-
-    ``g_ij = argmin_{g in O} ||F_i g - F_j||`` (:func:`octahedral.match_edges`, without gradient:
-    the min over the 24 smooth branches has the gradient of the active one). For a residual
-    rotation of angle ``t`` the edge's value is ``4 (1 - cos t) = 8 sin^2(t / 2)``. Empty ``edges``
-    give 0. The value equals ``dirichlet_energy_mean`` of :func:`~torchconn.frames.metrics.frame_metrics`.
-    """
-    if edges.shape[0] == 0:
-        return frames.new_zeros(())
-    with torch.no_grad():
-        _, g = octahedral.match_edges(frames.detach(), edges)
-    d = frames.index_select(0, edges[:, 0]) @ g.to(frames.dtype) - frames.index_select(0, edges[:, 1])
-    return (d**2).sum((-2, -1)).mean()
-
-
-def symmetric_flatness_loss(face_hol: torch.Tensor) -> torch.Tensor:
-    """``mean_f min_{g in O} ||H_f - g||_F^2`` for holonomies ``face_hol (F, 3, 3)``.
-
-    The nearest element is chosen without gradient (the min of smooth functions: its gradient
-    is that of the active branch).
-    """
-    with torch.no_grad():
-        _, g = octahedral.closest_element(face_hol)
-    return ((face_hol - g) ** 2).sum((-2, -1)).mean()
-
-
-def normal_alignment_loss(frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-    """``mean (1 - sum_k (F[:, k] . n)^4)`` for ``frames (N, 3, 3)`` and unit ``normals (N, 3)``.
-
-    In ``[0, 2/3]``; zero iff an axis is ``±n``. Empty input gives 0.
-    """
-    if normals.shape[0] == 0:
-        return frames.new_zeros(())
-    c = (frames * normals[:, :, None]).sum(-2)  # (N, 3): F[:, k] . n
-    return (1.0 - (c**4).sum(-1)).mean()
-
-
-def axis_angle_loss(frames: torch.Tensor, normals: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
-    """Mean smoothed angle (radians) between each unit normal and the closest frame axis.
-
-    For ``frames (N, 3, 3)`` and unit ``normals (N, 3)``: with ``c = max_k |F[:, k] . n|`` the
-    chord between the closest (sign-matched) axis and ``n`` is ``d = sqrt(2 - 2c)`` and the
-    angle ``2 asin(d / 2)``; the loss is ``mean(2 asin(sqrt(d^2 + eps^2) / 2)) - 2 asin(eps / 2)``,
-    which is ``>= 0``, zero iff an axis is ``±n``, within ``eps`` of the angle of
-    :func:`torchconn.frames.metrics.axis_alignment_angle`, and differentiable everywhere
-    (``eps > 0``; the closest axis is selected without gradient). Empty input gives 0.
-    """
-    if normals.shape[0] == 0:
-        return frames.new_zeros(())
-    if not eps > 0:
-        raise ValueError(f"eps must be > 0, got {eps}")
-    c = (frames * normals[:, :, None]).sum(-2).abs()  # (N, 3)
-    with torch.no_grad():
-        k = c.argmax(-1, keepdim=True)
-    cmax = torch.gather(c, -1, k).squeeze(-1)
-    d2 = (2.0 - 2.0 * cmax).clamp_min(0.0)
-    half = (torch.sqrt(d2 + eps * eps) * 0.5).clamp(max=1.0)
-    return (2.0 * torch.asin(half)).mean() - 2.0 * math.asin(0.5 * eps)
-
-
-class FrameFieldLoss:
-    """All terms of the frame-field objective on one mesh; topology gathered once.
+class FrameFieldLoss(nn.Module):
+    """All terms of the frame-field objective on one mesh: a module per term (:attr:`terms`), topology
+    held once.
 
     Args:
         mesh: a ``TetMesh``.
         weights: mapping from term name (:data:`TERMS`) to its weight; missing names weigh 0
-            and are not evaluated.
+            and are not built nor evaluated.
         feature_angle_deg: threshold of :func:`torchconn.frames.metrics.feature_edges`; the
             ``align`` and ``feature`` terms use the mesh's
             :class:`~torchconn.frames.constraints.BoundaryConstraint` for it.
         smooth_power, smooth_eps: ``rho`` of the ``smooth`` and ``tie`` terms.
         align_kind: ``"quartic"`` (:func:`normal_alignment_loss`) or ``"angle"``
             (:func:`axis_angle_loss` with ``align_eps``) for the ``align`` and ``feature`` terms.
+        extra_terms: ``{name: fn}`` further terms ``fn(edge_rot, frames) -> 0-dim tensor``,
+            weighted by ``weights[name]`` (default 0: not evaluated).
 
-    Call with ``(edge_rot (E,3,3), frames (V,3,3))``; returns a dict of the unweighted terms
-    (0-dim tensors) plus ``"total" = sum_k w_k term_k``. Terms with zero weight are skipped
-    (not computed) except that ``tie`` always runs when ``torsion`` is on (it supplies the mask).
-    The ``smooth``, ``tie``, ``flat`` and ``torsion`` terms run in the op
-    :func:`torchconn.ops.frame_loss.frame_loss_terms` on a ``TetMesh`` (``torchconn::frame_loss``:
-    the compiled kernel for CPU float32/float64 with the switch :func:`torchconn.ops.compiled`
-    on, its torch kernel otherwise); gradients of every order are exact on both paths.
+    Structure: :attr:`mesh` is the mesh's :class:`~torchconn.nn.MeshBuffers`, shared by the term
+    modules of :attr:`terms` (an ``nn.ModuleDict`` of the weighted terms: ``smooth``
+    :class:`~torchconn.frames.terms.ConnectionSmoothness`, ``tie``
+    :class:`~torchconn.frames.terms.FrameTie`, ``flat``
+    :class:`~torchconn.frames.terms.SymmetricFlatness` (a :class:`~torchconn.nn.Curvature`),
+    ``torsion`` :class:`~torchconn.frames.terms.MatchedTorsion` (a :class:`~torchconn.nn.Torsion`),
+    ``dnabla`` :class:`~torchconn.frames.terms.RegularCovariantD` (an
+    :class:`~torchconn.nn.AveragedCovariantD`), ``align`` / ``feature``
+    :class:`~torchconn.frames.terms.AxisAlignment`, ``dirichlet``
+    :class:`~torchconn.frames.terms.MatchedDirichlet`). ``loss.to(device)`` / ``loss.double()`` move
+    them all.
+
+    Call with ``(connection, frames (V,3,3))``, the connection an ``(E,3,3)`` tensor, a
+    :class:`~torchconn.dec.connection.Connection` or the model's
+    :class:`~torchconn.nn.ConnectionField`; returns a dict of the unweighted terms (0-dim tensors)
+    of non-zero weight plus ``"total" = sum_k w_k term_k``.
+
+    Fast path: where the fused kernel serves (the CPU, float32/float64, the switch
+    :func:`torchconn.ops.compiled` on, plain tensors; :func:`~torchconn.frames.kernels.frame_loss.frame_loss_terms`)
+    the ``smooth``, ``tie``, ``flat``, ``torsion`` and ``dirichlet`` terms and the regular faces of
+    ``dnabla`` come from one sweep of ``torchconn::frame_loss`` (``csrc/frame_loss.c``) instead of
+    the modules: the same values and gradients to round-off (``tests/test_losses.py``), gradients
+    of every order exact. Everywhere else (other devices, the ``torch.func`` transforms, the switch
+    off) the modules run, each through its own operators' kernels.
 
     Input checks (every call, no data read, no device sync): ``edge_rot`` (``None`` is allowed
-    when only ``align``/``feature`` are weighted) and ``frames`` must be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges
+    when only ``align``/``feature``/``dirichlet`` are weighted) and ``frames`` must be floating tensors of shapes ``(E, 3, 3)`` and ``(V, 3, 3)`` for the mesh's ``E`` edges
     and ``V`` vertices, of one dtype and on one device (``ValueError``/``TypeError`` naming
     the argument, the expected and the given shape, or both dtypes/devices). A mixed pair is
     refused rather than promoted: both are optimization variables, and a silent cast per step
@@ -236,6 +156,7 @@ class FrameFieldLoss:
     def __init__(self, mesh, weights: Mapping[str, float], feature_angle_deg: float = 30.0,
                  smooth_power: float = 2.0, smooth_eps: float = 1e-3, align_kind: str = "quartic",
                  align_eps: float = 1e-3, extra_terms: Mapping[str, object] | None = None):
+        super().__init__()
         self.extra_terms = dict(extra_terms or {})
         clash = set(self.extra_terms) & set(TERMS)
         if clash:
@@ -250,99 +171,96 @@ class FrameFieldLoss:
             raise ValueError(f"align_kind must be one of {list(ALIGN_KINDS)} and align_eps > 0, got "
                              f"{align_kind!r}, {align_eps}")
         self.align_kind, self.align_eps = align_kind, float(align_eps)
-        self.mesh = mesh
         self.weights = {k: float(weights.get(k, 0.0)) for k in (*TERMS, *self.extra_terms)}  # zero-weight extras: off
         bad = [k for k, w in self.weights.items() if not math.isfinite(w) or w < 0]
         if bad:
             raise ValueError(f"loss weights must be finite and >= 0: {[(k, self.weights[k]) for k in bad]}")
+        self.mesh = MeshBuffers(mesh)  # one copy of the topology, shared by the term modules
         con = self.constraint = BoundaryConstraint.from_mesh(mesh, feature_angle_deg)
         self.is_feature = con.is_feature
         self.align_vertices, self.align_normals = con.align_vertices, con.align_normals
         self.feature_vertices_rep, self.feature_normals = con.feature_targets()
-        # face areas for the torsion normalization, tet volumes for the dnabla one
-        p = mesh.vertices[mesh.faces]
-        self.face_area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-        self._dd = None
-        if self.weights["dnabla"]:
-            from ..nn import AveragedCovariantD
+        self.register_buffer("group", octahedral.group(torch.float64, mesh.vertices.device), persistent=False)
+        w, mb = self.weights, self.mesh
+        build = {
+            "smooth": lambda: ConnectionSmoothness(self.smooth_power, self.smooth_eps),
+            "tie": lambda: FrameTie(mb, self.smooth_power, self.smooth_eps),
+            "flat": lambda: SymmetricFlatness(mb),
+            "torsion": lambda: MatchedTorsion(mb),
+            "dnabla": lambda: RegularCovariantD(mb),
+            "align": lambda: AxisAlignment(self.align_vertices, self.align_normals, align_kind, align_eps),
+            "feature": lambda: AxisAlignment(self.feature_vertices_rep, self.feature_normals, align_kind, align_eps),
+            "dirichlet": lambda: MatchedDirichlet(mb),
+        }
+        #: The weighted terms' modules, by name.
+        self.terms = nn.ModuleDict({k: build[k]() for k in TERMS if w[k]})
 
-            self._dd = AveragedCovariantD(mesh)
-            t = mesh.vertices[mesh.tets]
-            vol = torch.linalg.det(t[:, 1:] - t[:, :1]).abs() / 6.0
-            self.tet_scale = vol.pow(2.0 / 3.0)
+    def forward(self, connection: Any, frames: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The weighted terms and their total.
 
-    def __call__(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> dict[str, torch.Tensor]:
-        from ..dec import curvature, torsion
+        Args:
+            connection: ``(E, 3, 3)`` edge rotations ``R_ij`` in ``mesh.edges`` order, a
+                ``Connection`` or a ``ConnectionField`` (``None`` when only ``align``,
+                ``feature`` or ``dirichlet`` are weighted).
+            frames: ``(V, 3, 3)`` frames, axes as columns.
 
+        Returns:
+            ``{term: 0-dim tensor}`` for every term of non-zero weight (unweighted values) and
+            ``"total"``, in the dtype and on the device of the inputs.
+        """
+        edge_rot = connection
+        if connection is not None and not isinstance(connection, torch.Tensor):
+            edge_rot = edge_rotations(connection, "FrameFieldLoss")
         self._check_inputs(edge_rot, frames)
-        mesh, w = self.mesh, self.weights
+        w, terms = self.weights, self.terms
         out: dict[str, torch.Tensor] = {}
-        # the op's own torsion term is the unrelabeled-faces one: torsion runs outside it (every face)
-        w_op = {**w, "torsion": 0.0}
-        compiled = _ops_frame_loss.frame_loss_terms(edge_rot, frames, mesh, octahedral.group(torch.float64), w_op,
-                                                    self.smooth_power, self.smooth_eps)
-        if compiled is not None:
-            out.update(compiled)
-            if w["torsion"]:
-                out["torsion"] = self._torsion(edge_rot, frames, None)
-            return self._finish(out, frames, edge_rot)
-        if w["smooth"]:
-            out["smooth"] = smoothness_loss(edge_rot, self.smooth_power, self.smooth_eps)
-        if w["tie"]:
-            shared = _ops_torsion.edge_frames(edge_rot, mesh, frames)
-            if shared is not None:
-                out["tie"], _ = _tie_from(shared[1], shared[2], self.smooth_power, self.smooth_eps)
-            else:
-                out["tie"], _ = tie_loss(edge_rot, frames, mesh.edges, self.smooth_power, self.smooth_eps)
-        if w["flat"]:
-            hol = curvature.face_curvature(edge_rot, mesh, kind="holonomy")
-            eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
-            out["flat"] = symmetric_flatness_loss(hol + eye)
-        if w["torsion"]:
-            out["torsion"] = self._torsion(edge_rot, frames, torsion)
-        return self._finish(out, frames, edge_rot)
+        face_regular = None
+        fused = None
+        if edge_rot is not None:
+            fused = _fused.frame_loss_terms(edge_rot, frames, self.mesh, self.group, {k: w[k] for k in _FUSED},
+                                            self.smooth_power, self.smooth_eps, regular=bool(w["dnabla"]))
+        if fused is not None:
+            face_regular = fused.pop("face_regular", None)
+            out.update(fused)
+        else:
+            for k in ("smooth", "flat"):
+                if w[k]:
+                    out[k] = terms[k](edge_rot)
+            for k in ("tie", "torsion"):
+                if w[k]:
+                    out[k] = terms[k](edge_rot, frames)
+            if w["dirichlet"]:
+                out["dirichlet"] = terms["dirichlet"](frames)
+        if w["dnabla"]:
+            out["dnabla"] = terms["dnabla"](edge_rot, frames, face_regular)
+        for k in ("align", "feature"):
+            if w[k]:
+                out[k] = terms[k](frames)
+        for name, fn in self.extra_terms.items():
+            if w[name]:
+                out[name] = fn(edge_rot, frames)
+        out = {k: out[k] for k in (*TERMS, *self.extra_terms) if k in out}
+        total = frames.new_zeros(())
+        for k, v in out.items():
+            # alpha, not `w[k] * v`: forward mode of a 0-dim tensor times a Python float gives a
+            # float64 tangent for float32 values (pytorch/pytorch#90065; torch.func.jvp, jacfwd)
+            total = torch.add(total, v, alpha=w[k])
+        out["total"] = total
+        return out
 
-    def _matched(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-        """``R_ij h_ij^T`` with ``F_i R_ij = F_j h_ij``, ``h`` the best match (no gradient through it)."""
-        e = self.mesh.edges
-        with torch.no_grad():
-            FiR = frames.index_select(0, e[:, 0]) @ edge_rot
-            _, h = octahedral.match(frames.index_select(0, e[:, 1]), FiR)  # F_j h ~ F_i R_ij
-        return edge_rot @ h.transpose(-1, -2).to(edge_rot.dtype)
-
-    def _torsion(self, edge_rot: torch.Tensor, frames: torch.Tensor, generic) -> torch.Tensor:
-        """Mean over every face of ``|Θ_f|^2 / area_f`` through the matchings (class docstring)."""
-        Rm = self._matched(edge_rot, frames)
-        tor = _ops_torsion.face_torsion(Rm, self.mesh, "sqrt", frames=frames)
-        if tor is None:
-            from ..dec import torsion as _torsion
-
-            tor = _torsion.face_torsion(Rm, self.mesh, kind="sqrt", frames=frames)
-        return ((tor**2).sum(-1) / self.face_area.to(device=tor.device, dtype=tor.dtype)).mean()
-
-    def _dnabla(self, edge_rot: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-        """Mean over regular tets of ``|𝔡∇ Alt 𝔡∇ Alt θ̃|^2 / vol^{2/3}`` (class docstring)."""
-        from ..dec import curvature
-
-        mesh = self.mesh
-        with torch.no_grad():
-            hol = curvature.face_curvature(edge_rot.detach(), mesh, kind="holonomy")
-            eye = torch.eye(3, dtype=hol.dtype, device=hol.device)
-            idx, _ = octahedral.closest_element(hol + eye)
-            regular = (idx == 0)[mesh.tet_faces].all(-1)
-        dd = self._dd(edge_rot, frames)  # (T, 3)
-        per = (dd**2).sum(-1) / self.tet_scale.to(device=dd.device, dtype=dd.dtype)
-        # no int(): a data-dependent branch breaks vmap and torch.compile(fullgraph=True); 0 when
-        # no tet is regular (the sum is then 0, divided by 1)
-        return torch.where(regular, per, 0.0).sum() / regular.sum().clamp_min(1)
+    @property
+    def face_area(self) -> torch.Tensor:
+        """``(F,)`` face areas (the torsion's normalization), in the mesh's dtype."""
+        p = self.mesh.vertices[self.mesh.faces]
+        return 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
 
     def _check_inputs(self, edge_rot, frames) -> None:
         """Types, shapes, dtypes and devices of the call's inputs (class docstring); no sync."""
         E, V = int(self.mesh.edges.shape[0]), int(self.mesh.vertices.shape[0])
         checks = [("edge_rot", edge_rot, (E, 3, 3), "one rotation R_ij per mesh edge, in mesh.edges order"),
                   ("frames", frames, (V, 3, 3), "one frame per mesh vertex")]
-        if edge_rot is None:  # allowed when only the alignment terms are on (they read the frames only)
-            need = [k for k in ("smooth", "tie", "flat", "torsion") if self.weights[k]]
+        if edge_rot is None:  # allowed when only the frame terms are on (they read the frames only)
+            need = [k for k in ("smooth", "tie", "flat", "torsion", "dnabla") if self.weights[k]]
             if need:
                 raise TypeError(f"FrameFieldLoss: edge_rot is None but the terms {need} have non-zero weight "
                                 f"and need it; pass the ({E}, 3, 3) edge rotations")
@@ -363,32 +281,3 @@ class FrameFieldLoss:
         if edge_rot.device != frames.device:
             raise ValueError(f"FrameFieldLoss: edge_rot is on {edge_rot.device} but frames is on "
                              f"{frames.device}; move both to one device")
-
-    def _finish(self, out: dict[str, torch.Tensor], frames: torch.Tensor,
-                edge_rot: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Add the dnabla, alignment, Dirichlet and extra terms and ``total`` to ``out``."""
-        w = self.weights
-        if w["dnabla"]:
-            out["dnabla"] = self._dnabla(edge_rot, frames)
-        for name, fn in self.extra_terms.items():
-            if w[name]:
-                out[name] = fn(edge_rot, frames)
-        if w["align"]:
-            out["align"] = self._align(frames[self.align_vertices], self.align_normals.to(frames.dtype))
-        if w["feature"]:
-            out["feature"] = self._align(frames[self.feature_vertices_rep], self.feature_normals.to(frames.dtype))
-        if w["dirichlet"]:
-            out["dirichlet"] = matched_dirichlet_loss(frames, self.mesh.edges)
-        total = frames.new_zeros(())
-        for k, v in out.items():
-            if w[k]:
-                # alpha, not `w[k] * v`: forward mode of a 0-dim tensor times a Python float gives a
-                # float64 tangent for float32 values (pytorch/pytorch#90065; torch.func.jvp, jacfwd)
-                total = torch.add(total, v, alpha=w[k])
-        out["total"] = total
-        return out
-
-    def _align(self, frames: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-        if self.align_kind == "angle":
-            return axis_angle_loss(frames, normals, self.align_eps)
-        return normal_alignment_loss(frames, normals)

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import torch
 
 from ..lie import so3
-from ..ops.edge_terms import matched_edge_terms
+from .kernels.edge_terms import matched_edge_terms
 from . import octahedral
 from .constraints import BoundaryConstraint
 from .loss import axis_angle_loss

@@ -14,6 +14,9 @@
   MEDIT ``.mesh`` (``Hexahedra``, the same vertex order) through meshio.
 - :func:`plot_hex_mesh`: a PNG of the boundary quads, lightly shaded, and the irregular
   (singular) interior edges drawn boldly, coloured by valence, from two opposite views.
+- After an invalid map, what shows where it fails: :func:`write_failure_vtu` (the input tets with
+  the flags of :func:`~torchconn.hexmesh.report.tet_flags` and the singular graph as lines) and
+  :func:`plot_failure` (the input's boundary with the flagged tets and the singular graph).
 
 Every writer is atomic: the file is written to a temporary file in the target's directory and
 moved over the target with ``os.replace``; on an error the temporary file is removed and nothing
@@ -26,6 +29,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import textwrap
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -35,9 +39,10 @@ import torch
 
 from ..mesh.io import _guarded
 from .quality import HexQuality, _index_rows, hex_quality
+from .report import FLAGS, singular_lines, tet_flags, verdict as _verdict
 
-__all__ = ["write_hexex", "read_hexex", "write_hex_mesh", "read_hex_mesh", "plot_hex_mesh", "HEX_MESH_SUFFIXES",
-           "PLOT_MAX_QUADS", "PLOT_MAX_EDGES", "PLOT_QUAD_OUTLINES_MAX"]
+__all__ = ["write_hexex", "read_hexex", "write_hex_mesh", "read_hex_mesh", "plot_hex_mesh", "write_failure_vtu",
+           "plot_failure", "HEX_MESH_SUFFIXES", "PLOT_MAX_QUADS", "PLOT_MAX_EDGES", "PLOT_QUAD_OUTLINES_MAX"]
 
 #: Hex mesh files :func:`write_hex_mesh` / :func:`read_hex_mesh` know, with their meshio format.
 HEX_MESH_SUFFIXES = {".vtu": "vtu", ".mesh": "medit"}
@@ -326,16 +331,31 @@ def _subsample(n: int, cap: int) -> tuple[np.ndarray, int]:
     return np.arange(0, n, stride), stride
 
 
-def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *, title: str | None = None) -> Path:
+def _wrapped(text: str, width: int = 125, most: int = 5) -> list[str]:
+    """``text`` as title lines of at most ``width`` characters; beyond ``most`` lines cut with '...'."""
+    lines = textwrap.wrap(text, width)
+    return lines if len(lines) <= most else lines[:most - 1] + [lines[most - 1][:width - 4] + " ..."]
+
+
+def _top(lines: list, height_in: float) -> float:
+    """The axes' top (figure fraction) below a suptitle of ``lines`` at 10 pt on a figure
+    ``height_in`` inches high, leaving room for the views' own titles."""
+    return 1.0 - (len(lines) * 10 * 1.25 / 72 + 0.45) / height_in
+
+
+def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *, title: str | None = None,
+                  verdict: str | None = None) -> Path:
     """Write a PNG of a hex mesh: its boundary quads lightly shaded (see-through) and its
     irregular interior edges drawn boldly, coloured by valence (3 blue, 5 red, ...), with a
-    legend of the counts and the mesh's figures in the title, from two opposite views.
+    legend of the counts, the verdict and the mesh's figures in the title, from two opposite views.
 
     Args:
         path_png: the file to write (atomically).
         points, hexes: the hex mesh (VTK order).
         quality: its :func:`~torchconn.hexmesh.quality.hex_quality` (computed when ``None``).
         title: a first title line (e.g. the model's name).
+        verdict: the verdict line (a run's :func:`~torchconn.hexmesh.report.verdict` ``text``, which
+            judges the map too); default: the verdict of ``quality`` alone.
 
     Large meshes stay readable: beyond :data:`PLOT_QUAD_OUTLINES_MAX` boundary quads the quads
     are drawn without outlines, beyond :data:`PLOT_MAX_QUADS` quads and
@@ -398,12 +418,18 @@ def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *,
         handles = [Line2D([], [], color="none", label="no irregular interior edge")]
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), frameon=False, fontsize=10,
                title="irregular (singular) interior edges, by the number of hexes around them")
-    head = f"{title}\n" if title else ""
-    sj = f"scaled Jacobian min {q.sj_min:.3f} / mean {q.sj_mean:.3f}" if q.n_hexes else "no hexes"
-    verdict = "valid" if q.valid else f"invalid ({len(q.invalid_reasons)} reasons)"
-    fig.suptitle(f"{head}{q.n_hexes} hexes, {Q} boundary quads, {verdict}; {sj}\n"
-                 f"irregular interior edges: {q.n_irregular_interior_edges} of {q.n_interior_edges} "
-                 f"({q.irregular_fraction:.1%})", fontsize=11)
+    if verdict is None:
+        verdict = _verdict({"quality": q.as_dict()})["text"]
+    figures = [f"{q.n_hexes} hexes, {Q} boundary quads"]
+    if q.n_hexes:
+        figures.append(f"scaled Jacobian min {q.sj_min:.3f} / mean {q.sj_mean:.3f}")
+    if q.n_interior_edges:
+        figures.append(f"irregular interior edges {q.n_irregular_interior_edges} of {q.n_interior_edges} "
+                       f"({q.irregular_fraction:.1%})")
+    if q.hausdorff_rel is not None:
+        figures.append(f"Hausdorff {q.hausdorff_rel:.2%} of the diagonal, volume ratio {q.volume_ratio:.3f}")
+    lines = ([title] if title else []) + _wrapped(verdict) + ["; ".join(figures)]
+    fig.suptitle("\n".join(lines), fontsize=10)
     notes = []
     if q_stride > 1:
         notes.append(f"1 in {q_stride} boundary quads drawn")
@@ -411,5 +437,124 @@ def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *,
         notes.append(f"1 in {e_stride} irregular edges drawn")
     if notes:
         fig.text(0.99, 0.01, "; ".join(notes), ha="right", va="bottom", fontsize=8, color="0.3")
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.1, top=0.86, wspace=0.0)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.1, top=_top(lines, 6.8), wspace=0.0)
+    return _atomic(path_png, lambda tmp: fig.savefig(tmp, format="png"))
+
+
+# ----------------------------------------------------------------------------- an invalid map
+def write_failure_vtu(path, mesh, igm, extraction=None) -> Path:
+    """A VTU of the input tets with their :func:`tet_flags` and the map's singular graph.
+
+    Points: ``igm.mesh.vertices`` (the input's vertices first, in their order, then the
+    midpoints of the edges the map split). Cells: the input's tets (``tetra``), cell data per
+    flag of :data:`FLAGS` (how many of the tet's sub-tets carry it) and ``flags`` (the bits);
+    then the singular edges of the map's mesh (``line``) with ``edge_type`` (1 quarter turn,
+    2 half turn, 3 complex), ``valence`` (3, 5; 0 for a half turn, -1 complex) and ``meshable``;
+    tet data is -1 on lines and line data -1 on tets. Written atomically.
+    """
+    import meshio
+
+    fl = tet_flags(igm, extraction, mesh.n_tets)
+    X = igm.mesh.vertices.detach().cpu().double().numpy()
+    tets = mesh.tets.cpu().numpy().astype(np.int64)
+    lines, ldata = singular_lines(igm)
+    T, S = tets.shape[0], lines.shape[0]
+    cells = [("tetra", tets)] + ([("line", lines)] if S else [])
+
+    def pair(tet_values, line_values):
+        return [tet_values] + ([line_values] if S else [])
+
+    data = {k: pair(v, np.full(S, -1, np.int32)) for k, v in fl["input"].items()}
+    data["flags"] = pair(fl["flags_input"], np.full(S, -1, np.int32))
+    data.update({k: pair(np.full(T, -1, np.int32), v) for k, v in ldata.items()})
+    m = meshio.Mesh(X, cells, cell_data=data)
+    return _atomic(path, lambda tmp: meshio.write(str(tmp), m, file_format="vtu"))
+
+
+_FLAG_COLOURS = {"inverted": "magenta", "degenerate": "darkorange", "unmeshable_singular_edge": "purple",
+                 "oversized": "0.45", "cubes_dropped": "gold"}
+_EDGE_COLOURS = {3: "tab:blue", 5: "tab:red", 0: "tab:green", -1: "black"}  # valence; 0 half turn, -1 complex
+_EDGE_WORDS = {3: "valence 3", 5: "valence 5", 0: "half turn", -1: "complex"}
+_PLOT_MAX_POINTS = 20_000
+
+
+def plot_failure(path_png, mesh, igm, extraction=None, *, verdict_text: str = "", title: str | None = None,
+                 where_xyz: dict | None = None) -> Path:
+    """A PNG of where a map fails, from two opposite views: the input's boundary (translucent),
+    its boundary faces coloured by the flags of their tet, the barycenters of flagged interior
+    tets as dots, the map's singular edges coloured by type (valence 3 blue, 5 red, half turn
+    green, complex black), and ``where_xyz`` (:attr:`~.validity.MapValidity.where_xyz`: the first
+    elements of each failing check) as crosses; the legend counts the flagged input tets and the
+    subtitle is ``verdict_text``. matplotlib's Agg canvas; written atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+
+    fl = tet_flags(igm, extraction, mesh.n_tets)
+    X = mesh.vertices.detach().cpu().double().numpy()
+    bf = mesh.boundary_faces.cpu().numpy().astype(np.int64)
+    ft = mesh.face_tets.cpu().numpy()[mesh.boundary_face_index.cpu().numpy()]
+    btet = np.where(ft[:, 0] >= 0, ft[:, 0], ft[:, 1])
+    flags_in = fl["input"]
+    first_flag = np.full(mesh.n_tets, -1)  # the first flag of FLAGS a tet carries (its colour)
+    for i, k in reversed(list(enumerate(FLAGS))):
+        first_flag[flags_in[k] > 0] = i
+    names = list(FLAGS)
+    bary = mesh.tet_barycenters.detach().cpu().double().numpy()
+    interior = np.ones(mesh.n_tets, bool)
+    interior[btet] = False
+    lines, ldata = singular_lines(igm)
+    Xm = igm.mesh.vertices.detach().cpu().double().numpy()
+    lo, hi = X.min(0), X.max(0)
+    span = np.maximum(hi - lo, 1e-12 * max(float(np.max(hi - lo)), 1.0))
+
+    fig = Figure(figsize=(13, 7.2), dpi=110)
+    FigureCanvasAgg(fig)
+    fi, _ = _subsample(bf.shape[0], PLOT_MAX_QUADS)
+    tri = X[bf[fi]]
+    col = np.tile([0.80, 0.82, 0.86, 0.10], (fi.size, 1))
+    flagged = first_flag[btet[fi]] >= 0
+    if flagged.any():
+        from matplotlib.colors import to_rgba
+
+        col[flagged] = [to_rgba(_FLAG_COLOURS[names[j]], 0.85) for j in first_flag[btet[fi]][flagged]]
+    for k, azim in enumerate((-60.0, 120.0)):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(tri, facecolors=col, edgecolors="none"))
+        for j, name in enumerate(names):
+            sel = np.nonzero(interior & (first_flag == j))[0]
+            if sel.size:
+                sel = sel[_subsample(sel.size, _PLOT_MAX_POINTS)[0]]
+                ax.scatter(*bary[sel].T, s=6, color=_FLAG_COLOURS[name], depthshade=False)
+        for v, c in _EDGE_COLOURS.items():
+            sel = ldata["valence"] == v
+            if sel.any():
+                ax.add_collection3d(Line3DCollection(Xm[lines[sel]], colors=c, linewidths=2.0))
+        for pts in (where_xyz or {}).values():
+            P = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+            ax.scatter(*P.T, marker="x", s=60, color="crimson", depthshade=False)
+        ax.set_xlim(lo[0], lo[0] + span[0])
+        ax.set_ylim(lo[1], lo[1] + span[1])
+        ax.set_zlim(lo[2], lo[2] + span[2])
+        ax.set_box_aspect(tuple(span / span.max()))
+        ax.view_init(elev=25.0, azim=azim)
+        ax.set_axis_off()
+        ax.set_title(f"view from azimuth {azim:g}°", fontsize=9)
+    handles = [Line2D([], [], color=_FLAG_COLOURS[k], marker="s", lw=0, markersize=9,
+                      label=f"{int((flags_in[k] > 0).sum())} tets {FLAGS[k][1]}") for k in names if (flags_in[k] > 0).any()]
+    handles += [Line2D([], [], color=c, lw=3, label=f"{int((ldata['valence'] == v).sum())} singular edges, "
+                                                     f"{_EDGE_WORDS[v]}")
+                for v, c in _EDGE_COLOURS.items() if (ldata["valence"] == v).any()]
+    if where_xyz:
+        handles.append(Line2D([], [], color="crimson", marker="x", lw=0, markersize=9,
+                              label="first elements of each failing check"))
+    if not handles:
+        handles = [Line2D([], [], color="none", label="no tet flagged, no singular edge")]
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), frameon=False, fontsize=9,
+               title=f"input tets ({mesh.n_tets}) by what fails there (the map lives on {igm.mesh.n_tets} tets: "
+                     f"the input refined by its edge splits)", title_fontsize=9)
+    lines = ([title] if title else []) + _wrapped(verdict_text)
+    fig.suptitle("\n".join(lines), fontsize=10)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.16, top=_top(lines, 7.2), wspace=0.0)
     return _atomic(path_png, lambda tmp: fig.savefig(tmp, format="png"))

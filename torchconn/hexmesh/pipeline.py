@@ -11,12 +11,14 @@
 """
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .extract import extract_hexes
 from .igm import IntegerGridMap, integer_grid_map
 from .validity import MapValidity, check_map
 
@@ -25,6 +27,9 @@ __all__ = ["HexMeshResult", "hex_mesh", "MAP_OPTIONS"]
 MAP_OPTIONS = ("edge_length", "straighten", "straighten_boundary", "touch_rounds", "split", "features", "feature_max_deg", "batch_error",
                "stiffening_iters", "stiffening_factor", "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
+#: The extraction's lattice-point limit per tet (``extract_hexes``' default, which
+#: :func:`hex_mesh` uses): a map whose tets exceed it has an edge length too small for the mesh.
+_EXTRACT_MAX_TET_POINTS = inspect.signature(extract_hexes).parameters["max_tet_points"].default
 
 
 @dataclass
@@ -43,6 +48,8 @@ class HexMeshResult:
         meshability: the :class:`~.meshability.Meshability` report of the singular graph the
             map saw (after the straightening search and the splits): LMFF's local conditions.
         timings: seconds per step (``map``, ``validity``, ``extract``, ``quality``, ``total``).
+        input_mesh: the ``TetMesh`` that was given (float64, CPU); ``map.parent_tet`` maps the
+            map's tets to its tets.
     """
 
     map: IntegerGridMap
@@ -51,6 +58,7 @@ class HexMeshResult:
     quality: object | None = None
     timings: dict = field(default_factory=dict)
     meshability: object | None = None
+    input_mesh: object | None = None
 
     @property
     def points(self) -> np.ndarray:
@@ -64,25 +72,41 @@ class HexMeshResult:
 
     @property
     def good(self) -> bool:
-        """A valid map and a good hex mesh (:attr:`HexQuality.good`)."""
-        return bool(self.validity.valid and self.quality is not None and self.quality.good)
+        """The verdict's ``good`` (:func:`~.report.verdict`): a valid map and a good hex mesh
+        (:attr:`HexQuality.good`: valid, irregular edges, Hausdorff distance, volume ratio)."""
+        return self.verdict()["good"]
+
+    def verdict(self) -> dict:
+        """:func:`~.report.verdict` of :meth:`metrics`: ``good``, ``status`` (``"good"``,
+        ``"not good"``, ``"no hex mesh"``, ``"not judged"``), ``reasons`` and ``text``."""
+        return self.metrics()["verdict"]
 
     def metrics(self) -> dict:
-        """JSON-ready summary: map figures and validity, extraction counts, hex quality, timings."""
+        """JSON-ready summary: map figures and validity, extraction counts, hex quality, timings,
+        and the one ``verdict`` (:func:`~.report.verdict`; ``good`` is its ``good``). Figures that
+        do not exist are ``None`` (``quality`` without hexes)."""
+        from .report import map_figures, verdict
+
         m = self.map
         stats = {k: v for k, v in m.stats.items() if k != "timings"}
+        ext = None
+        if self.extraction is not None:
+            ext = {**self.extraction.counts(), "max_tet_points": _EXTRACT_MAX_TET_POINTS}
         out = {
-            "good": self.good,
+            "good": False,
+            "verdict": None,
             "map": {"valid": self.validity.valid, "reasons": list(self.validity.reasons),
                     "checks": dict(self.validity.counts), "where": self.validity.where,
                     "edge_length": m.edge_length, "energy": m.energy, "energy_continuous": m.energy_continuous,
                     "tets": int(m.mesh.n_tets), "vertices": int(m.mesh.n_vertices),
-                    "singular_graph": m.charts.counts(), **stats},
+                    "singular_graph": m.charts.counts(), **map_figures(m, self.input_mesh), **stats},
             "meshability": self.meshability.counts() if self.meshability is not None else None,
-            "extraction": self.extraction.counts() if self.extraction is not None else None,
+            "extraction": ext,
             "quality": self.quality.as_dict() if self.quality is not None else None,
             "timings": {**{f"map_{k}": v for k, v in m.stats.get("timings", {}).items()}, **self.timings},
         }
+        out["verdict"] = verdict(out)
+        out["good"] = out["verdict"]["good"]
         return out
 
 
@@ -94,21 +118,26 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
         mesh: a ``TetMesh`` or a path that :func:`torchconn.io.load_mesh` reads (a tet mesh, a
             CAD file or a HexMe parameter file; CAD tags are kept).
         frames: a :class:`~torchconn.frames.design.FrameFieldResult` on ``mesh``, or frames
-            ``(V, 3, 3)`` per vertex or ``(T, 3, 3)`` per tet.
+            ``(V, 3, 3)`` per vertex or ``(T, 3, 3)`` per tet (rotations: axes as columns).
         extract: extract the hexes (also from an invalid map, where it allows).
         untangle: move the interior hex vertices to raise the worst scaled Jacobian
             (:func:`~.smooth.untangle`; boundary vertices fixed, kept only if it helps).
         quality: judge the hex mesh (:func:`~.quality.hex_quality`) against ``mesh``.
         progress: progress bars on the rounding and the extraction.
         **map_options: :data:`MAP_OPTIONS`, passed to :func:`~.igm.integer_grid_map`
-            (``edge_length`` defaults to the mean edge length of ``mesh``).
+            (``edge_length``, the hex edge length ``h``, defaults to
+            :func:`~.seamless.default_edge_length`: half the mean edge length of ``mesh``).
 
     Returns:
         :class:`HexMeshResult`. An invalid map is a result (``validity.valid`` false, with its
-        reasons), not an error.
+        reasons), not an error; so is a map without hexes (``result.verdict()`` says why: the
+        map, an edge length too small or too large for the mesh, every cube dropped).
 
     Raises:
-        ValueError: unknown options, frames that do not fit the mesh, a non-positive edge length.
+        ValueError: unknown options, frames that do not fit the mesh (the expected and given
+            shape; non-finite entries; not rotations, how many and of which kind, e.g.
+            reflections), a non-positive edge length, or one so small that the parameters
+            reach ``2**30`` edge lengths.
     """
     unknown = set(map_options) - set(MAP_OPTIONS)
     if unknown:
@@ -160,4 +189,4 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
             timings["quality_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_all
     return HexMeshResult(map=igm, validity=validity, extraction=ext, quality=hq, timings=timings,
-                         meshability=mesh_report)
+                         meshability=mesh_report, input_mesh=mesh)

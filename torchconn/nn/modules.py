@@ -2,7 +2,9 @@
 
 Each module is built once from a mesh; the mesh's integer topology (and its vertex positions)
 are registered as *buffers*, so ``module.to(device)`` / ``module.double()`` move them and the
-forward pass never recomputes topology. ``forward`` takes the connection as
+forward pass never recomputes topology. Given a :class:`MeshBuffers` instead of a mesh, a module
+shares it (several modules on one mesh then hold one copy of its topology, and the per-mesh
+kernel tables are built once for all of them). ``forward`` takes the connection as
 
 * a :class:`~torchconn.dec.connection.Connection` (its ``edge_rot`` is used),
 * a :class:`~torchconn.nn.ConnectionField` (called to get the connection — gradients
@@ -113,6 +115,12 @@ class MeshBuffers(nn.Module):
         for name, t in mesh.buffers().items():
             self.register_buffer(name, t.clone())
 
+    @classmethod
+    def of(cls, mesh: Any) -> "MeshBuffers":
+        """``mesh`` itself when it is a ``MeshBuffers`` (shared: modules built on it hold one copy
+        of the topology and one set of kernel tables), else ``MeshBuffers(mesh)``."""
+        return mesh if isinstance(mesh, cls) else cls(mesh)
+
     @property
     def face_groups(self) -> dict[int, FaceGroup]:
         """Face groups of a cell complex rebuilt from the buffers (no copy)."""
@@ -130,6 +138,11 @@ class MeshBuffers(nn.Module):
 
     def extra_repr(self) -> str:
         return f"kind={self.kind}, V={self.n_vertices}, E={self.n_edges}"
+
+
+def _is_tet_mesh(mesh: Any) -> bool:
+    """A ``TetMesh`` or the :class:`MeshBuffers` of one."""
+    return isinstance(mesh, TetMesh) or (isinstance(mesh, MeshBuffers) and mesh.kind == TetMesh.kind)
 
 
 def _rotations(connection: Any, mesh: MeshBuffers, who: str, n3: bool = False) -> torch.Tensor:
@@ -186,7 +199,7 @@ class Curvature(nn.Module):
         super().__init__()
         if kind not in ("two_prong", "holonomy"):
             raise ValueError(f"Curvature: kind must be 'two_prong' or 'holonomy', got {kind!r}")
-        self.mesh = MeshBuffers(mesh)
+        self.mesh = MeshBuffers.of(mesh)
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any) -> torch.Tensor:
@@ -225,7 +238,7 @@ class Torsion(nn.Module):
         super().__init__()
         if kind not in ("sqrt", "naive"):
             raise ValueError(f"Torsion: kind must be 'sqrt' or 'naive', got {kind!r}")
-        self.mesh = MeshBuffers(mesh)
+        self.mesh = MeshBuffers.of(mesh)
         self.kind, self.cut = kind, cut
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
@@ -269,9 +282,9 @@ class CovariantD(nn.Module):
         super().__init__()
         if variant not in self._FUNCS:
             raise ValueError(f"CovariantD: variant must be one of {sorted(self._FUNCS)}, got {variant!r}")
-        if not isinstance(mesh, TetMesh):
+        if not _is_tet_mesh(mesh):
             raise TypeError(f"CovariantD needs a TetMesh, got {type(mesh).__name__}")
-        self.mesh = MeshBuffers(mesh)
+        self.mesh = MeshBuffers.of(mesh)
         self.variant = variant
 
     def forward(self, connection: Any, frames: torch.Tensor | None = None) -> torch.Tensor:
@@ -334,9 +347,9 @@ class BianchiCheck(nn.Module):
 
     def __init__(self, mesh: Any, atol: float | None = None):
         super().__init__()
-        if not isinstance(mesh, TetMesh):
+        if not _is_tet_mesh(mesh):
             raise TypeError(f"BianchiCheck needs a TetMesh, got {type(mesh).__name__}")
-        self.mesh = MeshBuffers(mesh)
+        self.mesh = MeshBuffers.of(mesh)
         self.atol = atol
 
     @torch.compiler.disable(reason=_bianchi._compile_reason("BianchiCheck"))

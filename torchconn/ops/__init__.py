@@ -13,12 +13,13 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
 * :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
 * :mod:`.tet`: ``tet_dd``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (``csrc/tet.c``; generic SoA
   kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
-* :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot``, the same with ``θ̃`` (and ``√R``) formed
-  inside the kernel, and ``tet_dd_solder``, the mesh-level entry point;
-* :mod:`.frame_loss`: ``frame_loss``, the frame-field loss sweep (``csrc/frame_loss.c``;
-  generic terms in ``_frame_loss_torch``);
-* :mod:`.edge_terms`: ``matched_edge_terms``, the angle + Dirichlet objective of the frame-field
-  quality paths with fixed matchings (``csrc/edge_terms.c``).
+* :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot`` / ``tet_dd_frames``, the same with ``θ̃`` (and
+  ``√R``, or the solder form in a frame field) formed inside the kernel, and ``tet_dd_solder``, the
+  mesh-level entry point.
+
+The ops that only the frame-field method uses (``frame_loss``, ``matched_edge_terms``) are
+declared the same way in :mod:`torchconn.frames.kernels`, with their C sources there
+(:func:`.native.register_source`).
 
 :mod:`.backend` holds the one global switch for the compiled kernels (:func:`compiled_enabled`,
 :func:`set_compiled`, the context manager :func:`compiled`; initialized from the environment
@@ -30,7 +31,7 @@ module keep mesh objects out of the ops (index tables built once per mesh are op
 some return ``None`` where they do not apply, and their caller evaluates its generic formula.
 This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
 """
-from . import backend, curvature, edge_terms, frame_loss, native, so3, tet, tet_solder, torsion
+from . import backend, curvature, native, so3, tet, tet_solder, torsion
 from .backend import can_use_compiled, compiled, compiled_enabled, set_compiled
 
 __all__ = [
@@ -41,8 +42,6 @@ __all__ = [
     "torsion",
     "tet",
     "tet_solder",
-    "frame_loss",
-    "edge_terms",
     "compiled_enabled",
     "set_compiled",
     "compiled",

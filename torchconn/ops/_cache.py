@@ -23,7 +23,7 @@ import torch
 
 from .backend import _plain
 
-__all__ = ["require", "traced_constant", "edge_ends", "edge_vectors"]
+__all__ = ["require", "traced_constant", "edge_ends", "edge_index", "edge_vectors"]
 
 _FALLBACK: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
 
@@ -86,6 +86,14 @@ def edge_ends(mesh, device) -> tuple[torch.Tensor, torch.Tensor]:
     dev = torch.device(device)
     return require(mesh, f"ops.edge_ends.{dev}",
                    lambda m: tuple(m.edges[:, k].to(dev).contiguous() for k in (0, 1)))
+
+
+@traced_constant
+def edge_index(mesh, device) -> torch.Tensor:
+    """``mesh.edges`` as a contiguous ``(E, 2)`` int64 tensor on ``device`` (built once per mesh and
+    device): the edge table a C kernel reads."""
+    dev = torch.device(device)
+    return require(mesh, f"ops.edge_index.{dev}", lambda m: m.edges.to(dev, torch.int64).contiguous())
 
 
 def edge_vectors(mesh, device, dtype):

@@ -46,10 +46,12 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["library", "declare", "CFunction", "ptr", "empty", "CSRC"]
+__all__ = ["library", "declare", "register_source", "CFunction", "ptr", "empty", "CSRC"]
 
-#: Folder of the C sources.
+#: Folder of the C sources (of the core kernels; and of ``pool.c``, which every kernel includes).
 CSRC = Path(__file__).resolve().parent / "csrc"
+#: Kernel libraries whose source lies outside :data:`CSRC` (:func:`register_source`): name -> file.
+_SOURCES: dict[str, Path] = {}
 _BASE_FLAGS = ["-O3", "-fopenmp-simd", "-pthread", "-fPIC", "-shared", "-std=c99", "-fno-math-errno",
                "-ffp-contract=off"]
 _LOCK = threading.RLock()  # library() of a kernel loads the pool library inside it
@@ -93,20 +95,41 @@ def _cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "torchconn"
 
 
+def register_source(name: str, path: Path) -> None:
+    """Build the kernel library ``name`` from the C file ``path`` (a kernel package outside ``ops/``,
+    e.g. the frame-field kernels of :mod:`torchconn.frames.kernels`).
+
+    The file is compiled like the sources of :data:`CSRC`, with :data:`CSRC` on the include path
+    (``#include "pool.c"`` finds the thread pool); the cache key covers the file and what it
+    includes. Registering another file under a name already taken raises ``ValueError``.
+    Nothing is built here (the library is built at its first use, :func:`library`).
+    """
+    path = Path(path).resolve()
+    if (CSRC / f"{name}.c").exists() or _SOURCES.get(name, path) != path:
+        raise ValueError(f"torchconn.ops.native: the kernel library name {name!r} is taken "
+                         f"({_SOURCES.get(name, CSRC / f'{name}.c')})")
+    _SOURCES[name] = path
+
+
+def _source(name: str) -> Path:
+    """The C file of the kernel library ``name``."""
+    return _SOURCES.get(name, CSRC / f"{name}.c")
+
+
 def _warn_once(name: str, msg: str) -> None:
     if name not in _WARNED:
         _WARNED.add(name)
-        warnings.warn(f"torchconn.ops.native: csrc/{name}.c: {msg}; using the torch kernels", RuntimeWarning,
-                      stacklevel=3)
+        warnings.warn(f"torchconn.ops.native: {_source(name).parent.name}/{name}.c: {msg}; using the torch kernels",
+                      RuntimeWarning, stacklevel=3)
 
 
 _QUOTED_INCLUDE = re.compile(rb'^\s*#\s*include\s+"([^"]+)"', re.M)
 
 
 def _source_bytes(src: Path) -> bytes:
-    """``src`` and, recursively, every file it includes with ``#include "..."`` (next to it),
-    each once: the cache key then covers code one kernel file takes from another (``tet.c``
-    includes the element kernels of ``so3.c``)."""
+    """``src`` and, recursively, every file it includes with ``#include "..."`` (next to it, else
+    in :data:`CSRC`, the compiler's include path), each once: the cache key then covers code one
+    kernel file takes from another (``tet.c`` includes the element kernels of ``so3.c``)."""
     seen: list[Path] = []
 
     def visit(path: Path) -> None:
@@ -114,14 +137,15 @@ def _source_bytes(src: Path) -> bytes:
             return
         seen.append(path)
         for inc in _QUOTED_INCLUDE.findall(path.read_bytes()):
-            visit((path.parent / inc.decode()).resolve())
+            near = (path.parent / inc.decode()).resolve()
+            visit(near if near.exists() else (CSRC / inc.decode()).resolve())
 
     visit(src.resolve())
     return b"".join(p.name.encode() + b"\0" + p.read_bytes() for p in seen)
 
 
 def _build(name: str) -> ctypes.CDLL | None:
-    src = CSRC / f"{name}.c"
+    src = _source(name)
     cc = _compiler()
     if cc is None:
         cc_env = os.environ.get("CC", "").strip()
@@ -138,7 +162,8 @@ def _build(name: str) -> ctypes.CDLL | None:
             out_dir.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
             os.close(fd)
-            proc = subprocess.run([cc, *flags, str(src), "-o", tmp, "-lm"], capture_output=True, text=True)
+            proc = subprocess.run([cc, *flags, f"-I{CSRC}", str(src), "-o", tmp, "-lm"], capture_output=True,
+                                  text=True)
             if proc.returncode != 0:
                 os.unlink(tmp)
                 _warn_once(name, f"building {src.name} failed ({cc} exit {proc.returncode}): "
@@ -156,7 +181,8 @@ def _build(name: str) -> ctypes.CDLL | None:
 
 
 def library(name: str) -> ctypes.CDLL | None:
-    """The compiled ``csrc/<name>.c`` (built on first use, cached), or ``None`` (see module doc).
+    """The compiled ``csrc/<name>.c`` (or the file :func:`register_source` gave for ``name``; built
+    on first use, cached), or ``None`` (see module doc).
 
     A kernel library that includes the client part of ``pool.c`` gets the thread pool
     (``library("pool")``) when it is loaded; without it (the pool failed to build) its loops
@@ -179,13 +205,13 @@ def function(name: str, symbol: str, argtypes: list, restype=None):
     :class:`CFunction` resolves on its first call).
 
     Not public API (not in ``__all__``): op modules declare their symbols once with
-    :func:`declare`; this stays only for callers not migrated yet (``ops/frame_loss.py``).
+    :func:`declare`; the tests call this to reach a C function directly.
     With ``argtypes`` set, ctypes checks the number and kinds of the arguments of every call.
     The library must be available (see :func:`library`).
     """
     lib = library(name)
     if lib is None:
-        raise RuntimeError(f"torchconn.ops.native: csrc/{name}.c is not available (see the warning above)")
+        raise RuntimeError(f"torchconn.ops.native: {_source(name)} is not available (see the warning above)")
     fn = getattr(lib, symbol)
     fn.argtypes, fn.restype = argtypes, restype
     return fn

@@ -331,21 +331,22 @@ _tet_dd_op.register_vmap(leading_vmap(_tet_dd_op, "tet_dd", batched=(0, 1)))
 _tet_dd_backward_op.register_vmap(leading_vmap(_tet_dd_backward_op, "tet_dd_backward", batched=(0, 1, 2), n_out=2))
 
 
-def _func_wrapper(op, bwd_op, generic_fwd, n_diff: int):
-    """``op`` (a tet op: ``n_diff`` differentiable inputs, then the five tables of
-    :meth:`TetKernel.tables`) through ``autograd.Function`` s with ``setup_context``, for eager
-    calls and the ``torch.func`` transforms (module doc).
+def _func_wrapper(op, bwd_op, generic_fwd, n_diff: int, n_extra: int = 0):
+    """``op`` (a tet op: ``n_diff`` differentiable inputs, ``n_extra`` non-differentiable ones, then
+    the five tables of :meth:`TetKernel.tables`) through ``autograd.Function`` s with
+    ``setup_context``, for eager calls and the ``torch.func`` transforms (module doc).
 
-    Forward is ``op``, backward ``bwd_op`` (``(*inputs, grad, *tables)`` -> the ``n_diff``
+    Forward is ``op``, backward ``bwd_op`` (``(*inputs, grad, *extra, *tables)`` -> the ``n_diff``
     gradients; C on the CPU); the backward's own backward and both ``jvp`` are ``torch.func``
-    of ``generic_fwd(*inputs, rot_index, theta_index)``, the generic torch formula, so higher
+    of ``generic_fwd(*inputs, *extra, rot_index, theta_index)``, the generic torch formula, so higher
     derivatives are exact on every path. ``generate_vmap_rule``: under ``vmap`` the ops' own
-    vmap rules run. Returns ``call(*inputs, *tables)``: the op itself while ``torch.compile``
+    vmap rules run. Returns ``call(*inputs, *extra, *tables)``: the op itself while ``torch.compile``
     traces."""
+    n_rest = n_extra + 5
 
-    def vjp_generic(*args):  # (*inputs, grad, rot_index, theta_index) -> n_diff gradients
-        *xs, g, ri, ti = args
-        return torch.func.vjp(lambda *d: generic_fwd(*d, ri, ti), *xs)[1](g)
+    def vjp_generic(*args):  # (*inputs, grad, *extra, rot_index, theta_index) -> n_diff gradients
+        xs, g, extra, (ri, ti) = args[:n_diff], args[n_diff], args[n_diff + 1:n_diff + 1 + n_extra], args[-2:]
+        return torch.func.vjp(lambda *d: generic_fwd(*d, *extra, ri, ti), *xs)[1](g)
 
     class Backward(torch.autograd.Function):
         generate_vmap_rule = True
@@ -358,14 +359,14 @@ def _func_wrapper(op, bwd_op, generic_fwd, n_diff: int):
         def setup_context(ctx, inputs, output):
             ctx.save_for_backward(*inputs[:n_diff + 1])
             ctx.save_for_forward(*inputs[:n_diff + 1])
-            ctx.tables = inputs[n_diff + 1:n_diff + 3]
+            ctx.tables = inputs[n_diff + 1:n_diff + 3 + n_extra]  # the extra inputs, rot_index, theta_index
 
         @staticmethod
         def backward(ctx, *gg):
             xs = ctx.saved_tensors
             gg = tuple(torch.zeros_like(x) if g is None else g for g, x in zip(gg, xs))
             res = torch.func.vjp(lambda *a: vjp_generic(*a, *ctx.tables), *xs)[1](gg)
-            return (*res, None, None, None, None, None)
+            return (*res, *([None] * n_rest))
 
         @staticmethod
         def jvp(ctx, *tangents):
@@ -388,12 +389,12 @@ def _func_wrapper(op, bwd_op, generic_fwd, n_diff: int):
         @staticmethod
         def backward(ctx, grad):
             gs = Backward.apply(*ctx.saved_tensors, grad.contiguous(), *ctx.tables)
-            return (*(g if n else None for g, n in zip(gs, ctx.needs_input_grad)), None, None, None, None, None)
+            return (*(g if n else None for g, n in zip(gs, ctx.needs_input_grad)), *([None] * n_rest))
 
         @staticmethod
         def jvp(ctx, *tangents):
-            ri, ti = ctx.tables[:2]
-            return _library_jvp(lambda *d: generic_fwd(*d, ri, ti), ctx.saved_tensors, tangents[:n_diff])
+            extra, (ri, ti) = ctx.tables[:n_extra], ctx.tables[n_extra:n_extra + 2]
+            return _library_jvp(lambda *d: generic_fwd(*d, *extra, ri, ti), ctx.saved_tensors, tangents[:n_diff])
 
     def call(*args):
         return op(*args) if torch.compiler.is_compiling() else Fn.apply(*args)

@@ -40,7 +40,11 @@
  *   int tet_ddr_fwd_SUF(rot, vec, ridx, tidx, out, nb, E, T, threads, eps)
  *   int tet_ddr_bwd_SUF(rot, vec, gin, ridx, tidx, order, chunk_start, color_start, n_colors,
  *                       grot, gvec, nb, E, T, threads, eps)
- * (tet_ddr_*: √R formed in the kernel as well, eps the so3 small-angle threshold)
+ *   int tet_ddf_fwd_SUF(rot, frames, vec, edges, ridx, tidx, out, nb, E, V, T, threads, eps)
+ *   int tet_ddf_bwd_SUF(rot, frames, vec, edges, gin, ridx, tidx, order, chunk_start, color_start,
+ *                       n_colors, grot, gframes, gvec, nb, E, V, T, threads, eps)
+ * (tet_ddr_*: √R formed in the kernel as well, eps the so3 small-angle threshold; tet_ddf_*: the
+ * solder form in a frame field, θ̃'_ij = F_i^T √(F_i R F_j^T) v, formed in the kernel)
  * (the √R variants return 0, or -1 when their scratch cannot be mapped; in tet_dds_bwd the θ̃
  * of pass 1 live in ghalf (its first 6E entries per item) until the last pass overwrites it).
  */
@@ -684,6 +688,229 @@ int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *
         FN(args_t) c = {.rot = rot + bi * 9 * E, .vec = vec, .gth = gth + bi * 6 * E,
                         .grot = grot + bi * 9 * E, .gvec = gvec + bi * 3 * E, .E = E, .eps2 = eps2};
         tc_parallel(tc_tasks(nblk, TET_TASK_SO3), E >= TET_PAR_MIN ? threads : 1, FN(ddr_grad_task), &c);
+    }
+    munmap(theta, bytes ? bytes : 1);
+    return 0;
+}
+
+/* ---- the solder form in a frame field (tet_ddf_*): with frames F (nb, V, 9) (axes as columns) and
+ * A_e = F_i R_e F_j^T the ambient transport of edge e = (i, j), H = √A_e (so3.c's root, every
+ * angle: relabeled frames make A_e a quarter or half turn), θ̃'_ij = F_i^T H v_e (dir 0) and
+ * θ̃'_ji = -F_j^T H^T v_e (dir 1) (torchconn.dec.dnabla.tet_solder_sqrt with frames); R itself
+ * enters the tet formula. Backward: ∂L/∂R, ∂L/∂F (nb, V, 9) and ∂L/∂v (nb, E, 3) per item; the
+ * frame gradients of an edge stripe go to a buffer of their own (stripe 0: the output), summed in
+ * stripe order (no atomics; a fixed order for a fixed thread count) */
+
+/* A = F_i R F_j^T of edge e into lane j of the component-major block */
+static inline void FN(ambient)(SO3FN(blk_t) *A, int j, const T_ *R, const T_ *Fi, const T_ *Fj)
+{
+    T_ FR[9];
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            FR[3 * r + c] = Fi[3 * r] * R[c] + Fi[3 * r + 1] * R[3 + c] + Fi[3 * r + 2] * R[6 + c];
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            A[3 * r + c][j] = FR[3 * r] * Fj[3 * c] + FR[3 * r + 1] * Fj[3 * c + 1] + FR[3 * r + 2] * Fj[3 * c + 2];
+}
+
+typedef struct {
+    const T_ *rot, *fr, *vec, *gth;
+    const int64_t *edges;
+    T_ *out, *grot, *gvec;
+    T_ *gfr[64];
+    int64_t E, V, nblk;
+    int nt;
+    T_ eps2;
+} FN(fr_t);
+
+/* θ̃' (E, 2, 3) of every edge; task: TET_TASK_SO3 blocks of SO3_B edges */
+static void FN(theta_frames_task)(void *vc, long task)
+{
+    const FN(fr_t) *c = (const FN(fr_t) *)vc;
+    const int64_t E = c->E;
+    const int64_t w1 = (task + 1) * TET_TASK_SO3 < c->nblk ? (task + 1) * TET_TASK_SO3 : c->nblk;
+    for (int64_t w = task * TET_TASK_SO3; w < w1; w++) {
+        SO3FN(blk_t) A[9], O[9];
+        const int64_t e0 = w * SO3_B;
+        const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+        for (int j = 0; j < m; j++) {
+            const int64_t e = e0 + j;
+            FN(ambient)(A, j, c->rot + 9 * e, c->fr + 9 * c->edges[2 * e], c->fr + 9 * c->edges[2 * e + 1]);
+        }
+        SO3FN(sqrt_fwd_block)(A, O, m, c->eps2);
+        for (int j = 0; j < m; j++) {
+            const int64_t e = e0 + j;
+            const T_ *v = c->vec + 3 * e, *Fi = c->fr + 9 * c->edges[2 * e], *Fj = c->fr + 9 * c->edges[2 * e + 1];
+            T_ u[3], w_[3];
+            T_ *t = c->out + 6 * e;
+            for (int i = 0; i < 3; i++) {
+                u[i] = O[3 * i][j] * v[0] + O[3 * i + 1][j] * v[1] + O[3 * i + 2][j] * v[2];  /* H v */
+                w_[i] = O[i][j] * v[0] + O[3 + i][j] * v[1] + O[6 + i][j] * v[2];             /* H^T v */
+            }
+            for (int i = 0; i < 3; i++) {
+                t[i] = Fi[i] * u[0] + Fi[3 + i] * u[1] + Fi[6 + i] * u[2];
+                t[3 + i] = -(Fj[i] * w_[0] + Fj[3 + i] * w_[1] + Fj[6 + i] * w_[2]);
+            }
+        }
+    }
+}
+
+static void FN(theta_frames)(FN(fr_t) *c, int threads)
+{
+    tc_parallel(tc_tasks(c->nblk, TET_TASK_SO3), c->E >= TET_PAR_MIN ? threads : 1, FN(theta_frames_task), c);
+}
+
+int FN(tet_ddf_fwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_t *edges, const int64_t *ridx,
+                    const int64_t *tidx, T_ *out, int64_t nb, int64_t E, int64_t V, int64_t T, int threads,
+                    double eps)
+{
+    const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
+    T_ *theta = tet_scratch(bytes);
+    if (!theta)
+        return -1;
+    for (int64_t bi = 0; bi < nb; bi++) {
+        FN(fr_t) c = {.rot = rot + bi * 9 * E, .fr = frames + bi * 9 * V, .vec = vec, .edges = edges,
+                      .out = theta + bi * 6 * E, .E = E, .V = V, .nblk = (E + SO3_B - 1) / SO3_B,
+                      .eps2 = (T_)(eps * eps)};
+        FN(theta_frames)(&c, threads);
+    }
+    FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
+    munmap(theta, bytes ? bytes : 1);
+    return 0;
+}
+
+/* stripe `task` of the edges (whole SO3_B blocks): √A again, the gradients of θ̃' into ∂L/∂H,
+ * ∂L/∂v and the frames, the root's backward, ∂L/∂R += F_i^T gA F_j; frame gradients into the
+ * stripe's buffer */
+static void FN(ddf_grad_task)(void *vc, long task)
+{
+    const FN(fr_t) *c = (const FN(fr_t) *)vc;
+    const int64_t E = c->E;
+    T_ *gF = c->gfr[task];
+    const int64_t b0 = c->nblk * task / c->nt, b1 = c->nblk * (task + 1) / c->nt;
+    if (task > 0)
+        memset(gF, 0, sizeof(T_) * 9 * (size_t)c->V);
+    for (int64_t w = b0; w < b1; w++) {
+        SO3FN(blk_t) A[9], G[9], O[9];
+        const int64_t e0 = w * SO3_B;
+        const int m = (int)(E - e0 < SO3_B ? E - e0 : SO3_B);
+        for (int j = 0; j < m; j++) {
+            const int64_t e = e0 + j;
+            FN(ambient)(A, j, c->rot + 9 * e, c->fr + 9 * c->edges[2 * e], c->fr + 9 * c->edges[2 * e + 1]);
+        }
+        SO3FN(sqrt_fwd_block)(A, O, m, c->eps2); /* H = √A */
+        for (int j = 0; j < m; j++) {
+            const int64_t e = e0 + j, i_ = c->edges[2 * e], j_ = c->edges[2 * e + 1];
+            const T_ *v = c->vec + 3 * e, *gp = c->gth + 6 * e, *gm = gp + 3;
+            const T_ *Fi = c->fr + 9 * i_, *Fj = c->fr + 9 * j_;
+            T_ *gFi = gF + 9 * i_, *gFj = gF + 9 * j_;
+            T_ u[3], w_[3], gu[3], gw[3];
+            for (int i = 0; i < 3; i++) {
+                u[i] = O[3 * i][j] * v[0] + O[3 * i + 1][j] * v[1] + O[3 * i + 2][j] * v[2];
+                w_[i] = O[i][j] * v[0] + O[3 + i][j] * v[1] + O[6 + i][j] * v[2];
+            }
+            /* θ̃'_ij = F_i^T u: dF_i += u gp^T, du = F_i gp; θ̃'_ji = -F_j^T w: dF_j -= w gm^T, dw = -F_j gm */
+            for (int i = 0; i < 3; i++) {
+                gu[i] = Fi[3 * i] * gp[0] + Fi[3 * i + 1] * gp[1] + Fi[3 * i + 2] * gp[2];
+                gw[i] = -(Fj[3 * i] * gm[0] + Fj[3 * i + 1] * gm[1] + Fj[3 * i + 2] * gm[2]);
+                for (int k = 0; k < 3; k++) {
+                    gFi[3 * i + k] += u[i] * gp[k];
+                    gFj[3 * i + k] -= w_[i] * gm[k];
+                }
+            }
+            /* u = H v: dH += gu v^T, dv += H^T gu; w = H^T v: dH += v gw^T, dv += H gw */
+            for (int i = 0; i < 3; i++)
+                for (int k = 0; k < 3; k++)
+                    G[3 * i + k][j] = gu[i] * v[k] + v[i] * gw[k];
+            for (int i = 0; i < 3; i++)
+                c->gvec[3 * e + i] = (O[i][j] * gu[0] + O[3 + i][j] * gu[1] + O[6 + i][j] * gu[2])
+                                   + (O[3 * i][j] * gw[0] + O[3 * i + 1][j] * gw[1] + O[3 * i + 2][j] * gw[2]);
+        }
+        SO3FN(sqrt_bwd_block)(A, G, O, m, c->eps2); /* O = ∂L/∂A */
+        for (int j = 0; j < m; j++) {
+            const int64_t e = e0 + j, i_ = c->edges[2 * e], j_ = c->edges[2 * e + 1];
+            const T_ *R = c->rot + 9 * e, *Fi = c->fr + 9 * i_, *Fj = c->fr + 9 * j_;
+            T_ *gFi = gF + 9 * i_, *gFj = gF + 9 * j_, *gR = c->grot + 9 * e;
+            T_ gA[9], P[9], FR[9], RFj[9];
+            for (int q = 0; q < 9; q++) gA[q] = O[q][j];
+            /* A = F_i R F_j^T: dR += F_i^T gA F_j, dF_i += gA (R F_j^T)^T = gA F_j R^T, dF_j += gA^T F_i R */
+            for (int r = 0; r < 3; r++)
+                for (int k = 0; k < 3; k++) {
+                    P[3 * r + k] = gA[3 * r] * Fj[k] + gA[3 * r + 1] * Fj[3 + k] + gA[3 * r + 2] * Fj[6 + k];    /* gA F_j */
+                    FR[3 * r + k] = Fi[3 * r] * R[k] + Fi[3 * r + 1] * R[3 + k] + Fi[3 * r + 2] * R[6 + k];  /* F_i R */
+                }
+            for (int r = 0; r < 3; r++)
+                for (int k = 0; k < 3; k++) {
+                    gR[3 * r + k] += Fi[r] * P[k] + Fi[3 + r] * P[3 + k] + Fi[6 + r] * P[6 + k];
+                    RFj[3 * r + k] = P[3 * r] * R[3 * k] + P[3 * r + 1] * R[3 * k + 1] + P[3 * r + 2] * R[3 * k + 2];
+                }
+            for (int q = 0; q < 9; q++) gFi[q] += RFj[q];
+            for (int r = 0; r < 3; r++)
+                for (int k = 0; k < 3; k++)
+                    gFj[3 * r + k] += gA[r] * FR[k] + gA[3 + r] * FR[3 + k] + gA[6 + r] * FR[6 + k];
+        }
+    }
+}
+
+/* out[k] += the other stripes' buffers, in stripe order; task: TET_ZERO_STEP entries */
+typedef struct {
+    T_ *out;
+    T_ *const *bufs;
+    int nt;
+    int64_t n;
+} FN(sumf_t);
+
+static void FN(sumf_task)(void *vc, long task)
+{
+    const FN(sumf_t) *c = (const FN(sumf_t) *)vc;
+    const int64_t k1 = (task + 1) * TET_ZERO_STEP < c->n ? (task + 1) * TET_ZERO_STEP : c->n;
+    for (int64_t k = task * TET_ZERO_STEP; k < k1; k++) {
+        T_ s = c->out[k];
+        for (int t = 1; t < c->nt; t++) s += c->bufs[t][k];
+        c->out[k] = s;
+    }
+}
+
+int FN(tet_ddf_bwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_t *edges, const T_ *gin,
+                    const int64_t *ridx, const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
+                    const int64_t *color_start, int64_t n_colors, T_ *grot, T_ *gframes, T_ *gvec, int64_t nb,
+                    int64_t E, int64_t V, int64_t T, int threads, double eps)
+{
+    /* pass 0 (edges): θ̃' into a scratch; pass 1 (tets, colored chunks): grot and ∂L/∂θ̃' (gth, a
+     * second, zeroed scratch); pass 2 (edge stripes): the chain to H, A, R, F and v; frame
+     * buffers of the stripes > 0 in a third scratch, summed into gframes */
+    int nt = threads < 1 ? 1 : (threads > 64 ? 64 : threads);
+    if (E < TET_PAR_MIN)
+        nt = 1;
+    const size_t bytes = sizeof(T_) * ((size_t)12 * (size_t)(E * nb) + (size_t)9 * (size_t)V * (size_t)(nt - 1));
+    T_ *theta = tet_scratch(bytes);
+    if (!theta)
+        return -1;
+    T_ *gth = theta + 6 * E * nb, *fbuf = gth + 6 * E * nb;
+    const T_ eps2 = (T_)(eps * eps);
+    const int64_t nblk = (E + SO3_B - 1) / SO3_B;
+    for (int64_t bi = 0; bi < nb; bi++) {
+        FN(fr_t) c = {.rot = rot + bi * 9 * E, .fr = frames + bi * 9 * V, .vec = vec, .edges = edges,
+                      .out = theta + bi * 6 * E, .E = E, .V = V, .nblk = nblk, .eps2 = eps2};
+        FN(theta_frames)(&c, threads);
+    }
+    FN(zero)(grot, 9 * E * nb, threads);
+    for (int64_t c = 0; c < n_colors; c++)
+        FN(bwd_item_chunks)(rot, theta, gin, ridx, tidx, order, chunk_start, color_start[c],
+                            color_start[c + 1] - color_start[c], nb, E, T, 6 * E, grot, gth, threads);
+    for (int64_t bi = 0; bi < nb; bi++) {
+        FN(fr_t) c = {.rot = rot + bi * 9 * E, .fr = frames + bi * 9 * V, .vec = vec, .edges = edges,
+                      .gth = gth + bi * 6 * E, .grot = grot + bi * 9 * E, .gvec = gvec + bi * 3 * E,
+                      .E = E, .V = V, .nblk = nblk, .nt = nt, .eps2 = eps2};
+        c.gfr[0] = gframes + bi * 9 * V;
+        memset(c.gfr[0], 0, sizeof(T_) * 9 * (size_t)V);
+        for (int t = 1; t < nt; t++)
+            c.gfr[t] = fbuf + (size_t)(t - 1) * 9 * (size_t)V;
+        tc_parallel(nt, nt, FN(ddf_grad_task), &c);
+        if (nt > 1) {
+            FN(sumf_t) s = {c.gfr[0], c.gfr, nt, 9 * V};
+            tc_parallel(tc_tasks(9 * V, TET_ZERO_STEP), nt, FN(sumf_task), &s);
+        }
     }
     munmap(theta, bytes ? bytes : 1);
     return 0;

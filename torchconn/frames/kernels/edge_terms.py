@@ -39,15 +39,16 @@ its SH field (:func:`torchconn.frames.refine.quality_path`, 24 L-BFGS rounds) 31
 from __future__ import annotations
 
 import ctypes
+from pathlib import Path
 import math
 from typing import Optional
 
 import torch
 
-from . import native as _native
-from ._library import jvp as _library_jvp
-from ._library import leading_vmap, qualname
-from .backend import can_use_compiled
+from ...ops import native as _native
+from ...ops._library import jvp as _library_jvp
+from ...ops._library import leading_vmap, qualname
+from ...ops.backend import can_use_compiled
 
 __all__ = ["matched_edge_terms"]
 
@@ -58,6 +59,7 @@ _vp, _long, _int, _dbl = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_
 _FWD_ARGS = [_long] * 3 + [_int] + [_vp] * 5 + [_dbl] * 4 + [_vp]
 # edge_terms_bwd_<T>(B, E, V, nt, F, edges, match, group, w, s_a, s_d, eps, h_max, grad, gF, work)
 _BWD_ARGS = [_long] * 3 + [_int] + [_vp] * 5 + [_dbl] * 4 + [_vp] * 3
+_native.register_source("edge_terms", Path(__file__).resolve().parent / "csrc" / "edge_terms.c")
 _C_FWD = {torch.float32: _native.declare("edge_terms", "edge_terms_fwd_f32", _FWD_ARGS, _int),
           torch.float64: _native.declare("edge_terms", "edge_terms_fwd_f64", _FWD_ARGS, _int)}
 _C_BWD = {torch.float32: _native.declare("edge_terms", "edge_terms_bwd_f32", _BWD_ARGS, _int),

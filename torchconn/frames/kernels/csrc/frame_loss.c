@@ -1,6 +1,6 @@
-/* Fused value-and-gradient kernel of the frame-field loss terms smooth, tie, flat, torsion
+/* Fused value-and-gradient kernel of the frame-field loss terms smooth, tie, flat, torsion, dirichlet
  * (torchconn/frames/loss.py FrameFieldLoss; the CPU kernel of the custom ops torchconn::frame_loss and
- * torchconn::frame_loss_backward declared in torchconn/ops/frame_loss.py; issues 6 and 11).
+ * torchconn::frame_loss_backward declared in torchconn/frames/kernels/frame_loss.py; issues 6, 11, 30).
  *
  * One sweep over the edges, one over the faces, one more over the edges: every per-element
  * 3x3 product is formed in registers, gradients are computed in the same sweep as the values
@@ -18,10 +18,14 @@
  *   smooth  = mean_e rho(|R_e - I|^2)
  *   tie     = mean_e rho(|F_i R_e - F_j h_e|^2),  h_e = argmax_h tr(h^T F_j^T F_i R_e)
  *   flat    = mean_f |H_f - g_f|^2,  H_f = R_ab R_bc R_ac^T,  g_f = argmax_g tr(g^T H_f)
- *   torsion = sum_{ok f} |Th_f|^2 / area_f / n_ok,  Th_f = t_ab + R_ab t_bc - t_ac,
- *             t_ij = F_i^T sqrt(F_i R_ij F_j^T) (v_j - v_i), ok = h = I on all three edges.
+ *   torsion = mean_f |Th_f|^2 / area_f,  Th_f = t_ab + M_ab t_bc - t_ac  (every face, through the
+ *             matchings: M_ij = R_ij h_ij^T carries F_i onto F_j as labeled),
+ *             t_ij = F_i^T sqrt(F_i M_ij F_j^T) (v_j - v_i)
+ *   dirichlet = mean_e |F_i g_e - F_j|^2,  g_e = argmax_g tr(g^T F_i^T F_j)
+ * and, on request, the flags of the regular faces (g_f = I), the mask of the dnabla term.
  * sqrt of a rotation A with angle < pi: I + (A - A^T)/(4c) + (A + A^T - 2I)/(4(1+c)),
- * c = cos(angle/2) = sqrt(1 + tr A)/2 (only evaluated on unrelabeled edges, angle < 63 deg).
+ * c = cos(angle/2) = sqrt(1 + tr A)/2 (the matched residual F_i M_ij F_j^T of a rotation field has
+ * an angle of at most ~63 degrees, the covering radius of O: c >= 0.85).
  */
 #include <math.h>
 #include <stdint.h>
@@ -97,11 +101,17 @@ static inline int SFX(best)(const T* M) {
     return best;
 }
 
+/* rho and d rho / d d2 (power 2: the identity; power 1, the default of the method: a square root,
+ * not pow, which costs ~10x as much per edge) */
 static inline double SFX(rho)(double d2, double p, double eps) {
-    return p == 2.0 ? d2 : pow(d2 + eps * eps, 0.5 * p) - pow(eps, p);
+    if (p == 2.0) return d2;
+    if (p == 1.0) return sqrt(d2 + eps * eps) - eps;
+    return pow(d2 + eps * eps, 0.5 * p) - pow(eps, p);
 }
 static inline double SFX(drho)(double d2, double p, double eps) {
-    return p == 2.0 ? 1.0 : 0.5 * p * pow(d2 + eps * eps, 0.5 * p - 1.0);
+    if (p == 2.0) return 1.0;
+    if (p == 1.0) return 0.5 / sqrt(d2 + eps * eps);
+    return 0.5 * p * pow(d2 + eps * eps, 0.5 * p - 1.0);
 }
 
 /* S = sqrt(A) (see the header), c returned */
@@ -167,26 +177,25 @@ typedef struct {
     const T *vec, *area;
     const int (*perm)[3];
     const T (*sign)[3];
-    int do_s, do_t, do_f, do_q, grad, match, tor;
+    int do_s, do_t, do_f, do_q, do_d, do_r, grad, match;
     double power, eps;
-    T ws, wt, kf, kq;
+    T ws, wt, wd, kf, kq;
     T *gR, *gF, *theta, *gtheta;
-    unsigned char* unrel;
+    unsigned char *hidx, *regular;
     T* bR[64];
     T* bTh[64];
     T* bF[64];
-    double part[64][4];  /* per-stripe partial sums, added in stripe order afterwards */
-    long n_ok;
+    double part[64][5];  /* per-stripe partial sums, added in stripe order afterwards */
 } SFX(fl_t);
 
-/* pass 1, stripe t of the edges: smooth, tie, match, solder form; gR rows written here */
+/* pass 1, stripe t of the edges: smooth, tie, match, matched solder form, dirichlet; gR rows written here */
 static void SFX(pass1)(void* vc, long t) {
     SFX(fl_t)* c = (SFX(fl_t)*)vc;
     const long E = c->E, V = c->V;
-    const int grad = c->grad, do_s = c->do_s, do_t = c->do_t, do_q = c->do_q;
+    const int grad = c->grad, do_s = c->do_s, do_t = c->do_t, do_q = c->do_q, do_d = c->do_d;
     const int (*perm)[3] = c->perm;
     const T (*sign)[3] = c->sign;
-    double s_smooth = 0, s_tie = 0;
+    double s_smooth = 0, s_tie = 0, s_dir = 0;
     if (grad) {
         if (t > 0) memset(c->bR[t], 0, sizeof(T) * (size_t)(12 * E + 9 * V));
         else { memset(c->gF, 0, sizeof(T) * (size_t)(9 * V)); if (do_q) memset(c->gtheta, 0, sizeof(T) * (size_t)(3 * E)); }
@@ -206,22 +215,20 @@ static void SFX(pass1)(void* vc, long t) {
                 for (int q = 0; q < 9; ++q) G[q] = k * D[q];
             }
         }
+        const long i = c->edges[2 * e], j = c->edges[2 * e + 1];
+        const T *Fi = c->Fr + 9 * i, *Fj = c->Fr + 9 * j;
         if (c->match) {
-            long i = c->edges[2 * e], j = c->edges[2 * e + 1];
-            const T *Fi = c->Fr + 9 * i, *Fj = c->Fr + 9 * j;
-            T FiR[9], M[9];
+            T FiR[9], M[9], Fjh[9];
             SFX(mm)(Fi, Re, FiR);
             SFX(mtm)(Fj, FiR, M);
-            int h = SFX(best)(M);
-            c->unrel[e] = (unsigned char)(h == 0);
+            const int h = SFX(best)(M);
+            c->hidx[e] = (unsigned char)h;
+            /* F_j h: (F_j h)[r][c] = sign[c] F_j[r][perm[c]] */
+            for (int r = 0; r < 3; ++r)
+                for (int cc = 0; cc < 3; ++cc) Fjh[3 * r + cc] = sign[h][cc] * Fj[3 * r + perm[h][cc]];
             if (do_t) {
                 T D[9], d2 = 0;
-                for (int r = 0; r < 3; ++r)
-                    for (int cc = 0; cc < 3; ++cc) {
-                        T v = FiR[3 * r + cc] - sign[h][cc] * Fj[3 * r + perm[h][cc]];
-                        D[3 * r + cc] = v;
-                        d2 += v * v;
-                    }
+                for (int q = 0; q < 9; ++q) { D[q] = FiR[q] - Fjh[q]; d2 += D[q] * D[q]; }
                 s_tie += SFX(rho)(d2, c->power, c->eps);
                 if (grad) {
                     T k = c->wt * (T)SFX(drho)(d2, c->power, c->eps), t1[9];
@@ -237,43 +244,51 @@ static void SFX(pass1)(void* vc, long t) {
                         for (int cc = 0; cc < 3; ++cc) bj[3 * r + perm[h][cc]] -= D[3 * r + cc] * sign[h][cc];
                 }
             }
-            if (do_q) {
+            if (do_q) {  /* t_e = F_i^T sqrt(A) v, A = F_i R h^T F_j^T = (F_i R)(F_j h)^T */
+                T A[9], S[9], u[3];
                 T* th = c->theta + 3 * e;
-                if (h == 0) {
-                    T A[9], S[9], u[3];
-                    SFX(mmt)(FiR, Fj, A);
-                    SFX(sqrt_rot)(A, S);
-                    const T* v = c->vec + 3 * e;
-                    for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
-                    for (int k = 0; k < 3; ++k) th[k] = Fi[k] * u[0] + Fi[3 + k] * u[1] + Fi[6 + k] * u[2];
-                } else {
-                    th[0] = th[1] = th[2] = 0;
+                const T* v = c->vec + 3 * e;
+                SFX(mmt)(FiR, Fjh, A);
+                SFX(sqrt_rot)(A, S);
+                for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
+                for (int k = 0; k < 3; ++k) th[k] = Fi[k] * u[0] + Fi[3 + k] * u[1] + Fi[6 + k] * u[2];
+            }
+        }
+        if (do_d) {  /* |F_i g - F_j|^2, g = argmax tr(g^T F_i^T F_j) */
+            T M[9], D[9], d2 = 0;
+            SFX(mtm)(Fi, Fj, M);
+            const int g = SFX(best)(M);
+            for (int r = 0; r < 3; ++r)
+                for (int cc = 0; cc < 3; ++cc) {
+                    T v = sign[g][cc] * Fi[3 * r + perm[g][cc]] - Fj[3 * r + cc];
+                    D[3 * r + cc] = v;
+                    d2 += v * v;
                 }
+            s_dir += d2;
+            if (grad) {
+                T* bi = gFb + 9 * i;
+                T* bj = gFb + 9 * j;
+                for (int r = 0; r < 3; ++r)
+                    for (int cc = 0; cc < 3; ++cc) {
+                        T gd = c->wd * D[3 * r + cc];
+                        bi[3 * r + perm[g][cc]] += sign[g][cc] * gd;
+                        bj[3 * r + cc] -= gd;
+                    }
             }
         }
         if (grad) for (int q = 0; q < 9; ++q) c->gR[9 * e + q] = G[q];
     }
     c->part[t][0] = s_smooth;
     c->part[t][1] = s_tie;
+    c->part[t][4] = s_dir;
 }
 
-/* faces with all three edges unrelabeled (the torsion mean's count), stripe t */
-static void SFX(count_ok)(void* vc, long t) {
-    SFX(fl_t)* c = (SFX(fl_t)*)vc;
-    const long lo = c->F * t / c->nt, hi = c->F * (t + 1) / c->nt;
-    long n_ok = 0;
-    for (long f = lo; f < hi; ++f)
-        n_ok += c->unrel[c->fidx[3 * f]] && c->unrel[c->fidx[3 * f + 1]] && c->unrel[c->fidx[3 * f + 2]];
-    __atomic_add_fetch(&c->n_ok, n_ok, __ATOMIC_RELAXED);
-}
-
-/* pass 2, stripe t of the faces: flat, torsion */
+/* pass 2, stripe t of the faces: flat (and the regular-face flags), torsion through the matchings */
 static void SFX(pass2)(void* vc, long t) {
     SFX(fl_t)* c = (SFX(fl_t)*)vc;
-    const int grad = c->grad, do_f = c->do_f, tor = c->tor;
+    const int grad = c->grad, do_f = c->do_f, do_q = c->do_q, do_r = c->do_r;
     const int (*perm)[3] = c->perm;
     const T (*sign)[3] = c->sign;
-    const unsigned char* unrel = c->unrel;
     const T* R = c->R;
     double s_flat = 0, s_tor = 0;
     T* gRb = c->bR[t];
@@ -282,42 +297,48 @@ static void SFX(pass2)(void* vc, long t) {
     for (long f = lo; f < hi; ++f) {
         long ab = c->fidx[3 * f], bc = c->fidx[3 * f + 1], ac = c->fidx[3 * f + 2];
         const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
-        if (do_f) {
+        if (do_f || do_r) {
             T P[9], H[9], d2 = 0;
             SFX(mm)(Rab, Rbc, P);
             SFX(mmt)(P, Rac, H);
             int g = SFX(best)(H);
-            for (int cc = 0; cc < 3; ++cc) H[3 * perm[g][cc] + cc] -= sign[g][cc];  /* H - g */
-            for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
-            s_flat += d2;
-            if (grad) {
-                T GR[9], t1[9];
-                for (int q = 0; q < 9; ++q) H[q] *= c->kf;  /* G = dL/dH */
-                SFX(mm)(H, Rac, GR);                        /* G R_ac */
-                SFX(mmt)(GR, Rbc, t1);                      /* -> R_ab */
-                for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
-                SFX(mtm)(Rab, GR, t1);                      /* -> R_bc */
-                for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
-                SFX(mtm)(H, P, t1);                         /* G^T P -> R_ac */
-                for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
+            if (do_r) c->regular[f] = (unsigned char)(g == 0);
+            if (do_f) {
+                for (int cc = 0; cc < 3; ++cc) H[3 * perm[g][cc] + cc] -= sign[g][cc];  /* H - g */
+                for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
+                s_flat += d2;
+                if (grad) {
+                    T GR[9], t1[9];
+                    for (int q = 0; q < 9; ++q) H[q] *= c->kf;  /* G = dL/dH */
+                    SFX(mm)(H, Rac, GR);                        /* G R_ac */
+                    SFX(mmt)(GR, Rbc, t1);                      /* -> R_ab */
+                    for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
+                    SFX(mtm)(Rab, GR, t1);                      /* -> R_bc */
+                    for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
+                    SFX(mtm)(H, P, t1);                         /* G^T P -> R_ac */
+                    for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
+                }
             }
         }
-        if (tor && unrel[ab] && unrel[bc] && unrel[ac]) {
+        if (do_q) {  /* Th = t_ab + R_ab w - t_ac, w = h_ab^T t_bc: w[k] = sign[k] t_bc[perm[k]] */
             const T *tab = c->theta + 3 * ab, *tbc = c->theta + 3 * bc, *tac = c->theta + 3 * ac;
-            T Th[3], n2 = 0;
+            const int h = c->hidx[ab];
+            T w[3], Th[3], n2 = 0;
+            for (int k = 0; k < 3; ++k) w[k] = sign[h][k] * tbc[perm[h][k]];
             for (int r = 0; r < 3; ++r) {
-                Th[r] = tab[r] + Rab[3 * r] * tbc[0] + Rab[3 * r + 1] * tbc[1] + Rab[3 * r + 2] * tbc[2] - tac[r];
+                Th[r] = tab[r] + Rab[3 * r] * w[0] + Rab[3 * r + 1] * w[1] + Rab[3 * r + 2] * w[2] - tac[r];
                 n2 += Th[r] * Th[r];
             }
             s_tor += n2 / c->area[f];
             if (grad) {
-                T k = c->kq / c->area[f], gT[3];
+                T k = c->kq / c->area[f], gT[3], y[3];
                 for (int r = 0; r < 3; ++r) gT[r] = k * Th[r];
+                for (int r = 0; r < 3; ++r) y[r] = Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
                 for (int r = 0; r < 3; ++r) {
                     gTb[3 * ab + r] += gT[r];
                     gTb[3 * ac + r] -= gT[r];
-                    gTb[3 * bc + r] += Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
-                    for (int cc = 0; cc < 3; ++cc) gRb[9 * ab + 3 * r + cc] += gT[r] * tbc[cc];
+                    gTb[3 * bc + perm[h][r]] += sign[h][r] * y[r];  /* h R_ab^T gT */
+                    for (int cc = 0; cc < 3; ++cc) gRb[9 * ab + 3 * r + cc] += gT[r] * w[cc];
                 }
             }
         }
@@ -326,30 +347,36 @@ static void SFX(pass2)(void* vc, long t) {
     c->part[t][3] = s_tor;
 }
 
-/* pass 3, stripe t of the edges: backward of the solder form t_ij = F_i^T sqrt(F_i R F_j^T) v */
+/* pass 3, stripe t of the edges: backward of the solder form t_ij = F_i^T sqrt((F_i R)(F_j h)^T) v */
 static void SFX(pass3)(void* vc, long t) {
     SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    const int (*perm)[3] = c->perm;
+    const T (*sign)[3] = c->sign;
     T* gFb = c->bF[t];
     const long lo = c->E * t / c->nt, hi = c->E * (t + 1) / c->nt;
     for (long e = lo; e < hi; ++e) {
         const T* gt = c->gtheta + 3 * e;
-        if (!c->unrel[e] || (gt[0] == 0 && gt[1] == 0 && gt[2] == 0)) continue;
+        if (gt[0] == 0 && gt[1] == 0 && gt[2] == 0) continue;
         long i = c->edges[2 * e], j = c->edges[2 * e + 1];
+        const int h = c->hidx[e];
         const T *Fi = c->Fr + 9 * i, *Fj = c->Fr + 9 * j, *Re = c->R + 9 * e, *v = c->vec + 3 * e;
-        T FiR[9], A[9], S[9], u[3], gu[3], gS[9], gA[9], gFiR[9], t1[9];
+        T FiR[9], Fjh[9], A[9], S[9], u[3], gu[3], gS[9], gA[9], gFiR[9], t1[9];
         SFX(mm)(Fi, Re, FiR);
-        SFX(mmt)(FiR, Fj, A);
+        for (int r = 0; r < 3; ++r)
+            for (int cc = 0; cc < 3; ++cc) Fjh[3 * r + cc] = sign[h][cc] * Fj[3 * r + perm[h][cc]];
+        SFX(mmt)(FiR, Fjh, A);
         T cs = SFX(sqrt_rot)(A, S);
         for (int r = 0; r < 3; ++r) u[r] = S[3 * r] * v[0] + S[3 * r + 1] * v[1] + S[3 * r + 2] * v[2];
         for (int r = 0; r < 3; ++r) gu[r] = Fi[3 * r] * gt[0] + Fi[3 * r + 1] * gt[1] + Fi[3 * r + 2] * gt[2];
         for (int r = 0; r < 3; ++r)
             for (int q = 0; q < 3; ++q) gS[3 * r + q] = gu[r] * v[q];
         SFX(sqrt_rot_back)(A, cs, gS, gA);
-        SFX(mm)(gA, Fj, gFiR);                       /* dA = d(FiR) Fj^T */
+        SFX(mm)(gA, Fjh, gFiR);                      /* dA = d(FiR) (F_j h)^T */
         T* bi = gFb + 9 * i;
         T* bj = gFb + 9 * j;
-        SFX(mtm)(gA, FiR, t1);                       /* gF_j += gA^T FiR */
-        for (int q = 0; q < 9; ++q) bj[q] += t1[q];
+        SFX(mtm)(gA, FiR, t1);                       /* g(F_j h) = gA^T FiR; gF_j += g(F_j h) h^T */
+        for (int r = 0; r < 3; ++r)
+            for (int cc = 0; cc < 3; ++cc) bj[3 * r + perm[h][cc]] += sign[h][cc] * t1[3 * r + cc];
         SFX(mmt)(gFiR, Re, t1);                      /* gF_i += gFiR R^T + u gt^T */
         for (int r = 0; r < 3; ++r)
             for (int q = 0; q < 3; ++q) bi[3 * r + q] += t1[3 * r + q] + u[r] * gt[q];
@@ -358,24 +385,26 @@ static void SFX(pass3)(void* vc, long t) {
     }
 }
 
-/* One item (no batch): the terms that are on (do_s smooth, do_t tie, do_f flat, do_q torsion;
- * the tie matching also runs for do_q, which takes its mask from it) and, with grad, the gradient
- * of sum_k wts[k] term_k. sums (out, 5): smooth, tie, flat, torsion values (0 for a term that is
- * off); n_ok (faces in the torsion mean). With grad: gR (E,9) = sum_k wts[k] dterm_k/dR and
- * gF (V,9) = sum_k wts[k] dterm_k/dframes (overwritten). work: (nt - 1) * (9E + 3E + 9V)
- * stripe scatter buffers (zeroed here); theta, gtheta (E,3) and unrel (E) are workspaces.
- * perm/sign: the group table as signed permutations (group_perm). */
+/* One item (no batch): the terms that are on (do_s smooth, do_t tie, do_f flat, do_q torsion,
+ * do_d dirichlet) and, with do_r, the regular-face flags regular (F) (1 where the holonomy's
+ * nearest element of O is the identity); with grad, the gradient of sum_k wts[k] term_k.
+ * sums (out, 5): smooth, tie, flat, torsion, dirichlet values (0 for a term that is off). With
+ * grad: gR (E,9) = sum_k wts[k] dterm_k/dR and gF (V,9) = sum_k wts[k] dterm_k/dframes
+ * (overwritten). work: (nt - 1) * (9E + 3E + 9V) stripe scatter buffers (zeroed here); theta,
+ * gtheta (E,3) and hidx (E) are workspaces. perm/sign: the group table as signed permutations
+ * (group_perm). */
 static void SFX(frame_loss_one)(long E, long V, long F, int nt,
                      const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
                      const T* vec, const T* area, const int perm[24][3], const T sign[24][3],
-                     int do_s, int do_t, int do_f, int do_q, int grad, double power, double eps,
-                     const double* wts, double* sums, T* gR, T* gF, T* work,
-                     T* theta, T* gtheta, unsigned char* unrel) {
+                     int do_s, int do_t, int do_f, int do_q, int do_d, int do_r, int grad, double power,
+                     double eps, const double* wts, double* sums, T* gR, T* gF, unsigned char* regular,
+                     T* work, T* theta, T* gtheta, unsigned char* hidx) {
     grad = grad != 0;
     SFX(fl_t) c = {.E = E, .V = V, .F = F, .nt = nt, .R = R, .Fr = Fr, .edges = edges, .fidx = fidx,
                    .vec = vec, .area = area, .perm = perm, .sign = sign, .do_s = do_s, .do_t = do_t,
-                   .do_f = do_f, .do_q = do_q, .grad = grad, .match = do_t || do_q, .power = power,
-                   .eps = eps, .gR = gR, .gF = gF, .theta = theta, .gtheta = gtheta, .unrel = unrel};
+                   .do_f = do_f, .do_q = do_q, .do_d = do_d, .do_r = do_r, .grad = grad,
+                   .match = do_t || do_q, .power = power, .eps = eps, .gR = gR, .gF = gF, .theta = theta,
+                   .gtheta = gtheta, .hidx = hidx, .regular = regular};
     memset(c.part, 0, sizeof(c.part));
     /* stripe buffers: stripe 0 writes the outputs, stripe t > 0 its slice of work */
     c.bR[0] = gR; c.bTh[0] = gtheta; c.bF[0] = gF;
@@ -383,53 +412,51 @@ static void SFX(frame_loss_one)(long E, long V, long F, int nt,
         T* base = work + (size_t)(t - 1) * (size_t)(12 * E + 9 * V);
         c.bR[t] = base; c.bTh[t] = base + 9 * E; c.bF[t] = base + 12 * E;
     }
-    c.ws = (T)(grad ? wts[0] * 2.0 / (double)(E > 0 ? E : 1) : 0);
-    c.wt = (T)(grad ? wts[1] * 2.0 / (double)(E > 0 ? E : 1) : 0);
+    const double En = (double)(E > 0 ? E : 1), Fn = (double)(F > 0 ? F : 1);
+    c.ws = (T)(grad ? wts[0] * 2.0 / En : 0);
+    c.wt = (T)(grad ? wts[1] * 2.0 / En : 0);
+    c.wd = (T)(grad ? wts[4] * 2.0 / En : 0);
 
-    /* ---- pass 1: edges (smooth, tie, match, solder form); gR rows written here */
+    /* ---- pass 1: edges (smooth, tie, match, solder form, dirichlet); gR rows written here */
     tc_parallel(nt, nt, SFX(pass1), &c);
 
-    /* ---- pass 2: faces (flat, torsion) */
-    c.n_ok = 0;
-    if (do_q) tc_parallel(nt, nt, SFX(count_ok), &c);
-    const long n_ok = c.n_ok;
-    sums[4] = (double)n_ok;
-    c.tor = do_q && n_ok > 0;
-    if (do_f || c.tor) {
-        c.kf = (T)(grad ? wts[2] * 2.0 / (double)F : 0);
-        c.kq = (T)(grad && n_ok ? wts[3] * 2.0 / (double)n_ok : 0);
+    /* ---- pass 2: faces (flat, regular flags, torsion) */
+    if (do_f || do_q || do_r) {
+        c.kf = (T)(grad ? wts[2] * 2.0 / Fn : 0);
+        c.kq = (T)(grad ? wts[3] * 2.0 / Fn : 0);
         tc_parallel(nt, nt, SFX(pass2), &c);
-        if (grad) {
+        if (grad && (do_f || do_q)) {
             SFX(reduce_into)(gR, c.bR, nt, 9 * E);
-            if (c.tor) SFX(reduce_into)(gtheta, c.bTh, nt, 3 * E);
+            if (do_q) SFX(reduce_into)(gtheta, c.bTh, nt, 3 * E);
         }
     }
 
-    /* ---- pass 3: edges, backward of the solder form t_ij = F_i^T sqrt(F_i R F_j^T) v */
-    if (grad && c.tor) tc_parallel(nt, nt, SFX(pass3), &c);
+    /* ---- pass 3: edges, backward of the solder form t_ij = F_i^T sqrt((F_i R)(F_j h)^T) v */
+    if (grad && do_q) tc_parallel(nt, nt, SFX(pass3), &c);
     if (grad) SFX(reduce_into)(gF, c.bF, nt, 9 * V);
 
-    double s_smooth = 0, s_tie = 0, s_flat = 0, s_tor = 0;
-    for (int t = 0; t < nt; ++t) {
-        s_smooth += c.part[t][0]; s_tie += c.part[t][1]; s_flat += c.part[t][2]; s_tor += c.part[t][3];
-    }
-    sums[0] = s_smooth / (double)(E > 0 ? E : 1);
-    sums[1] = s_tie / (double)(E > 0 ? E : 1);
-    sums[2] = s_flat / (double)(F > 0 ? F : 1);
-    sums[3] = n_ok ? s_tor / (double)n_ok : 0.0;
+    double s[5] = {0, 0, 0, 0, 0};
+    for (int t = 0; t < nt; ++t)
+        for (int k = 0; k < 5; ++k) s[k] += c.part[t][k];
+    sums[0] = s[0] / En;
+    sums[1] = s[1] / En;
+    sums[2] = s[2] / Fn;
+    sums[3] = s[3] / Fn;
+    sums[4] = s[4] / En;
 }
 
 /* The op torchconn::frame_loss (and its backward, torchconn::frame_loss_backward) on B items that
- * share one mesh: R (B,E,9), Fr (B,V,9), wts (B,4) (the gradient weights of each item), sums
- * (B,5), gR (B,E,9), gF (B,V,9) (with grad); the workspaces are reused item after item.
+ * share one mesh: R (B,E,9), Fr (B,V,9), wts (B,5) (the gradient weights of each item), sums
+ * (B,5), gR (B,E,9), gF (B,V,9) (with grad), regular (B,F) (with do_r); the workspaces are reused
+ * item after item.
  * Options are explicit arguments (no bit flags). Returns 0, or -2 when the group table is not
  * torchconn.octahedral.group() (the written-out scores of best() assume its order). */
 int SFX(frame_loss)(long B, long E, long V, long F, int nt,
                      const T* R, const T* Fr, const int64_t* edges, const int64_t* fidx,
                      const T* vec, const T* area, const double* group,
-                     int do_s, int do_t, int do_f, int do_q, int grad, double power, double eps,
-                     const double* wts, double* sums, T* gR, T* gF, T* work,
-                     T* theta, T* gtheta, unsigned char* unrel) {
+                     int do_s, int do_t, int do_f, int do_q, int do_d, int do_r, int grad, double power,
+                     double eps, const double* wts, double* sums, T* gR, T* gF, unsigned char* regular,
+                     T* work, T* theta, T* gtheta, unsigned char* hidx) {
     int perm[24][3];
     double sign_d[24][3];
     T sign[24][3];
@@ -444,9 +471,10 @@ int SFX(frame_loss)(long B, long E, long V, long F, int nt,
     if (nt > 64) nt = 64;
     for (long b = 0; b < B; ++b)
         SFX(frame_loss_one)(E, V, F, nt, R + 9 * E * b, Fr + 9 * V * b, edges, fidx, vec, area,
-                            (const int (*)[3])perm, (const T (*)[3])sign, do_s, do_t, do_f, do_q, grad,
-                            power, eps, wts + 4 * b, sums + 5 * b, grad ? gR + 9 * E * b : gR,
-                            grad ? gF + 9 * V * b : gF, work, theta, gtheta, unrel);
+                            (const int (*)[3])perm, (const T (*)[3])sign, do_s, do_t, do_f, do_q, do_d, do_r,
+                            grad, power, eps, wts + 5 * b, sums + 5 * b, grad ? gR + 9 * E * b : gR,
+                            grad ? gF + 9 * V * b : gF, do_r ? regular + F * b : regular, work, theta, gtheta,
+                            hidx);
     return 0;
 }
 

@@ -1,0 +1,263 @@
+"""The repair of the edge-based singular graph (torchconn.hexmesh.repair).
+
+Layers: the state's classes equal the meshability report's on random matchings (a slow
+reference: the report recomputed from scratch); the disk re-solve on a constructed arc (a
+valence-3 chain on the axis of a prism, detached from a vertex: exact expectations); each
+operation on a case whose condition is known (the hairpin zipper of the meshability tests,
+HexMe models whose straightened SH fields have the condition), before and after: the condition
+gone at the vertex, the cost lower, the walk products of the new matchings recomputed from
+scratch equal to the state's, and the conservation of holonomy the Bianchi identity of the
+transitions implies (no singular arc ends at an interior vertex; an interior vertex with two
+singular edges has two turns of one type).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import io
+from torchconn.hexmesh.cut import edge_walks, face_matchings, group_matrices
+from torchconn.hexmesh.meshability import INVALID, ZIPPER, meshability_report
+from torchconn.hexmesh.repair import (MeshLookup, SingularGraph, cone_disk, detach_arc, link_path, move_off_boundary,
+                                      push_inside, repair_feature_sector, repair_singular_graph, solve_disk,
+                                      zip_zipper)
+from torchconn.hexmesh.repair.graph import _TYP
+
+from conftest import DATA_DIR
+from test_hexmesh_map import axis_prism
+from test_hexmesh_meshability import hairpin
+
+HEXME = DATA_DIR / "hexme" / "meta"
+
+
+def _identity(mesh):
+    return torch.eye(3, dtype=torch.float64).expand(mesh.n_tets, 3, 3).clone()
+
+
+def _check_consistent(mesh, frames, match, g=None):
+    """The walk products of ``match`` recomputed from scratch, the state's (if given) equal to them,
+    the report's classes equal to the state's, and the conservation of holonomy at interior vertices."""
+    walks = edge_walks(mesh)
+    from torchconn.hexmesh.cut import GROUP_INV
+
+    prod = walks.products(GROUP_INV[match])
+    if g is not None:
+        assert (g.prod == prod).all()
+        m = meshability_report(mesh, frames, match)
+        assert (m.vertex_class == g.vcls).all()
+        c = g.counts()
+        assert all(c[k] == m.counts()[k] for k in ("complex_edges", "zipper_nodes", "invalid_nodes",
+                                                   "surface_valence2_edges", "touching_edges"))
+    E = mesh.edges.numpy()
+    sing = ~walks.boundary & (prod != 0)
+    on_b = np.zeros(mesh.n_vertices, bool)
+    on_b[mesh.boundary_vertices.numpy()] = True
+    deg = np.bincount(E[sing].reshape(-1), minlength=mesh.n_vertices)
+    assert not ((deg == 1) & ~on_b).any(), "a singular arc ends at an interior vertex"
+    two = np.nonzero((deg == 2) & ~on_b)[0]
+    for v in two.tolist():
+        es = np.nonzero(sing & (E == v).any(1))[0]
+        assert _TYP[prod[es[0]]] == _TYP[prod[es[1]]]
+    return prod
+
+
+# ----------------------------------------------------------------------------- the state
+@pytest.mark.parametrize("seed", [0, 1])
+def test_state_classes_equal_the_report_on_random_matchings(seed):
+    mesh = io.box(2)
+    F = _identity(mesh)
+    rng = np.random.default_rng(seed)
+    g = SingularGraph(mesh, F)
+    fi = np.nonzero(g.interior_face)[0]
+    for _ in range(3):  # random changes, each checked against the report recomputed from scratch
+        f = rng.choice(fi, 6, replace=False)
+        tok = g.set_matchings(f, rng.integers(0, 24, f.size))
+        _check_consistent(mesh, F, g.match, g)
+    prev = g.match.copy()
+    g.undo(tok)
+    assert (g.match[f] == tok[1]).all() and (prev[f] != tok[1]).any()
+    _check_consistent(mesh, F, g.match, g)
+
+
+def test_state_on_the_hairpin_and_bad_input():
+    mesh, F, (p, q, v) = hairpin()
+    g = SingularGraph(mesh, F)
+    assert g.counts()["zipper_nodes"] == 1 and g.bad_vertices().tolist() == [v]
+    _check_consistent(mesh, F, g.match, g)
+    with pytest.raises(ValueError, match="tet_frames"):
+        SingularGraph(mesh, F[:-1])
+    with pytest.raises(ValueError, match="face_match"):
+        SingularGraph(mesh, F, np.zeros(3, np.int64))
+    with pytest.raises(ValueError, match="unknown weights"):
+        SingularGraph(mesh, F, weights={"nope": 1.0})
+    bf = np.nonzero(~g.interior_face)[0][:1]
+    with pytest.raises(ValueError, match="boundary faces"):
+        g.set_matchings(bf, [1])
+
+
+# ----------------------------------------------------------------------------- the disk re-solve
+def test_cone_move_detaches_the_prism_arc_from_a_vertex():
+    mesh, F = axis_prism(turns=4.0)  # a valence-3 chain on the z-axis, z = 0, 1/3, 2/3, 1
+    X, E = mesh.vertices.numpy(), mesh.edges.numpy()
+    g = SingularGraph(mesh, F)
+    L = MeshLookup(mesh)
+    axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
+    v = int(axis_v[np.argsort(X[axis_v, 2])][1])  # z = 1/3
+    a, b = (int(x) for x in axis_v[np.argsort(X[axis_v, 2])][[0, 2]])
+    e1, e2 = int(L.edge_id(v, a)[0]), int(L.edge_id(v, b)[0])
+    assert g.cls[e1] == g.cls[e2] == 0  # valence 3
+    path = link_path(g, L, v, a, b, np.array([0.0, 0.0, 1.0]))
+    assert path[0] == a and path[-1] == b and path.size >= 3
+    faces, inside, rim = cone_disk(L, v, path)
+    prod0 = g.prod.copy()
+    vals = solve_disk(g, faces, int(faces[0]), e1, 0, inside)
+    assert vals is not None
+    g.set_matchings(faces, vals)
+    prod = _check_consistent(mesh, F, g.match, g)
+    # the arc left v: its two edges are regular, the rim path carries a quarter turn about z
+    assert prod[e1] == 0 and prod[e2] == 0
+    assert (_TYP[prod[rim]] == 1).all()
+    assert (prod[inside] == prod0[inside]).all()
+    changed = np.nonzero(prod != prod0)[0]
+    assert set(changed.tolist()) == {e1, e2, *rim.tolist()}
+    assert not (g.cls[L.vertex_edges(v)] >= 0).any()
+    # a seed edge with two disk faces on its walk, or a seed outside the disk, has no solution
+    assert solve_disk(g, faces, int(faces[0]), int(inside[0]), 0, inside[1:]) is None if inside.size else True
+    assert solve_disk(g, faces[1:], int(faces[0]), e1, 0, inside) is None
+
+
+# ----------------------------------------------------------------------------- the operations
+def test_zip_zipper_removes_the_hairpin():
+    mesh, F, (p, q, v) = hairpin()
+    m0 = meshability_report(mesh, F)
+    assert m0.zipper_nodes.tolist() == [v]
+    fm, mv = zip_zipper(mesh, F, None, v)
+    assert mv is not None and mv.kind == "zip" and mv.delta < 0
+    g = SingularGraph(mesh, F, fm)
+    _check_consistent(mesh, F, fm, g)
+    m1 = meshability_report(mesh, F, fm)
+    assert m1.zipper_nodes.size == 0 and m1.meshable
+    # the other operations do not apply at a zipper node
+    for op in (push_inside, move_off_boundary, detach_arc, repair_feature_sector):
+        fm2, mv2 = op(mesh, F, None, v)
+        assert mv2 is None and (fm2 == face_matchings(mesh, F)).all()
+    with pytest.raises(ValueError, match="not a vertex"):
+        zip_zipper(mesh, F, None, mesh.n_vertices)
+
+
+def _hexme_case(name):
+    pytest.importorskip("gmsh", reason="the HexMe meshes are made by gmsh (torchconn[cad])")
+    path = HEXME / f"{name}.yaml"
+    if not path.is_file():
+        pytest.skip(f"HexMe parameter file {path} not found (the shared data is missing)")
+    from torchconn.frames.design import design
+    from torchconn.hexmesh.inputs import tet_frames_of
+    from torchconn.hexmesh.straighten import straighten_singular_edges
+    from torchconn.mesh.cad import load_hexme
+
+    mesh = load_hexme(path, dtype=torch.float64)
+    Fr = tet_frames_of(mesh, design(mesh, "sh_baseline").vertex_frames)
+    fm, _ = straighten_singular_edges(mesh, Fr, boundary_moves=True)
+    return mesh, Fr, fm
+
+
+def _check_operation(mesh, Fr, fm, op, kind):
+    """Find a vertex where ``kind`` is the best move (its condition is there), apply ``op`` there
+    and check the result (module docstring)."""
+    from torchconn.hexmesh.repair.ops import best_move
+
+    g = SingularGraph(mesh, Fr, fm)
+    L = MeshLookup(mesh)
+    v = next((int(x) for x in g.bad_vertices() if best_move(g, L, int(x), (kind,)) is not None), None)
+    assert v is not None, f"no vertex takes a {kind} move"
+    assert g.bad_vertices_mask()[v]
+    cost0 = g.cost()
+    fm1, mv = op(mesh, Fr, fm, v)
+    assert mv is not None and mv.kind == kind and mv.delta < 0
+    g1 = SingularGraph(mesh, Fr, fm1)
+    _check_consistent(mesh, Fr, fm1, g1)
+    assert g1.cost() == pytest.approx(cost0 + mv.delta, abs=1e-9)
+    assert (fm1 != fm).sum() <= mv.faces.size
+    return v, g, g1
+
+
+@pytest.mark.slow  # gmsh meshing, the SH field and the straightening: 3-5 s
+def test_push_inside_and_move_off_on_a_hexme_model():
+    # s10c: the straightened SH field has a singular curve on the cylinder's smooth surface and
+    # an arc through a boundary vertex (2 invalid nodes, 3 touching edges, 2 crease edges)
+    mesh, Fr, fm = _hexme_case("s10c_cyl_cutsphere")
+    v, g, g1 = _check_operation(mesh, Fr, fm, push_inside, "push_inside")
+    assert g1.counts()["boundary_crease_edges"] < g.counts()["boundary_crease_edges"]
+    v, g, g1 = _check_operation(mesh, Fr, fm, move_off_boundary, "move_off")
+    assert g1.counts()["touching_edges"] < g.counts()["touching_edges"]
+    assert g1.vcls[v] not in (ZIPPER, INVALID) and g.vcls[v] == INVALID
+
+
+@pytest.mark.slow  # gmsh meshing, the SH field and the straightening: 2-4 s
+def test_feature_sector_on_a_hexme_model():
+    # n08c: fans on the pentagonal pyramid's sharp edges whose angle is not the feature's
+    mesh, Fr, fm = _hexme_case("n08c_pentapyr")
+    v, g, g1 = _check_operation(mesh, Fr, fm, repair_feature_sector, "feature_sector")
+    assert g1.counts()["feature_mismatch_edges"] < g.counts()["feature_mismatch_edges"] or \
+        g1.counts()["invalid_nodes"] < g.counts()["invalid_nodes"]
+
+
+def test_detach_arc_at_an_invalid_interior_node():
+    # the valence-3 chain on the prism axis and a small singular loop through its vertex v (one
+    # face's transition turned by a quarter turn, group algebra only): v has four singular
+    # edges whose hex counts are not those of a hex-mesh vertex, an invalid node
+    from torchconn.hexmesh.cut import GROUP_INV, GROUP_MUL
+
+    mesh, F = axis_prism(turns=4.0)
+    X = mesh.vertices.numpy()
+    L = MeshLookup(mesh)
+    axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
+    v = int(axis_v[np.argsort(X[axis_v, 2])][1])
+    g = SingularGraph(mesh, F)
+    fm_bad = None
+    for f in L.vertex_faces(v).tolist():
+        if not g.interior_face[f] or np.isin(L.faces[f], axis_v).sum() > 1:
+            continue
+        for k in range(1, 24):
+            new = GROUP_INV[GROUP_MUL[k, GROUP_INV[g.match[f]]]]  # R_f <- G[k] R_f
+            tok = g.set_matchings([f], [new])
+            if g.vcls[v] == INVALID and g.counts()["complex_edges"] == 0:
+                fm_bad = g.match.copy()
+                break
+            g.undo(tok)
+        if fm_bad is not None:
+            break
+    assert fm_bad is not None, "no face move at v makes it an invalid node"
+    assert (g.cls[L.vertex_edges(v)] >= 0).sum() == 4
+    fm, mv = detach_arc(mesh, F, fm_bad, v)
+    assert mv is not None and mv.kind == "detach" and mv.delta < 0
+    g1 = SingularGraph(mesh, F, fm)
+    _check_consistent(mesh, F, fm, g1)
+    assert g1.vcls[v] not in (INVALID, ZIPPER)
+    fm2, rep = repair_singular_graph(mesh, F, fm_bad, max_rounds=3, split_passes=0)
+    _check_consistent(mesh, F, fm2, SingularGraph(mesh, F, fm2))
+    assert rep.before["invalid_nodes"] >= 1 and rep.after["invalid_nodes"] == 0 and rep.after["meshable"]
+
+
+# ----------------------------------------------------------------------------- the driver
+def test_driver_on_the_hairpin_and_on_a_clean_field():
+    mesh, F, (p, q, v) = hairpin()
+    fm, rep = repair_singular_graph(mesh, F)
+    assert rep.before["zipper_nodes"] == 1 and rep.after["zipper_nodes"] == 0 and rep.after["meshable"]
+    assert rep.stopped == "meshable" and rep.moves.get("zip", 0) >= 1 and rep.faces_changed >= 1
+    assert rep.mesh is mesh and rep.splits == 0
+    _check_consistent(mesh, F, fm, SingularGraph(mesh, F, fm))
+    import json
+
+    json.dumps(rep.as_dict())
+    box = io.box(2)
+    fm0, rep0 = repair_singular_graph(box, _identity(box))
+    assert rep0.rounds == 0 and rep0.stopped == "meshable" and rep0.faces_changed == 0
+    with pytest.raises(ValueError, match="max_rounds"):
+        repair_singular_graph(box, _identity(box), max_rounds=-1)
+
+
+def test_group_helpers_are_consistent():
+    G = group_matrices()
+    assert _TYP[0] == 0 and (_TYP[1:] > 0).all() and G.shape == (24, 3, 3)

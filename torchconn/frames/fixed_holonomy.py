@@ -1,0 +1,225 @@
+"""A tet frame field re-optimized by its connection with the face matchings fixed (frozen holonomy).
+
+The singular graph of one frame per tet is set by the face matchings (``F_t0 G[g_f] ~ F_t1`` for
+an interior face ``f`` with ``mesh.face_tets[f] = (t0, t1)``; :mod:`torchconn.hexmesh.cut`). A
+repair of the singular graph (:mod:`torchconn.hexmesh.repair`) changes matchings without
+changing the frames, so the frames no longer match as the matchings say. Freezing the matchings
+freezes the holonomy class of every edge (the singularity types, LMFF's "field optimized with the
+matchings fixed"); the frames are then re-optimized under that constraint, by a connection:
+
+* the dual graph: tets as vertices, interior faces as canonical edges ``(a, b)``, ``a < b``, each
+  with its fixed relabeling ``h_ab`` (``F_a G[h_ab] ~ F_b``);
+* the connection ``R_ab = exp(hat(omega_ab))`` (:class:`torchconn.nn.ConnectionField`, skew
+  parameters through the exponential), started at the matched connection
+  ``R_ab = F_a^T F_b G[h_ab]^T`` (the residual rotation of the input frames under the fixed
+  matchings), so that ``F_a R_ab = F_b G[h_ab]^T`` (the convention of
+  :mod:`torchconn.frames.model`: ``F_i R_ij = F_j h_ij``);
+* the frames are the connection's: one root rotation per component (``exp(hat(w)) F_root``),
+  propagated along a BFS spanning tree of the dual graph, ``F_b = F_a R_ab G[h_ab]``
+  (:mod:`torchconn.frames.propagate`'s convention, with the fixed relabeling);
+* the loss, the design card's terms (:mod:`torchconn.frames.terms`) on this graph:
+  ``smooth`` (:func:`~torchconn.frames.terms.smoothness_loss` of ``R``), ``tie`` over the non-tree
+  faces ``mean rho(||F_a R_ab - F_b G[h_ab]^T||)`` with ``h`` *fixed* (the tree faces hold it by
+  construction; around every edge the ties close the loop on the frozen holonomy: the
+  flatness of the connection relative to it), and ``align``
+  (:func:`~torchconn.frames.terms.axis_angle_loss`) of every boundary tet's frame to each of its
+  boundary faces' normals (at sharp features a tet has two and follows both).
+
+The returned frames' best matchings are, where the optimization reached a fit within 45°, the
+fixed ones (:attr:`FixedHolonomyResult.agree` says on how many faces).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..lie import so3
+from ..nn import ConnectionField
+from . import octahedral
+from .terms import axis_angle_loss, smoothness_loss
+from .propagate import spanning_tree
+
+__all__ = ["FixedHolonomyResult", "fixed_holonomy_frames", "FixedHolonomyField", "DEFAULT_WEIGHTS"]
+
+DEFAULT_WEIGHTS = {"smooth": 1.0, "tie": 2.0, "align": 10.0}
+"""Weights of the terms (the design card's ``smooth``, ``tie`` and ``align``)."""
+
+
+class FixedHolonomyField(torch.nn.Module):
+    """The connection on the dual graph and the frames it propagates (module docstring).
+
+    Args:
+        mesh: a ``TetMesh``; tet_frames: ``(T, 3, 3)`` rotations; face_match: ``(F,)`` indices
+            into :func:`~torchconn.frames.octahedral.group` (``F_t0 G[g] ~ F_t1``).
+
+    ``forward() -> (edge_rot (D, 3, 3), frames (T, 3, 3))`` over the ``D`` interior faces
+    (buffers ``dual_edges (D, 2)``, ``dual_face (D,)``, ``h (D,)``).
+    """
+
+    def __init__(self, mesh, tet_frames: torch.Tensor, face_match):
+        super().__init__()
+        G, MUL, INV = octahedral.group_tables()
+        F0 = torch.as_tensor(tet_frames).detach()
+        T = mesh.n_tets
+        ft = mesh.face_tets.cpu().numpy()
+        match = np.asarray(face_match, np.int64)
+        if match.shape != (ft.shape[0],) or (match.size and (match.min() < 0 or match.max() > 23)):
+            raise ValueError(f"face_match must be ({ft.shape[0]},) indices into the 24 elements of O")
+        fi = np.nonzero((ft >= 0).all(1))[0]
+        a, b = ft[fi, 0], ft[fi, 1]
+        h = np.where(a < b, match[fi], INV[match[fi]])
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        order = np.argsort(lo * T + hi)
+        dual = np.stack([lo[order], hi[order]], 1)
+        self.register_buffer("dual_edges", torch.as_tensor(dual))
+        self.register_buffer("dual_face", torch.as_tensor(fi[order]))
+        self.register_buffer("h", torch.as_tensor(h[order]))
+        Gt = torch.as_tensor(np.array(G), dtype=F0.dtype)
+        self.register_buffer("Gh", Gt[torch.as_tensor(h[order])])
+        self.tree = spanning_tree(edges=self.dual_edges, n_vertices=T)
+        tree_edge = torch.zeros(dual.shape[0], dtype=torch.bool)
+        for lv in self.tree.levels:
+            tree_edge[lv.edge] = True
+        self.register_buffer("tree_edge", tree_edge)
+        Fa, Fb = F0[self.dual_edges[:, 0]], F0[self.dual_edges[:, 1]]
+        R0 = Fa.transpose(-1, -2) @ Fb @ self.Gh.transpose(-1, -2)
+        self.connection = ConnectionField(self.dual_edges, T, init=R0)
+        self.register_buffer("F_root", F0[self.tree.roots].clone())
+        self.w = torch.nn.Parameter(F0.new_zeros(self.tree.roots.numel(), 3))
+
+    def forward(self) -> tuple[torch.Tensor, torch.Tensor]:
+        R = self.connection().edge_rot
+        blocks = [so3.exp(self.w) @ self.F_root]
+        for lv in self.tree.levels:  # loop over BFS levels of the dual tree
+            Rl, Gl = R[lv.edge], self.Gh[lv.edge]
+            fwd = (lv.sign > 0)[:, None, None]
+            # parent = a: F_b = F_a R G[h]; parent = b: F_a = F_b G[h]^T R^T
+            step = torch.where(fwd, Rl @ Gl, Gl.transpose(-1, -2) @ Rl.transpose(-1, -2))
+            blocks.append(blocks[-1][lv.parent_pos] @ step)
+        F_sorted = torch.cat(blocks, 0)
+        inv = torch.empty_like(self.tree.order)
+        inv[self.tree.order] = torch.arange(self.tree.order.numel(), device=self.tree.order.device)
+        return R, F_sorted[inv]
+
+
+@dataclass
+class FixedHolonomyResult:
+    """What :func:`fixed_holonomy_frames` returns.
+
+    Attributes:
+        tet_frames: ``(T, 3, 3)`` the connection's frames (detached).
+        agree: fraction of interior faces whose best matching of the returned frames is the fixed one.
+        misfit_deg_before, misfit_deg_after: mean angle (degrees) between ``F_t0 G[g_f]`` and
+            ``F_t1`` over the interior faces, for the input and the returned frames.
+        history: the loss terms per step (floats); ``seconds``: wall time.
+    """
+
+    tet_frames: torch.Tensor
+    agree: float
+    misfit_deg_before: float
+    misfit_deg_after: float
+    history: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def _misfit_deg(F: torch.Tensor, ft: torch.Tensor, g: torch.Tensor) -> float:
+    G = octahedral.group(F.dtype)
+    M = F[ft[:, 0]] @ G[g] - F[ft[:, 1]]
+    c = 1 - (M ** 2).sum((-2, -1)) / 4  # ||A - B||^2 = 4 (1 - cos t) for rotations
+    return float(torch.rad2deg(torch.arccos(c.clamp(-1, 1))).mean())
+
+
+def fixed_holonomy_frames(mesh, tet_frames, face_match, *, weights: dict | None = None, steps: int = 150,
+                          lr: float = 0.02, smooth_power: float = 2.0, smooth_eps: float = 1e-3,
+                          progress: bool = False) -> FixedHolonomyResult:
+    """Re-optimize per-tet frames by the dual connection with the face matchings fixed.
+
+    Args:
+        mesh: a ``TetMesh``; tet_frames: ``(T, 3, 3)`` rotations (axes as columns).
+        face_match: ``(F,)`` the matchings to freeze (e.g. :func:`torchconn.hexmesh.repair.repair_singular_graph`'s).
+        weights: overrides of :data:`DEFAULT_WEIGHTS`.
+        steps, lr: Adam steps and learning rate (cosine schedule), as the design card's.
+        smooth_power, smooth_eps: ``rho`` of the ``smooth`` and ``tie`` terms. Default 2 (the
+            Dirichlet energy of the connection; the card uses 1, total variation, which gathers the
+            turning on few faces: on the detached prism arc of the tests 0.3% of the faces then
+            leave their fixed matching and the singular graph moves, with 2 none does).
+        progress: a tqdm bar.
+
+    Returns:
+        :class:`FixedHolonomyResult`.
+
+    Raises:
+        ValueError: frames or matchings that do not fit the mesh, unknown weights, ``steps < 0``.
+    """
+    w = dict(DEFAULT_WEIGHTS)
+    if weights:
+        unknown = set(weights) - set(w)
+        if unknown:
+            raise ValueError(f"unknown weights {sorted(unknown)}; known: {sorted(w)}")
+        w.update({k: float(v) for k, v in weights.items()})
+    if not (isinstance(steps, int) and steps >= 0):
+        raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+    t0 = time.perf_counter()
+    F0 = torch.as_tensor(tet_frames).detach().to("cpu", torch.float64)
+    if F0.shape != (mesh.n_tets, 3, 3) or not torch.isfinite(F0).all():
+        raise ValueError(f"tet_frames must be finite with shape ({mesh.n_tets}, 3, 3), got {tuple(F0.shape)}")
+    model = FixedHolonomyField(mesh, F0, face_match)
+    ft_all = mesh.face_tets.cpu()
+    ft = ft_all[model.dual_face]
+    g_fixed = torch.as_tensor(np.asarray(face_match, np.int64))[model.dual_face]
+    # boundary tets and the normals of their boundary faces
+    bfi = torch.nonzero((ft_all < 0).any(1)).flatten()
+    bt = ft_all[bfi].amax(1)
+    X = mesh.vertices.detach().cpu().double()
+    tri = mesh.faces.cpu()[bfi]
+    n = torch.linalg.cross(X[tri[:, 1]] - X[tri[:, 0]], X[tri[:, 2]] - X[tri[:, 0]])
+    n = n / n.norm(dim=1, keepdim=True)
+    free = ~model.tree_edge
+    ea, eb = model.dual_edges[free, 0], model.dual_edges[free, 1]
+    Gh_free = model.Gh[free]
+
+    def loss_terms():
+        R, F = model()
+        out = {"smooth": smoothness_loss(R, smooth_power, smooth_eps)}
+        if free.any():
+            # ||F_a R - F_b G[h]^T|| = ||G[h] F_b^T F_a R - I||: the tie is the smoothness of that rotation
+            out["tie"] = smoothness_loss(Gh_free @ F[eb].transpose(-1, -2) @ F[ea] @ R[free], smooth_power, smooth_eps)
+        else:
+            out["tie"] = R.new_zeros(())
+        out["align"] = axis_angle_loss(F[bt], n) if bt.numel() else R.new_zeros(())
+        return out, F
+
+    before = _misfit_deg(F0, ft, g_fixed)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
+    history = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, desc="fixed holonomy", unit="step", leave=False)
+    try:
+        for _ in range(steps):
+            opt.zero_grad()
+            terms, _ = loss_terms()
+            total = sum(w[k] * v for k, v in terms.items())
+            total.backward()
+            opt.step()
+            sched.step()
+            history.append({k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())})
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    with torch.no_grad():
+        _, F = loss_terms()
+    F = F.detach()
+    idx, _ = octahedral.match(F[ft[:, 0]], F[ft[:, 1]])
+    agree = float((idx == g_fixed).double().mean()) if idx.numel() else 1.0
+    return FixedHolonomyResult(tet_frames=F, agree=agree, misfit_deg_before=before,
+                               misfit_deg_after=_misfit_deg(F, ft, g_fixed), history=history,
+                               seconds=time.perf_counter() - t0)

@@ -1,0 +1,212 @@
+"""The repair operations of the singular graph: one-ring moves at a vertex, chosen by the cost.
+
+Every operation is a cone move (:func:`.disk.cone_disk`) at a vertex ``v``: two special edges
+``e1 = (v, a)`` and ``e2 = (v, b)`` at ``v`` (interior singular edges, boundary edges whose fan
+angle is not flat or not their feature's), a path ``a -> b`` in the link of ``v``, and the
+matchings of the cone's faces re-solved (:func:`.disk.solve_disk`) so that ``e1`` takes a chosen
+product (interior: the identity; boundary: a fan transport whose angle is the one the geometry
+asks for) while the spokes inside the cone keep theirs. When ``e1`` and ``e2`` carry one arc
+through ``v`` the arc now runs ``a -> p_1 -> ... -> b`` around ``v``; otherwise the move makes
+other edges singular and the cost says so. Candidates: every ordered pair, every admissible
+product of ``e1``, and up to four paths (the shortest, and the shortest around the first one's
+inside, for each weighting of :data:`PATH_MODES`). The move kept is the one that lowers :meth:`.graph.SingularGraph.cost` the most.
+
+The kinds (LMFF's repair operations, Liu & Bommes 2023, as AlgoHex names them), by the vertex
+and the edges moved:
+
+* ``push_inside``: a singular curve lying on a smooth part of the boundary (boundary edges
+  with a convex or concave fan, ``crease``), pushed off it into the interior, one vertex at a
+  time: LMFF's "push singular vertices on the boundary into the interior";
+* ``move_off``: an arc touching the boundary (both edges interior, ``v`` on the boundary)
+  detached from ``v``: LMFF's "arcs touching feature faces tangentially";
+* ``detach``: an arc detached from an invalid interior node (the dual-path search for an
+  anti-parallel partner arc at the node is the search over pairs and paths here);
+* ``zip``: at a zipper node (an arc doubling back), the tip moved across the cone, which
+  shortens the hairpin and merges zipper pairs (a cone move at a tip whose two branches are
+  one edge apart zips them);
+* ``feature_sector``: a boundary fan whose angle is not its sharp feature's (a constrained
+  feature sector) given the angle the feature asks for.
+
+Each public function takes a mesh, per-tet frames and matchings and returns the new matchings
+and a :class:`Move` (or ``None`` when no move lowers the cost); the driver
+(:func:`.driver.repair_singular_graph`) calls :func:`best_move` on its state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..meshability import INVALID, ZIPPER, fan_quarters
+from .disk import MeshLookup, cone_disk, link_path, solve_disk
+from .graph import _AXIS, SingularGraph
+
+__all__ = ["Move", "MOVE_KINDS", "best_move", "special_edges", "push_inside", "move_off_boundary", "detach_arc",
+           "zip_zipper", "repair_feature_sector"]
+
+PATH_MODES = ("aligned", "monotone")
+"""Weightings of :func:`.disk.link_path` the candidates are drawn with."""
+
+MOVE_KINDS = ("push_inside", "move_off", "detach", "zip", "feature_sector", "other")
+"""Kinds of :class:`Move` (module docstring)."""
+
+
+@dataclass
+class Move:
+    """A cone move: ``vertex``, the two edges ``edges = (e1, e2)``, the link ``path``, the cone's
+    ``faces`` and their new matchings ``values``, the cost change ``delta`` (negative: better),
+    the ``kind`` (:data:`MOVE_KINDS`) and the condition counts ``before``/``after`` at its vertices."""
+
+    vertex: int
+    edges: tuple
+    path: np.ndarray
+    faces: np.ndarray
+    values: np.ndarray
+    delta: float
+    kind: str = "other"
+    info: dict = field(default_factory=dict)
+
+
+def special_edges(g: SingularGraph, lookup: MeshLookup, v: int) -> np.ndarray:
+    """Edges at ``v`` that carry the singular graph: interior singular edges, boundary edges with
+    a non-flat fan off sharp features, sharp boundary edges whose fan angle is not the feature's."""
+    es = lookup.vertex_edges(v)
+    c = g.cls[es]
+    q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+    mism = g.boundary[es] & g.sharp[es] & (q != g.expected[es])
+    return es[(c >= 0) | mism]
+
+
+def _targets(g: SingularGraph, e: int) -> list[int]:
+    """Products the seed edge ``e`` may take: the identity (interior), or the fan transports
+    whose angle is the one the geometry asks for (boundary; at most 4)."""
+    if not g.boundary[e]:
+        return [0]
+    r = g.bpos[e]
+    a0 = np.broadcast_to(g.a0[r], (24, 3))
+    dpar = np.einsum("ji,j->i", g.frames[g.fans.first_tet[r]], g.X[g.edges[e, 1]] - g.X[g.edges[e, 0]])
+    q = fan_quarters(a0, g.a1[r], np.broadcast_to(dpar, (24, 3)), np.full(24, g.fans.dihedral[r]))
+    want = g.expected[e]
+    out = [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]]
+    # closest to the current transport first: fewest changed frames (misfit) for the same angle
+    return out[:4]
+
+
+def _kind(g: SingularGraph, v: int, e1: int, e2: int) -> str:
+    b1, b2 = g.boundary[e1], g.boundary[e2]
+    if (b1 and g.sharp[e1]) or (b2 and g.sharp[e2]):
+        return "feature_sector"
+    if b1 or b2:
+        return "push_inside"
+    if g.on_b[v]:
+        return "move_off"
+    if g.vcls[v] == ZIPPER:
+        return "zip"
+    if g.vcls[v] == INVALID:
+        return "detach"
+    return "other"
+
+
+def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2):
+    """Every cone move at ``v`` (module docstring) with its cost change, as :class:`Move` s."""
+    sp_e = special_edges(g, lookup, v)
+    seen = set()  # the pair (e2, e1) over the reversed path often makes the same singular graph
+    for e1 in sp_e.tolist():
+        for e2 in sp_e.tolist():
+            if e1 == e2:
+                continue
+            kind = _kind(g, v, e1, e2)
+            if kinds is not None and kind not in kinds:
+                continue
+            a, b = lookup.other_end(e1, v), lookup.other_end(e2, v)
+            axis = None
+            if not g.boundary[e1]:
+                k = _AXIS[g.prod[e1]]
+                if k >= 0:
+                    axis = g.frames[g.walks.start[e1]][:, k]
+            paths = []
+            for mode in (PATH_MODES if axis is not None else PATH_MODES[:1]):
+                p = link_path(g, lookup, v, a, b, axis, mode=mode)
+                if p is not None:
+                    paths.append(p)
+                    if n_paths > 1 and p.size > 2:
+                        q = link_path(g, lookup, v, a, b, axis, blocked=p[1:-1], mode=mode)
+                        if q is not None:
+                            paths.append(q)
+            seen = set()
+            paths = [p for p in paths if not (tuple(p.tolist()) in seen or seen.add(tuple(p.tolist())))]
+            for path in paths:
+                cone = cone_disk(lookup, v, path)
+                if cone is None:
+                    continue
+                faces, inside, _ = cone
+                for target in _targets(g, e1):
+                    vals = solve_disk(g, faces, int(faces[0]), e1, target, inside)
+                    if vals is None or (vals == g.match[faces]).all():
+                        continue
+                    before = g.local_cost(faces)
+                    token = g.set_matchings(faces, vals)
+                    after = g.local_cost(faces)
+                    es = np.unique(g.face_edges[faces])
+                    key = (tuple(es.tolist()), tuple(g.prod[es].tolist()))  # the same singular graph
+                    g.undo(token)
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                    yield Move(vertex=int(v), edges=(int(e1), int(e2)), path=path, faces=faces, values=vals,
+                               delta=after - before, kind=kind)
+
+
+def best_move(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2) -> Move | None:
+    """The cone move at ``v`` that lowers the cost most (``None`` if none lowers it)."""
+    best = None
+    for mv in candidate_moves(g, lookup, v, kinds, n_paths):
+        if mv.delta < -1e-9 and (best is None or mv.delta < best.delta):
+            best = mv
+    return best
+
+
+def _apply(kinds, mesh, tet_frames, face_match, vertex, weights=None):
+    g = SingularGraph(mesh, tet_frames, face_match, weights=weights)
+    lookup = MeshLookup(mesh)
+    V = mesh.n_vertices
+    if not (0 <= int(vertex) < V):
+        raise ValueError(f"vertex {vertex} is not a vertex of this mesh (0..{V - 1})")
+    mv = best_move(g, lookup, int(vertex), kinds)
+    if mv is None:
+        return g.match.copy(), None
+    vs = np.unique(g.edges[np.unique(g.face_edges[mv.faces])])
+    before = {"vertex_class": g.vcls[vs].copy()}
+    g.set_matchings(mv.faces, mv.values)
+    mv.info = {"vertices": vs, "class_before": before["vertex_class"], "class_after": g.vcls[vs].copy(),
+               "counts_after": g.counts()}
+    return g.match.copy(), mv
+
+
+def push_inside(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Push a singular curve lying on a smooth part of the boundary off the boundary vertex
+    ``vertex`` into the interior (module docstring). Returns ``(face_match (F,), Move or None)``."""
+    return _apply(("push_inside",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def move_off_boundary(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Detach an arc that touches the boundary at ``vertex`` (both its edges interior) from it.
+    Returns ``(face_match (F,), Move or None)``."""
+    return _apply(("move_off",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def detach_arc(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Detach an arc from the invalid interior node ``vertex``. Returns ``(face_match, Move or None)``."""
+    return _apply(("detach",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def zip_zipper(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Move the tip of the hairpin at the zipper node ``vertex`` across a cone of faces (zips its
+    branches). Returns ``(face_match, Move or None)``."""
+    return _apply(("zip",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def repair_feature_sector(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Give the fans at the feature vertex ``vertex`` the angles their sharp feature asks for.
+    Returns ``(face_match, Move or None)``."""
+    return _apply(("feature_sector",), mesh, tet_frames, face_match, vertex, weights)
