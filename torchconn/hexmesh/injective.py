@@ -359,24 +359,38 @@ class _Hessian:
         return 0.5 * (H + H.T)
 
 
-def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd):
+def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd, quad=None):
     """Newton steps of ``model``'s energy on the unfixed unknowns ``free`` (bool mask) from a
     feasible ``y``: PSD-projected Hessian, one sparse solve, the step capped by ``model.cap``,
-    Armijo backtracking. Returns ``(y, iterations, converged)``."""
+    Armijo backtracking. ``quad = (P, q)``: a quadratic ``y^T P y - 2 q^T y`` added to the energy
+    (``P (m, m)`` sparse, symmetric positive semidefinite). Returns ``(y, iterations, converged)``."""
     hess = _Hessian(jac, np.nonzero(free)[0])
     vol = jac.vol
     Etot = vol.sum()
     it = 0
     converged = False
-    E = model.energy(jac(y), vol)
+    if quad is not None:
+        P, q = sp.csr_matrix(quad[0]), np.asarray(quad[1], np.float64)
+        Pff = P[free][:, free].tocsr()
+
+        def energy(yy):
+            return model.energy(jac(yy), vol) + float(yy @ (P @ yy) - 2.0 * q @ yy)
+    else:
+        def energy(yy):
+            return model.energy(jac(yy), vol)
+    E = energy(y)
     for it in range(1, max_iter + 1):
         J = jac(y)
         try:
             _, g, H = model.terms(J)
         except FloatingPointError:
             break
-        gf = (jac.GZ.T @ (g.numpy() * vol[:, None]).reshape(-1))[free]
+        grad = jac.GZ.T @ (g.numpy() * vol[:, None]).reshape(-1)
         A = hess(H.numpy() * vol[:, None, None])
+        if quad is not None:
+            grad = grad + 2.0 * (P @ y - q)
+            A = A + 2.0 * Pff
+        gf = grad[free]
         # a tiny Tikhonov term keeps the factorization definite where the energy is flat
         scale = max(float(np.abs(A.diagonal()).max(initial=0.0)), 1e-300)
         A = A + sp.identity(A.shape[0], format="csr") * (1e-12 * scale)
@@ -394,7 +408,7 @@ def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd):
         s = model.cap(J, jac.step(d))
         while s > 1e-12:
             y_new = y + s * d
-            E_new = model.energy(jac(y_new), vol)
+            E_new = energy(y_new)
             if E_new <= E - 1e-4 * s * dec:
                 break
             s *= 0.5
