@@ -42,9 +42,15 @@ def _cfg(out, **kw):
 def test_box_writes_every_output_and_a_good_grid(tmp_path):
     m = run(_cfg(tmp_path))
     assert m["map"]["valid"] and m["good"] and m["quality"]["n_hexes"] == 64
-    for name in ("igm.hexex", "hex.vtu", "hex.mesh", "hex_metrics.json", "hex.png", "frames.npz"):
+    for name in ("seamless.hexex", "igm.hexex", "hex.vtu", "hex.mesh", "hex_metrics.json", "hex.png", "frames.npz"):
         assert (tmp_path / name).is_file() and (tmp_path / name).stat().st_size > 0, name
     saved = json.loads((tmp_path / "hex_metrics.json").read_text())
+    assert saved["first_failed"] is None
+    assert list(saved["gates"]) == ["structure", "seamless", "quantization", "extraction"]
+    assert all(g["passed"] for g in saved["gates"].values())
+    # the seamless map (before quantization) on the same tet mesh: the identity field's is already integral
+    Vs, Ts, Us = read_hexex(tmp_path / "seamless.hexex")
+    assert Ts.shape[0] == read_hexex(tmp_path / "igm.hexex")[1].shape[0] and Us.shape == (Ts.shape[0], 4, 3)
     assert saved["map"]["valid"] and saved["quality"]["sj_min"] == pytest.approx(1.0)
     assert saved["verdict"] == {"good": True, "status": "good", "reasons": [], "text": "good hex mesh"}
     assert not (tmp_path / "map_failure.vtu").exists() and not (tmp_path / "map_failure.png").exists()
@@ -75,12 +81,16 @@ def test_invalid_map_is_a_result_not_an_error(tmp_path):
     m = run(_cfg(out, mesh=str(tmp_path / "prism.mesh"), frames=str(tmp_path / "f.npz"), hex={"edge_length": 0.2}))
     assert not m["map"]["valid"] and not m["good"]
     assert any("complex" in r for r in m["map"]["reasons"])
+    # the first gate that fails is the structure's (a complex singular edge), and the verdict says so
+    assert m["first_failed"] == "structure" and not m["gates"]["structure"]["passed"]
+    assert m["gates"]["structure"]["counts"]["complex_edges"] > 0
     assert (out / "igm.hexex").is_file() and (out / "hex_metrics.json").is_file()
     # what shows the failure: the input tets with their flags and the singular graph, and a picture
     saved = json.loads((out / "hex_metrics.json").read_text())
     v = saved["verdict"]
     assert v["status"] == "no hex mesh" and v["good"] is False and saved["good"] is False
-    assert v["text"].startswith("no hex mesh: invalid map (") and "complex singular edges" in v["text"]
+    assert v["text"].startswith("no hex mesh: invalid map (the structure stage fails first: ")
+    assert "complex singular edges" in v["text"]
     assert saved["quality"] is None  # figures that do not exist are absent, not 0
     vtu = meshio.read(out / "map_failure.vtu")
     assert [c.type for c in vtu.cells] == ["tetra", "line"] and vtu.cells[0].data.shape == (mesh.n_tets, 4)

@@ -178,6 +178,7 @@ HEX_MESH: dict[str, Spec] = {
     "hex.split": _bool(),
     "hex.features": _bool(),
     "hex.feature_max_deg": _float(0, 90),
+    "hex.injective": _bool(),
     "hex.batch_error": _float(0, lo_open=True),
     "hex.stiffening_iters": _int(0),
     "hex.stiffening_factor": _float(1),

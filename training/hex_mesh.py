@@ -6,12 +6,16 @@ hex extraction and the hex mesh's quality -> files.
 
 Outputs in ``output_dir``:
 
+* ``seamless.hexex``: the seamless map before quantization, in the same format and on the same tet
+  mesh as ``igm.hexex`` (its translations real, its parameters on the ``2**-grid_bits`` grid);
 * ``igm.hexex``: the final map in libHexEx's format (the tet mesh the map lives on: the input's
   own vertices first, in their order, then the midpoints of the edges the map split; per tet
   its 4 corners' parameters, in units of the hex edge length);
 * ``hex.vtu`` and ``hex.mesh``: the hexahedra (VTK order, positively oriented), when any;
 * ``hex_metrics.json``: the ``verdict`` (:func:`torchconn.hexmesh.report.verdict`: ``good``,
-  ``status``, ``reasons``, ``text``; ``good`` repeats its ``good``), the map's validity
+  ``status``, ``reasons``, ``text``; ``good`` repeats its ``good``), the ``gates`` (structure,
+  seamless map, quantization, extraction: ``passed``, ``reasons``, ``counts``, ``where``) and
+  ``first_failed`` (the first stage that fails), the map's validity
   (``map.valid``, ``map.reasons``: which check fails and where), its figures (energy, integers,
   singular edges, splits, the image's volume in unit cubes, timings), the extraction's counts
   (hexes, cubes dropped and why, oversized tets), the hex quality (scaled Jacobian min/mean,
@@ -221,8 +225,9 @@ def _save(out: Path, mesh, result, metrics: dict, frames) -> None:
         if frames is not None:
             io_utils.atomic_savez(stage / "frames.npz", vertices=mesh.vertices.detach().cpu().double().numpy(),
                                   tets=mesh.tets.cpu().numpy().astype(np.int64), frames=frames)
-        write_hexex(stage / "igm.hexex", m.mesh.vertices.detach().cpu().double().numpy(),
-                    m.mesh.tets.cpu().numpy(), m.uvw)
+        X, tets = m.mesh.vertices.detach().cpu().double().numpy(), m.mesh.tets.cpu().numpy()
+        write_hexex(stage / "seamless.hexex", X, tets, m.seamless_uvw)
+        write_hexex(stage / "igm.hexex", X, tets, m.uvw)
         if result.hexes.shape[0]:
             write_hex_mesh(stage / "hex.vtu", result.points, result.hexes)
             write_hex_mesh(stage / "hex.mesh", result.points, result.hexes)

@@ -1,4 +1,9 @@
-"""From a tet mesh and a frame field to a hex mesh, in one call: map, validity, extraction, quality.
+"""From a tet mesh and a frame field to a hex mesh, in one call: the gated stages and the judgement.
+
+The stages (:data:`~.validity.STAGES`), each with its verdict (:class:`~.validity.Gate`):
+**structure**, **seamless** map and **quantization** (:func:`~.igm.integer_grid_map`), then
+**extraction** (:func:`~.extract.extract_hexes`: passes when every cube of a valid map is extracted
+into a valid hex mesh). :attr:`HexMeshResult.first_failed` names the first stage that fails.
 
 >>> from torchconn import io
 >>> from torchconn.hexmesh import hex_mesh
@@ -20,12 +25,13 @@ import numpy as np
 
 from .extract import extract_hexes
 from .igm import IntegerGridMap, integer_grid_map
-from .validity import MapValidity, check_map
+from .validity import STAGES, Gate, MapValidity
 
-__all__ = ["HexMeshResult", "hex_mesh", "MAP_OPTIONS"]
+__all__ = ["HexMeshResult", "hex_mesh", "extraction_gate", "MAP_OPTIONS"]
 
-MAP_OPTIONS = ("edge_length", "straighten", "straighten_boundary", "touch_rounds", "split", "features", "feature_max_deg", "batch_error",
-               "stiffening_iters", "stiffening_factor", "grid_bits", "backend")
+MAP_OPTIONS = ("edge_length", "straighten", "straighten_boundary", "touch_rounds", "split", "features", "feature_max_deg",
+               "flat_rounds", "injective", "fit_weight", "sd_weight", "batch_error", "stiffening_iters",
+               "stiffening_factor", "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
 #: The extraction's lattice-point limit per tet (``extract_hexes``' default, which
 #: :func:`hex_mesh` uses): a map whose tets exceed it has an edge length too small for the mesh.
@@ -47,7 +53,9 @@ class HexMeshResult:
             (``None`` without hexes or with ``quality=False``).
         meshability: the :class:`~.meshability.Meshability` report of the singular graph the
             map saw (after the straightening search and the splits): LMFF's local conditions.
-        timings: seconds per step (``map``, ``validity``, ``extract``, ``quality``, ``total``).
+        gates: ``{stage: Gate}`` for every stage of :data:`~.validity.STAGES` that ran
+            (``map.gates`` and ``extraction``).
+        timings: seconds per step (``map``, ``extract``, ``untangle``, ``quality``, ``total``).
         input_mesh: the ``TetMesh`` that was given (float64, CPU); ``map.parent_tet`` maps the
             map's tets to its tets.
     """
@@ -59,6 +67,16 @@ class HexMeshResult:
     timings: dict = field(default_factory=dict)
     meshability: object | None = None
     input_mesh: object | None = None
+    gates: dict = field(default_factory=dict)
+
+    @property
+    def first_failed(self) -> str | None:
+        """The first stage whose gate failed (``None``: every stage passed)."""
+        for name in STAGES:
+            g = self.gates.get(name)
+            if g is not None and not g.passed:
+                return name
+        return None
 
     @property
     def points(self) -> np.ndarray:
@@ -100,6 +118,8 @@ class HexMeshResult:
                     "edge_length": m.edge_length, "energy": m.energy, "energy_continuous": m.energy_continuous,
                     "tets": int(m.mesh.n_tets), "vertices": int(m.mesh.n_vertices),
                     "singular_graph": m.charts.counts(), **map_figures(m, self.input_mesh), **stats},
+            "gates": {k: g.as_dict() for k, g in self.gates.items()},
+            "first_failed": self.first_failed,
             "meshability": self.meshability.counts() if self.meshability is not None else None,
             "extraction": ext,
             "quality": self.quality.as_dict() if self.quality is not None else None,
@@ -155,23 +175,15 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
     t0 = time.perf_counter()
     igm = integer_grid_map(mesh, frames, progress=progress, **map_options)
     timings["map_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    validity = check_map(igm.mesh, igm)
-    timings["validity_s"] = time.perf_counter() - t0
-    from .meshability import meshability_report
-
-    t0 = time.perf_counter()
-    mesh_report = meshability_report(igm.mesh, igm.charts.frames, charts=igm.charts)
-    timings["meshability_s"] = time.perf_counter() - t0
+    gates = dict(igm.gates)
     ext = hq = None
     if extract:
-        from .extract import extract_hexes
-
         t0 = time.perf_counter()
         ext = extract_hexes(igm.mesh, igm.uvw, igm.face_rot, igm.face_shift, grid_bits=igm.grid_bits,
                             progress=progress)
         timings["extract_s"] = time.perf_counter() - t0
-        if untangle and ext.hexes.shape[0]:
+        # the hex vertices of a valid map are untangled; a partial mesh of an invalid one is shown as it is
+        if untangle and ext.hexes.shape[0] and igm.validity.valid:
             from .quality import boundary_quads_of
             from .smooth import untangle as _untangle
 
@@ -187,6 +199,26 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
             t0 = time.perf_counter()
             hq = hex_quality(ext.points, ext.hexes, tet_mesh=mesh)
             timings["quality_s"] = time.perf_counter() - t0
+        gates["extraction"] = extraction_gate(ext, hq)
     timings["total_s"] = time.perf_counter() - t_all
-    return HexMeshResult(map=igm, validity=validity, extraction=ext, quality=hq, timings=timings,
-                         meshability=mesh_report, input_mesh=mesh)
+    return HexMeshResult(map=igm, validity=igm.validity, extraction=ext, quality=hq, timings=timings,
+                         meshability=igm.meshability, input_mesh=mesh, gates=gates)
+
+
+def extraction_gate(ext, quality=None) -> Gate:
+    """The extraction's verdict: hexes were extracted, no cube was dropped, and the hex mesh is
+    valid (all hexahedra, none inverted, conforming, a closed manifold boundary:
+    :attr:`~.quality.HexQuality.valid`, when judged)."""
+    c = ext.counts()
+    counts = {"hexes": c["hexes"], "cubes_dropped": c["cubes_dropped"]}
+    reasons = []
+    if not counts["hexes"]:
+        reasons.append("no hexes extracted")
+    if counts["cubes_dropped"]:
+        why = ", ".join(f"{k}: {v}" for k, v in (c.get("dropped") or {}).items() if v)
+        reasons.append(f"{counts['cubes_dropped']} cubes dropped" + (f" ({why})" if why else ""))
+    if quality is not None:
+        counts["hex_mesh_valid"] = bool(quality.valid)
+        if not quality.valid:
+            reasons.append("the hex mesh is not valid: " + "; ".join(quality.invalid_reasons))
+    return Gate(stage="extraction", passed=not reasons, counts=counts, reasons=reasons)

@@ -70,10 +70,14 @@ def map_figures(igm, input_mesh=None) -> dict:
     return out
 
 
-def _first_map_reasons(mp: dict) -> str:
-    r = list(mp.get("reasons") or [])
+def _first_map_reasons(mp: dict, metrics: dict | None = None) -> str:
+    """The first failing stage of the map (its gate's reasons), else the final map's checks."""
+    stage = (metrics or {}).get("first_failed")
+    gate = ((metrics or {}).get("gates") or {}).get(stage) if stage not in (None, "extraction") else None
+    r = list(gate["reasons"] if gate else (mp.get("reasons") or []))
     more = f"; {len(r) - _MAP_REASONS_SHOWN} more failing checks" if len(r) > _MAP_REASONS_SHOWN else ""
-    return "; ".join(r[:_MAP_REASONS_SHOWN]) + more
+    head = f"the {stage} stage fails first: " if gate else ""
+    return head + "; ".join(r[:_MAP_REASONS_SHOWN]) + more
 
 
 def no_hex_reasons(metrics: dict) -> list[str]:
@@ -87,7 +91,7 @@ def no_hex_reasons(metrics: dict) -> list[str]:
         return ["the hexes were not extracted (extract=False)"]
     reasons = []
     if mp and not mp.get("valid", True):
-        reasons.append(f"invalid map ({_first_map_reasons(mp)})")
+        reasons.append(f"invalid map ({_first_map_reasons(mp, metrics)})")
     h = mp.get("edge_length")
     default = mp.get("default_edge_length")
     dflt = f"; the default, {default:.3g}, is half the mean tet edge" if default is not None else ""
@@ -129,7 +133,7 @@ def verdict(metrics: dict) -> dict:
         return {"good": False, "status": "no hex mesh", "reasons": reasons, "text": "no hex mesh: " + "; ".join(reasons)}
     reasons = []
     if mp is not None and not mp.get("valid", False):
-        reasons.append(f"invalid map ({_first_map_reasons(mp)})")
+        reasons.append(f"invalid map ({_first_map_reasons(mp, metrics)})")
     if q is None:
         status = "not judged"
         reasons.append(f"{n} hexes not judged (quality=False)")
@@ -153,6 +157,8 @@ def summary(metrics: dict) -> list[str]:
     v = metrics.get("verdict") or verdict(metrics)
     mp, ex, q = metrics.get("map") or {}, metrics.get("extraction"), metrics.get("quality")
     parts = [f"map {'valid' if mp.get('valid') else 'INVALID'} (edge length {mp.get('edge_length', float('nan')):.3g})"]
+    if metrics.get("first_failed"):
+        parts.append(f"first failing stage: {metrics['first_failed']}")
     if ex is not None:
         parts.append(f"{ex['hexes']} hex{'' if ex['hexes'] == 1 else 'es'} ({ex.get('cubes_dropped', 0)} cubes dropped)")
     if q is not None:
