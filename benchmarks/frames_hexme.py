@@ -272,7 +272,13 @@ def hex_stage(mesh, frames, options: dict) -> dict:
                    hex_stats={k: val for k, val in r.map.stats.items() if k != "timings"},
                    hex_meshability=r.meshability.counts() if r.meshability is not None else None,
                    hex_meshable=bool(r.meshability.meshable) if r.meshability is not None else None,
-                   hex_times={**{f"map_{k}": val for k, val in r.map.stats["timings"].items()}, **r.timings})
+                   hex_times={**{f"map_{k}": val for k, val in r.map.stats["timings"].items()}, **r.timings},
+                   hex_first_failed=r.first_failed or "",
+                   hex_seamless_inverted_ls=r.map.stats["seamless"]["inverted_least_squares"],
+                   hex_quantization=r.map.stats["quantization"].get("method", ""),
+                   hex_quantization_failed=int(r.map.stats["quantization"].get("failed") or 0),
+                   **{f"hex_gate_{k}": bool(g.passed) for k, g in r.gates.items()},
+                   hex_gates={k: g.as_dict() for k, g in r.gates.items()})
         if q is not None:
             out.update(hex_sj_min=q.sj_min, hex_sj_mean=q.sj_mean, hex_valid_mesh=bool(q.valid),
                        hex_irregular=q.irregular_fraction, hex_hausdorff=q.hausdorff_rel,

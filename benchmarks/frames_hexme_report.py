@@ -28,7 +28,9 @@ BASELINE = "sh"
 ID_COLUMNS = ("set", "model", "kind", "method", "n_vertices", "n_tets")
 TIME_COLUMNS = ("mesh_s", "method_s", "metrics_s", "wall_s", "peak_rss_mb")
 #: The hex stage's columns (benchmarks.frames_hexme.hex_stage).
-HEX_COLUMNS = ("hex_valid", "hex_good", "hex_meshable", "hex_first_check", "hex_inverted_tets", "hex_degenerate_tets",
+GATES = ("structure", "seamless", "quantization", "extraction")
+HEX_COLUMNS = ("hex_valid", "hex_good", "hex_first_failed", *(f"hex_gate_{g}" for g in GATES), "hex_meshable",
+               "hex_first_check", "hex_inverted_tets", "hex_degenerate_tets",
                "hex_complex_edges", "hex_n", "hex_dropped", "hex_sj_min", "hex_sj_mean", "hex_irregular", "hex_hausdorff",
                "hex_volume_ratio", "hex_corners_meshed", "hex_corners", "hex_curves_meshed", "hex_curves",
                "hex_edge_length", "hex_map_tets", "hex_s", "end_to_end_s", "hex_reason", "hex_not_good", "hex_error")
@@ -233,13 +235,17 @@ def hex_figures(rows: list[dict]) -> dict:
                 continue
             c = per.setdefault(category(x), {"models": 0, "valid": 0, "good": 0, "corners": 0, "corners_meshed": 0,
                                              "curves": 0, "curves_meshed": 0, "hex_s_max": 0.0, "end_to_end_s_max": 0.0,
-                                             "errors": 0})
+                                             "errors": 0, **{f"gate_{g}": 0 for g in GATES}, "gated": 0})
             c["models"] += 1
             if not ok(r) or r.get("hex_error"):
                 c["errors"] += 1
                 continue
             c["valid"] += bool(r.get("hex_valid"))
             c["good"] += bool(r.get("hex_good"))
+            if f"hex_gate_{GATES[0]}" in r:
+                c["gated"] += 1
+                for g in GATES:
+                    c[f"gate_{g}"] += bool(r.get(f"hex_gate_{g}"))
             for k in ("corners", "corners_meshed", "curves", "curves_meshed"):
                 v = r.get(f"hex_{k}")
                 c[k] += int(v) if v is not None else 0
@@ -282,23 +288,37 @@ def hex_markdown(rows: list[dict]) -> list[str]:
     L.append("| anchor: HexMe paper pipeline, features meshed (all 189 inputs) | " + " | ".join("–" for _ in cats)
              + " | " + " | ".join("–" for _ in cats)
              + f" | {100 * ANCHOR_HEXME_FEATURES['corners']:.1f}% | {100 * ANCHOR_HEXME_FEATURES['curves']:.1f}% | – | – |")
+    if any(v.get("gated") for m in methods for v in hf[m].values()):
+        L += ["", "### Gates: models whose stage passes (structure: LMFF's conditions and no flat tet; seamless: the "
+              "map before quantization valid, checked exactly; quantization: the integer-grid map valid; extraction: "
+              "every cube extracted into a valid hex mesh)", "",
+              "| method | category | models | " + " | ".join(GATES) + " | good hex meshes |", "|---|---|---|" + "---|" * (len(GATES) + 1)]
+        for m in methods:
+            for c in cats:
+                v = hf[m].get(c)
+                if not v or not v.get("gated"):
+                    continue
+                L.append(f"| {m} | {c} | {v['gated']} | " + " | ".join(str(v[f'gate_{g}']) for g in GATES)
+                         + f" | {v['good']} |")
     L += ["", "### Hex meshes per model", "",
-          "| model | method | map | first failing check | LMFF conditions left | inverted / flat tets | hexes | SJ min | "
-          "SJ mean | irregular % | Hausdorff % | corners | curves | good | hex s | why not good |", "|---|---|" + "---|" * 14]
+          "| model | method | map | first failing stage | first failing check | LMFF conditions left | inverted / flat tets | "
+          "hexes | SJ min | SJ mean | irregular % | Hausdorff % | corners | curves | good | hex s | why not good |",
+          "|---|---|" + "---|" * 15]
     for x in models:
         for m in methods:
             r = t.get((x, m))
             if r is None or ("hex_s" not in r):
                 continue
             if r.get("hex_error"):
-                L.append(f"| {x} | {m} | error | {r['hex_error'][:120]} |" + " |" * 11)
+                L.append(f"| {x} | {m} | error | {r['hex_error'][:120]} |" + " |" * 12)
                 continue
             pct = lambda v: _fmt(100 * _f(v), 3) if v is not None else "–"  # noqa: E731
             mc = r.get("hex_meshability") or {}
             lmff = ", ".join(f"{k.replace('_', ' ')} {mc[k]}" for k in ("complex_edges", "zipper_nodes", "invalid_nodes",
                                                                       "surface_valence2_edges", "touching_edges")
                              if mc.get(k)) or ("none" if mc else "–")
-            L.append(f"| {x} | {m} | {'valid' if r.get('hex_valid') else 'invalid'} | {r.get('hex_first_check') or ''} | "
+            L.append(f"| {x} | {m} | {'valid' if r.get('hex_valid') else 'invalid'} | {r.get('hex_first_failed') or ''} | "
+                     f"{r.get('hex_first_check') or ''} | "
                      f"{lmff} | "
                      f"{r.get('hex_inverted_tets', 0)} / {r.get('hex_degenerate_tets', 0)} | {r.get('hex_n', 0)} | "
                      f"{_fmt(r.get('hex_sj_min'))} | {_fmt(r.get('hex_sj_mean'))} | {pct(r.get('hex_irregular'))} | "
