@@ -221,3 +221,20 @@ def test_check_seamless_passes_the_box_map_and_catches_a_broken_one():
     bad[t, 0] += 0.25  # a corner moved in one tet only: its faces are no longer seamless
     v = check_seamless(mesh, charts, bad, prob)
     assert not v.valid and v.counts["broken_transitions"] > 0
+
+
+def test_tets_no_map_can_open_are_left_out_and_the_rest_untangled():
+    mesh, charts, prob, y = _box_problem(3)
+    jac = TetJacobians.of_problem(prob)
+    k = 7  # a tet made flat for every value of the unknowns: its Jacobian is constant and singular
+    GZ = jac.GZ.tolil()
+    GZ[9 * k:9 * k + 9, :] = 0
+    j0 = jac.j0.copy()
+    j0[9 * k:9 * k + 9] = np.diag([1.0, 1.0, 0.0]).reshape(9)
+    jac = TetJacobians(GZ=GZ.tocsr(), j0=j0, vol=jac.vol)
+    rng = np.random.default_rng(3)
+    y0 = y + rng.normal(scale=0.4, size=y.size)
+    r = minimize_barrier(jac, y0, ignore=np.array([k]))
+    assert r.n_inverted == 0 and np.linalg.det(jac(r.y))[k] == 0.0
+    det = np.linalg.det(jac(r.y))
+    assert (np.delete(det, k) > DET_SAFE).all()

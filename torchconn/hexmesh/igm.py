@@ -249,8 +249,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     det_ls = np.linalg.det(jac(y_ls))
     y_s = y_ls
     inj = None
-    if injective and (det_ls <= DET_SAFE).any():
-        inj = minimize_barrier(jac, y_ls, w_fit=fit_weight, w_sd=sd_weight, backend=backend)
+    opened = np.ones(det_ls.size, bool)
+    opened[flat] = False  # the flat tets stay flat whatever the map: left out of the untangling
+    if injective and (det_ls[opened] <= DET_SAFE).any():
+        inj = minimize_barrier(jac, y_ls, ignore=flat, w_fit=fit_weight, w_sd=sd_weight, backend=backend)
         y_s = inj.y
     scale = float(2 ** grid_bits)
     uvw_s = prob.corner_params(np.round(y_s * scale) / scale)
@@ -258,7 +260,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     seamless_validity = check_seamless(mesh, charts, uvw_s, prob)
     gates["seamless"] = Gate.of_validity("seamless", seamless_validity)
     e_seam = float(y_s @ (A @ y_s) - 2 * b @ y_s + c) / vol_total
-    stats["seamless"] = {"inverted_least_squares": int((det_ls <= 0).sum()),
+    stats["seamless"] = {"inverted_least_squares": int((det_ls[opened] <= 0).sum()), "flat": int(flat.size),
                          "injective": None if inj is None else {
                              "inverted_after": inj.n_inverted, "rounds": inj.rounds, "iterations": inj.iterations,
                              "converged": inj.converged, "min_det": inj.min_det, "seconds": inj.seconds}}

@@ -1,33 +1,37 @@
-"""The foldover-free seamless map: a per-tet barrier energy minimized by PSD-projected Newton.
+"""The foldover-free seamless map: untangling, then a per-tet barrier, by PSD-projected Newton.
 
 The least-squares seamless map (:mod:`.seamless`) has no notion of injectivity: where the frames
-do not integrate it folds. This module minimizes, over the free unknowns ``y`` of the eliminated
-constraints (``u = Z y + z0``, :mod:`.elimination`),
+do not integrate it folds. This module works over the free unknowns ``y`` of the eliminated
+constraints (``u = Z y + z0``, :mod:`.elimination`) on the per-tet Jacobians
+``J_t = grad u_t (h F_t)`` (the tet's Jacobian relative to its combed frame and the hex edge
+length: ``I`` for a map that follows the frames; ``det J_t > 0`` exactly when the tet keeps its
+orientation), with two energies:
 
 .. code-block:: text
 
-    E(y) = sum_t vol_t [ w_fit |J_t - I|^2 + w_sd ( |J_t|^2 + |adj J_t|^2 / (det J_t + eps_t)^2 - 6 ) ]
+    barrier:    E(y) = sum_t vol_t [ w_fit |J_t - I|^2 + w_sd ( |J_t|^2 + |adj J_t|^2 / (det J_t + eps_t)^2 - 6 ) ]
+    untangling: E(y) = sum_t vol_t [ w_fit |J_t - I|^2 + |J_t|^2 / (3 chi_t^(2/3)) + (det J_t^2 + 1) / (2 chi_t) ]
 
-with ``J_t = grad u_t (h F_t)`` the tet's Jacobian relative to its (combed) frame and the hex edge
-length (``I`` for a map that follows the frames; ``det J_t > 0`` exactly when the tet keeps its
-orientation): the frame-fitting term of :mod:`.seamless` plus the symmetric Dirichlet energy
-(``|J|^2 + |J^-1|^2``, 6 at a rotation), whose ``|J^-1|^2 = |adj J|^2 / det^2`` is a barrier at
-``det J = 0``. Tets that start inverted get a shift ``eps_t = 1/penalty - det J_t > 0`` (AlgoHex's
-shifted barrier, Liu & Bommes 2023; the untangler of Garanzha et al. 2021 is of the same family)
-so that every tet starts feasible, ``det J_t + eps_t > 0``; a tet whose determinant is positive has
-``eps_t = 0`` and can never fold again. Rounds: minimize; set ``eps_t = 0`` on the tets that
-became positive and a new shift ``1/penalty - det J_t`` on those that did not; repeat.
+The barrier energy is the frame-fitting term of :mod:`.seamless` plus the symmetric Dirichlet
+energy (``|J|^2 + |J^-1|^2``, 6 at a rotation), whose ``|J^-1|^2 = |adj J|^2 / det^2`` is a barrier at
+``det J = -eps_t``: with ``eps_t = 0`` a positive tet can never fold; a tet that is inverted gets a
+shift ``eps_t = 1/penalty - det J_t > 0`` (AlgoHex's shifted barrier, Liu & Bommes 2023). The
+untangling energy (Garanzha et al. 2021, "Foldover-free maps in 50 lines of code") replaces the
+determinant by ``chi_t = (det J_t + sqrt(eps^2 + det J_t^2)) / 2 > 0``: finite for inverted tets
+too, it lets a tangle pass through folds on its way out, and becomes a barrier as ``eps -> 0``.
+:func:`minimize_barrier` runs untangling (``eps`` lowered after each solve), AlgoHex's shifted
+rounds where tets stay inverted, then the barrier energy with every tet held positive.
 
-Each Newton step: the per-tet gradients and ``9 x 9`` Hessians in ``J`` (batched in torch:
-``torch.func.vmap`` of ``torch.func.hessian``), each Hessian projected onto the positive
-semidefinite cone (eigenvalues clamped at 0, only where a Cholesky attempt fails), assembled in
-the eliminated space, ``H = (G Z)^T blockdiag(H_t) (G Z)``, and one sparse Cholesky solve
-(:mod:`.solver`). The line search never crosses ``det J_t + eps_t = 0``: the step is capped at
-0.9 times the first positive root of the cubic ``det(J_t + s dJ_t) + eps_t`` over all tets
+Each Newton step: the per-tet gradients and ``9 x 9`` Hessians in ``J`` (batched autograd in
+torch), each Hessian projected onto the positive semidefinite cone (eigenvalues clamped at 0,
+only where a Cholesky attempt fails), assembled in the eliminated space,
+``H = (G Z)^T blockdiag(H_t) (G Z)``, and one sparse Cholesky solve (:mod:`.solver`). With the
+barrier energy the line search never crosses ``det J_t + eps_t = 0``: the step is capped at 0.9
+times the first positive root of the cubic ``det(J_t + s dJ_t) + eps_t`` over all tets
 (:func:`first_root`), then backtracked (Armijo).
 
-Unknowns may be held fixed (``fixed``): the quantization moves integer unknowns to their rounded
-values along a straight path while the others follow (:func:`move_fixed`), with the same barrier.
+Unknowns may be held fixed: the quantization moves integer unknowns to their rounded values along
+a straight path while the others follow (:func:`move_fixed`), with the barrier (no tet folds).
 """
 from __future__ import annotations
 
@@ -204,44 +208,85 @@ def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float,
     return f, g, H
 
 
-class _Barrier:
-    """The shifted-barrier energy (:func:`barrier_terms`) with per-tet shifts ``eps (T,)``."""
+def _fit_terms(J: np.ndarray, w_fit: float):
+    """The fitting term ``w_fit |J - I|^2`` alone: energy, gradient, Hessian ``(T,), (T, 9), (T, 9, 9)``."""
+    j = torch.from_numpy(J.reshape(-1, 9))
+    r = j - torch.eye(3, dtype=j.dtype).reshape(9)
+    H = 2.0 * w_fit * torch.eye(9, dtype=j.dtype).expand(j.shape[0], 9, 9)
+    return w_fit * r.square().sum(1), 2.0 * w_fit * r, H
 
-    def __init__(self, eps: np.ndarray, w_fit: float, w_sd: float):
-        self.eps, self.w_fit, self.w_sd = eps, w_fit, w_sd
+
+class _Model:
+    """A per-tet energy (a subclass's ``_active_terms(J, hessian)``) on the ``active (T,)`` tets;
+    the others get the fitting term only and no barrier (tets the constraints flatten, whose
+    determinant no map can change)."""
+
+    def __init__(self, w_fit: float, active: np.ndarray | None):
+        self.w_fit = w_fit
+        self.active = None if active is None or bool(np.all(active)) else np.asarray(active, bool)
 
     def terms(self, J: np.ndarray, hessian: bool = True):
-        return barrier_terms(torch.from_numpy(J), torch.from_numpy(self.eps), self.w_fit, self.w_sd, hessian=hessian)
+        if self.active is None:
+            return self._active_terms(J, hessian)
+        f, g, H = _fit_terms(J, self.w_fit)
+        H = H.clone() if hessian else None
+        fa, ga, Ha = self._active_terms(J[self.active], hessian)
+        idx = torch.from_numpy(np.nonzero(self.active)[0])
+        f, g = f.clone(), g.clone()
+        f[idx], g[idx] = fa, ga
+        if hessian:
+            H[idx] = Ha
+        return f, g, H
 
     def energy(self, J: np.ndarray, vol: np.ndarray) -> float:
-        if not np.all(np.linalg.det(J) + self.eps > 0):
+        if not self.feasible(J):
             return math.inf
         f, _, _ = self.terms(J, hessian=False)
         return float((vol * f.numpy()).sum())
 
-    def cap(self, J: np.ndarray, dJ: np.ndarray) -> float:
-        """The longest step along ``dJ`` that stays ``_STEP_FRACTION`` of the way to a zero of
-        ``det + eps`` (at most 1)."""
-        a, b, c, d = _det_cubic(J, dJ)
-        root = float(first_root(a + self.eps, b, c, d, 1.0 / _STEP_FRACTION).min(initial=np.inf))
-        return min(1.0, _STEP_FRACTION * root)
-
-
-class _Untangling:
-    """The untangling energy (:func:`untangling_terms`) with the global regularization ``eps``."""
-
-    def __init__(self, eps: float, w_fit: float):
-        self.eps, self.w_fit = eps, w_fit
-
-    def terms(self, J: np.ndarray, hessian: bool = True):
-        return untangling_terms(torch.from_numpy(J), self.eps, self.w_fit, hessian=hessian)
-
-    def energy(self, J: np.ndarray, vol: np.ndarray) -> float:
-        f, _, _ = self.terms(J, hessian=False)
-        return float((vol * f.numpy()).sum())
+    def feasible(self, J: np.ndarray) -> bool:
+        return True
 
     def cap(self, J: np.ndarray, dJ: np.ndarray) -> float:
         return 1.0
+
+
+class _Barrier(_Model):
+    """The shifted-barrier energy (:func:`barrier_terms`) with per-tet shifts ``eps (T,)``."""
+
+    def __init__(self, eps: np.ndarray, w_fit: float, w_sd: float, active: np.ndarray | None = None):
+        super().__init__(w_fit, active)
+        self.eps, self.w_sd = eps, w_sd
+
+    def _active_terms(self, J, hessian):
+        eps = self.eps if self.active is None else self.eps[self.active]
+        return barrier_terms(torch.from_numpy(J), torch.from_numpy(eps), self.w_fit, self.w_sd, hessian=hessian)
+
+    def feasible(self, J: np.ndarray) -> bool:
+        ok = np.linalg.det(J) + self.eps > 0
+        return bool(np.all(ok if self.active is None else ok[self.active]))
+
+    def cap(self, J: np.ndarray, dJ: np.ndarray) -> float:
+        """The longest step along ``dJ`` that stays ``_STEP_FRACTION`` of the way to a zero of
+        ``det + eps`` on the active tets (at most 1)."""
+        if self.active is not None:
+            J, dJ, eps = J[self.active], dJ[self.active], self.eps[self.active]
+        else:
+            eps = self.eps
+        a, b, c, d = _det_cubic(J, dJ)
+        root = float(first_root(a + eps, b, c, d, 1.0 / _STEP_FRACTION).min(initial=np.inf))
+        return min(1.0, _STEP_FRACTION * root)
+
+
+class _Untangling(_Model):
+    """The untangling energy (:func:`untangling_terms`) with the global regularization ``eps``."""
+
+    def __init__(self, eps: float, w_fit: float, active: np.ndarray | None = None):
+        super().__init__(w_fit, active)
+        self.eps = eps
+
+    def _active_terms(self, J, hessian):
+        return untangling_terms(torch.from_numpy(J), self.eps, self.w_fit, hessian=hessian)
 
 
 def _det_cubic(J: np.ndarray, dJ: np.ndarray):
@@ -423,9 +468,10 @@ def _shifts(det: np.ndarray, penalty: float) -> np.ndarray:
     return np.where(det > DET_SAFE, 0.0, 1.0 / penalty - np.minimum(det, 0.0))
 
 
-def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | None = None, w_fit: float = 1.0,
-                     w_sd: float = 1.0, untangle_rounds: int = 30, rounds: int = 4, max_iter: int = 50,
-                     tol: float = 1e-6, backend: str = "auto") -> InjectiveResult:
+def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | None = None,
+                     ignore: np.ndarray | None = None, w_fit: float = 1.0, w_sd: float = 1.0,
+                     untangle_rounds: int = 15, rounds: int = 4, max_iter: int = 50, tol: float = 1e-6,
+                     backend: str = "auto") -> InjectiveResult:
     """A map with no inverted tet near ``y0``, and the barrier energy of the module docstring
     minimized there.
 
@@ -444,6 +490,9 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
         jac: the :class:`TetJacobians` of the seamless problem.
         y0: ``(m,)`` start (inverted tets allowed).
         fixed: ``(m,)`` bool, unknowns held at their value in ``y0``.
+        ignore: ``(k,)`` tets left out of the untangling and the barrier (their fitting term
+            stays): the tets the constraints flatten (:meth:`~.seamless.SeamlessProblem.flat_tets`),
+            which no value of the unknowns opens; they are not counted as inverted.
         w_fit, w_sd: weights of the fitting and symmetric Dirichlet terms (phase 3; ``w_fit``
             also in phase 1).
         untangle_rounds, rounds: the budgets of phases 1 and 2.
@@ -459,22 +508,31 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
     y = np.array(y0, np.float64, copy=True)
     m = y.size
     free = np.ones(m, bool) if fixed is None else ~np.asarray(fixed, bool)
+    active = np.ones(jac.n_tets, bool)
+    if ignore is not None:
+        active[np.asarray(ignore, np.int64)] = False
     history = []
     iters = 0
     converged = False
     rnd = 0
-    det = np.linalg.det(jac(y))
+
+    def dets(yy):
+        d = np.linalg.det(jac(yy))
+        d[~active] = np.inf  # never inverted, never limiting
+        return d
+
+    det = dets(y)
     # ---- phase 1: untangling with a shrinking regularization
     if free.any() and (det <= DET_SAFE).any():
         dmin = float(det.min())
         eps = math.sqrt(1e-12 + 0.04 * min(dmin, 0.0) ** 2) if dmin <= 0 else 1e-3
         for k in range(untangle_rounds):
-            model = _Untangling(eps, w_fit)
+            model = _Untangling(eps, w_fit, active)
             E0 = model.energy(jac(y), jac.vol)
             y, it, _ = _newton(jac, y, model, free, max_iter=10, tol=tol, backend=backend, history=history,
                                rnd=("untangle", k))
             iters += it
-            det = np.linalg.det(jac(y))
+            det = dets(y)
             if (det > DET_SAFE).all():
                 break
             E1 = model.energy(jac(y), jac.vol)
@@ -486,10 +544,10 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
     if free.any() and (det <= DET_SAFE).any():
         eps_t = _shifts(det, PENALTY_START)
         for rnd in range(1, rounds + 1):
-            y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd), free, max_iter=max_iter, tol=tol,
-                                       backend=backend, history=history, rnd=("shifted", rnd))
+            y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd, active), free, max_iter=max_iter,
+                                       tol=tol, backend=backend, history=history, rnd=("shifted", rnd))
             iters += it
-            det = np.linalg.det(jac(y))
+            det = dets(y)
             if (det > DET_SAFE).all():
                 break
             # tets that became positive lose their shift (they can never fold again); the others get a new one
@@ -497,13 +555,13 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
     # ---- phase 3: the barrier energy, every tet held positive
     eps_t = _shifts(det, PENALTY_ROUND)
     if free.any():
-        y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd), free, max_iter=max_iter, tol=tol,
+        y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd, active), free, max_iter=max_iter, tol=tol,
                                    backend=backend, history=history, rnd=("barrier", 0))
         iters += it
     J = jac(y)
-    det = np.linalg.det(J)
+    det = dets(y)
     fit = float((jac.vol * ((J - np.eye(3)) ** 2).sum((1, 2))).sum() / jac.vol.sum())
-    E = _Barrier(_shifts(det, PENALTY_ROUND), w_fit, w_sd).energy(J, jac.vol)
+    E = _Barrier(_shifts(det, PENALTY_ROUND), w_fit, w_sd, active).energy(J, jac.vol)
     return InjectiveResult(y=y, inverted=np.nonzero(det <= 0)[0], energy=E / jac.vol.sum(), fit_energy=fit,
                            min_det=float(det.min(initial=np.inf)), rounds=rnd, iterations=iters, converged=converged,
                            history=history, seconds=time.perf_counter() - t0)
