@@ -12,10 +12,11 @@ judged before the next (:class:`~.validity.Gate`):
    the foldover-free solve (:mod:`.injective`: per-tet barrier, PSD-projected Newton). Snapped to
    the grid and checked exactly (:func:`~.validity.check_seamless`): no inverted or flat tet,
    seams, singular edges on parametric lines, boundary faces on parametric planes.
-3. **quantization** — from a valid seamless map, every integer rounded by injective moves
-   (:func:`~.quantize.round_injective`: no tet ever folds); from an invalid one, greedy rounding
-   with the least-squares re-solves (:func:`~.quantize.round_greedy`). Snapped and checked
-   (:func:`~.validity.check_map`).
+3. **quantization** — from a seamless map with no inverted tet, every integer rounded by
+   injective moves (:func:`~.quantize.round_injective`: no tet ever folds; the tets the
+   constraints flatten, which no map opens, are left out and stay flat); from one that folds,
+   greedy rounding with the least-squares re-solves and stiffening (:func:`~.quantize.round_greedy`,
+   :func:`~.quantize.stiffen`). Snapped and checked (:func:`~.validity.check_map`).
 
 The map of an invalid stage is still carried to the end (its report says where it fails).
 
@@ -280,9 +281,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             bar.refresh()
     qstats = {"integers": int(int_mask.sum())}
     try:
-        if injective and seamless_validity.valid and (np.linalg.det(jac(y_s)) > 0).all():
-            y, rinfo = round_injective(jac, y_s, int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend,
-                                       progress=cb)
+        # a seamless map with no inverted tet (but the flat ones, which no map opens) is rounded injectively
+        if injective and (np.linalg.det(jac(y_s))[opened] > 0).all():
+            y, rinfo = round_injective(jac, y_s, int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
+                                       backend=backend, progress=cb)
             qstats.update(method="injective", rounded=rinfo["rounded"], failed=len(rinfo["failed"]),
                           rounded_away=rinfo["rounded_away"], moves=rinfo["moves"],
                           max_rounding=rinfo["max_rounding"])
@@ -291,7 +293,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
                 # as it goes: the map's report says where it folds
                 I = np.asarray(rinfo["failed"], np.int64)
                 y[I] = np.round(y[I])
-                y = minimize_barrier(jac, y, fixed=int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend).y
+                y = minimize_barrier(jac, y, fixed=int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
+                                     backend=backend).y
         else:
             y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
                                     flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))

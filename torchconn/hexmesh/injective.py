@@ -568,7 +568,8 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
 
 
 def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.ndarray, *,
-               held: np.ndarray | None = None, w_fit: float = 1.0, w_sd: float = 1.0, max_steps: int = 30,
+               held: np.ndarray | None = None, ignore: np.ndarray | None = None, w_fit: float = 1.0,
+               w_sd: float = 1.0, max_steps: int = 30,
                max_iter: int = 20, tol: float = 1e-6, backend: str = "auto") -> tuple[np.ndarray, bool, dict]:
     """Move the unknowns ``idx`` from their values in a map with no inverted tet to ``target``
     along a straight path, the other unknowns following, never crossing ``det J = 0``.
@@ -579,7 +580,8 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
     fails when a step shrinks below ``1e-6`` of the path (a tet would have to fold): the map is
     then returned unchanged.
 
-    ``held (m,)`` bool: other unknowns that stay where they are (the integers rounded before).
+    ``held (m,)`` bool: other unknowns that stay where they are (the integers rounded before);
+    ``ignore (k,)``: tets left out as in :func:`minimize_barrier` (flat whatever the unknowns).
 
     Returns:
         ``(y, ok, info)``: the new unknowns (``y[idx] = target`` exactly when ``ok``), whether the
@@ -594,7 +596,17 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
     fixed[idx] = True
     free = ~fixed
     eps = np.zeros(jac.n_tets)
-    if (np.linalg.det(jac(y)) <= 0).any():
+    model = _Barrier(eps, w_fit, w_sd)
+    if ignore is not None and np.size(ignore):
+        active = np.ones(jac.n_tets, bool)
+        active[np.asarray(ignore, np.int64)] = False
+        model = _Barrier(eps, w_fit, w_sd, active)
+    act = model.active if model.active is not None else slice(None)
+
+    def min_det(yy):
+        return float(np.linalg.det(jac(yy))[act].min(initial=np.inf))
+
+    if min_det(y) <= 0:
         raise ValueError("move_fixed starts from a map with inverted tets")
     hess = _Hessian(jac, np.nonzero(free)[0])
     hess_fix = jac.GZ[:, idx].tocsr()
@@ -607,7 +619,7 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
             break
         J = jac(y)
         try:
-            _, g, H = barrier_terms(torch.from_numpy(J), torch.from_numpy(eps), w_fit, w_sd)
+            _, g, H = model.terms(J)
         except FloatingPointError:
             break
         Hb = H.numpy() * vol[:, None, None]
@@ -625,22 +637,20 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
         d = np.zeros(m)
         d[free] = df
         d[idx] = delta
-        a, b, c, dd = _det_cubic(J, jac.step(d))
-        root = float(first_root(a, b, c, dd, 1.0 / _STEP_FRACTION).min(initial=np.inf))
-        s = min(1.0, _STEP_FRACTION * root)
+        s = model.cap(J, jac.step(d))
         if s < 1e-6:
             break
         y_try = y + s * d
         if s >= 1.0:
             y_try[idx] = target
-        if np.linalg.det(jac(y_try)).min() < _DET_MOVE_MIN:  # the move squeezes a tet flat: it would fold
+        if min_det(y_try) < _DET_MOVE_MIN:  # the move squeezes a tet flat: it would fold
             break
         y = y_try
         info["steps"] += 1
-        y, it, _ = _newton(jac, y, _Barrier(eps, w_fit, w_sd), free, max_iter=max_iter, tol=tol, backend=backend,
+        y, it, _ = _newton(jac, y, model, free, max_iter=max_iter, tol=tol, backend=backend,
                            history=history, rnd=("move", step))
         info["iterations"] += it
-    ok = bool(np.array_equal(y[idx], target)) and bool((np.linalg.det(jac(y)) > 0).all())
+    ok = bool(np.array_equal(y[idx], target)) and min_det(y) > 0
     if not ok:
         return y0, False, info
     return y, True, info

@@ -193,7 +193,8 @@ def solve_fixed(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, int_value
 
 
 def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1, 0.2, 0.3, 0.4, 0.5),
-                    w_fit: float = 1.0, w_sd: float = 1.0, backend: str = "auto", progress=None) -> tuple[np.ndarray, dict]:
+                    ignore: np.ndarray | None = None, w_fit: float = 1.0, w_sd: float = 1.0, backend: str = "auto",
+                    progress=None) -> tuple[np.ndarray, dict]:
     """Round the integer unknowns of a map with no inverted tet, keeping it so.
 
     The integers are rounded in batches: those within ``thresholds[k]`` of an integer (at least
@@ -207,7 +208,8 @@ def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1
 
     Args:
         jac: the :class:`~.injective.TetJacobians` of the seamless problem.
-        y: ``(m,)`` the free unknowns of a map with every ``det J > 0``.
+        y: ``(m,)`` the free unknowns of a map with every ``det J > 0`` (but the ``ignore (k,)``
+            tets: flat whatever the unknowns, :func:`~.injective.minimize_barrier`).
         int_mask: ``(m,)`` bool, the integer unknowns.
         thresholds: the distance thresholds of the batches.
         w_fit, w_sd, backend: of the injective solve.
@@ -225,7 +227,7 @@ def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1
     I = np.nonzero(int_mask)[0]
     done = np.zeros(y.size, bool)
     info = {"n_integers": int(I.size), "rounded": 0, "failed": [], "rounded_away": 0, "moves": 0, "max_rounding": 0.0}
-    kw = dict(w_fit=w_fit, w_sd=w_sd, backend=backend)
+    kw = dict(w_fit=w_fit, w_sd=w_sd, backend=backend, ignore=ignore)
 
     def try_move(idx, tgt):
         nonlocal y
