@@ -238,3 +238,34 @@ def test_tets_no_map_can_open_are_left_out_and_the_rest_untangled():
     assert r.n_inverted == 0 and np.linalg.det(jac(r.y))[k] == 0.0
     det = np.linalg.det(jac(r.y))
     assert (np.delete(det, k) > DET_SAFE).all()
+
+
+def _dipole(n=4, x1=0.25, x2=0.75):
+    """A box with two singular lines along z, valence 3 and 5 (a +90 and a -90 degree turn), at
+    ``x1`` and ``x2`` on the box's grid: ``Rz((phi_1 - phi_2) / 4)`` per tet."""
+    from torchconn import so3
+
+    mesh = io.box(n)
+    bc = mesh.tet_barycenters
+    p1 = torch.atan2(bc[:, 1] - 0.5, bc[:, 0] - x1)
+    p2 = torch.atan2(bc[:, 1] - 0.5, bc[:, 0] - x2)
+    return mesh, so3.exp(((p1 - p2) / 4)[:, None] * torch.tensor([0, 0, 1.0], dtype=torch.float64))
+
+
+@pytest.mark.slow  # ~20-30 s: the injective rounding's failed moves at the first size
+def test_two_close_singular_lines_greedy_rounding_folds_the_injective_one_keeps_them_apart():
+    from torchconn.hexmesh import integer_grid_map
+
+    mesh, frames = _dipole()
+    # at h = 0.7 the lines are 0.71 apart and the box 1.43 wide in integer units: the boundary planes
+    # and the two lines cannot all sit on distinct integers
+    greedy = integer_grid_map(mesh, frames, edge_length=0.7, injective=False)
+    assert greedy.gates["seamless"].passed and not greedy.validity.valid
+    assert greedy.validity.counts["inverted_tets"] > 0
+    inj = integer_grid_map(mesh, frames, edge_length=0.7)
+    assert inj.gates["seamless"].passed and inj.validity.valid, inj.validity.reasons
+    # no injective rounding at h: the same map at h/2, where the lines fit on distinct integers
+    assert inj.stats["quantization"]["refined"] == 2 and inj.edge_length == pytest.approx(0.35)
+    assert inj.gates["quantization"].counts["refined"] == 2
+    sing = inj.charts.singular_edge
+    assert sing.sum() == greedy.charts.singular_edge.sum() > 0

@@ -127,7 +127,7 @@ def _flat_keep_edges(mesh, charts: TetCharts) -> np.ndarray:
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
-                     injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0,
+                     injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      batch_error: float = 0.5, stiffening_iters: int = 10, stiffening_factor: float = 4.0,
                      grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
     """The integer-grid map of a frame field, in gated stages (module docstring).
@@ -154,6 +154,11 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             rounding and stiffening, as CubeCover).
         fit_weight, sd_weight: weights of the frame fitting and the symmetric Dirichlet barrier
             in the foldover-free solve (:mod:`.injective`).
+        refine_limit: where the injective rounding cannot round every integer, the map is
+            rounded again at half the edge length (the same seamless map scaled by 2: its
+            singularities and features twice as far apart in integer units), at most
+            ``refine_limit`` times; ``result.edge_length`` is then the edge length used
+            (``stats["quantization"]["refined"]``: the factor).
         batch_error, stiffening_iters, stiffening_factor: of the greedy rounding and the
             stiffening (:mod:`.quantize`), used when the seamless map is not valid.
         grid_bits: the snapping grid (module docstring).
@@ -175,6 +180,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         raise ValueError(f"grid_bits must be an integer in [8, 40], got {grid_bits!r}")
     if stiffening_iters < 0:
         raise ValueError(f"stiffening_iters must be >= 0, got {stiffening_iters}")
+    if not (isinstance(refine_limit, int) and refine_limit >= 0):
+        raise ValueError(f"refine_limit must be an integer >= 0, got {refine_limit!r}")
     if not (isinstance(flat_rounds, int) and flat_rounds >= 0):
         raise ValueError(f"flat_rounds must be an integer >= 0, got {flat_rounds!r}")
     timings = {}
@@ -283,11 +290,29 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     try:
         # a seamless map with no inverted tet (but the flat ones, which no map opens) is rounded injectively
         if injective and (np.linalg.det(jac(y_s))[opened] > 0).all():
-            y, rinfo = round_injective(jac, y_s, int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
-                                       backend=backend, progress=cb)
+            refine = 1
+            y_start = y_s
+            while True:
+                y, rinfo = round_injective(jac, y_start, int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
+                                           backend=backend, progress=cb)
+                if not rinfo["failed"] or refine >= 2 ** refine_limit:
+                    break
+                # no injective rounding at this size: the map at half the edge length is the same map
+                # scaled by 2 (the constraints are homogeneous), whose entities are twice as far apart
+                refine *= 2
+                h_q = h / refine
+                prob = build_problem(mesh, charts, h_q, features=features, feature_max_deg=feature_max_deg)
+                jac = TetJacobians.of_problem(prob)
+                y_start = y_s * refine
+                if (np.linalg.det(jac(y_start))[opened] <= 0).any():
+                    y_start = minimize_barrier(jac, y_start, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
+                                               backend=backend).y
+            if refine > 1:
+                h = h_q
+                A, b, c = prob.energy_matrices()
             qstats.update(method="injective", rounded=rinfo["rounded"], failed=len(rinfo["failed"]),
                           rounded_away=rinfo["rounded_away"], moves=rinfo["moves"],
-                          max_rounding=rinfo["max_rounding"])
+                          max_rounding=rinfo["max_rounding"], refined=refine)
             if rinfo["failed"]:
                 # what could not be rounded without a fold is rounded anyway, the rest untangled as far
                 # as it goes: the map's report says where it folds
@@ -323,6 +348,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     t0 = time.perf_counter()
     out.validity = check_map(mesh, out)
     gates["quantization"] = Gate.of_validity("quantization", out.validity, before=seamless_validity.valid)
+    if qstats.get("refined", 1) > 1:
+        gates["quantization"].counts["refined"] = qstats["refined"]
     timings["validity_s"] = time.perf_counter() - t0
     stats.update(prob.counts)
     stats["splits"] = splits

@@ -569,16 +569,17 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
 
 def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.ndarray, *,
                held: np.ndarray | None = None, ignore: np.ndarray | None = None, w_fit: float = 1.0,
-               w_sd: float = 1.0, max_steps: int = 30,
-               max_iter: int = 20, tol: float = 1e-6, backend: str = "auto") -> tuple[np.ndarray, bool, dict]:
+               w_sd: float = 1.0, max_steps: int = 8, max_iter: int = 10, tol: float = 1e-6,
+               backend: str = "auto") -> tuple[np.ndarray, bool, dict]:
     """Move the unknowns ``idx`` from their values in a map with no inverted tet to ``target``
     along a straight path, the other unknowns following, never crossing ``det J = 0``.
 
     Each step takes the linear response of the others to the remaining displacement (one Newton
     system with the moved unknowns as a prescribed change), caps it at the first root of the
     determinants, takes it, and re-minimizes the others with the moved unknowns held. The move
-    fails when a step shrinks below ``1e-6`` of the path (a tet would have to fold): the map is
-    then returned unchanged.
+    fails (the map is then returned unchanged) when a tet would have to fold: a step squeezes a
+    tet below ``det J = 1e-9``, the smallest determinant falls fourfold at two capped steps in a
+    row (it goes to 0 at the target), or ``max_steps`` steps do not reach the target.
 
     ``held (m,)`` bool: other unknowns that stay where they are (the integers rounded before);
     ``ignore (k,)``: tets left out as in :func:`minimize_barrier` (flat whatever the unknowns).
@@ -613,6 +614,8 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
     vol = jac.vol
     info = {"steps": 0, "iterations": 0}
     history = []
+    short = 0
+    md_prev = min_det(y)
     for step in range(max_steps):
         delta = target - y[idx]
         if not np.any(delta):
@@ -643,14 +646,21 @@ def move_fixed(jac: TetJacobians, y: np.ndarray, idx: np.ndarray, target: np.nda
         y_try = y + s * d
         if s >= 1.0:
             y_try[idx] = target
-        if min_det(y_try) < _DET_MOVE_MIN:  # the move squeezes a tet flat: it would fold
+        md = min_det(y_try)
+        if md < _DET_MOVE_MIN:  # the move squeezes a tet flat: it would fold
             break
+        # the smallest determinant falling fourfold at each capped step goes to 0 at the target: a fold
+        short = short + 1 if (s < 1.0 and md < 0.25 * md_prev) else 0
+        if short >= 2:
+            break
+        md_prev = md
         y = y_try
         info["steps"] += 1
         y, it, _ = _newton(jac, y, model, free, max_iter=max_iter, tol=tol, backend=backend,
                            history=history, rnd=("move", step))
         info["iterations"] += it
-    ok = bool(np.array_equal(y[idx], target)) and min_det(y) > 0
+    # a tet the integers leave at round-off size (a collapse the steps did not see) is a failure too
+    ok = bool(np.array_equal(y[idx], target)) and min_det(y) > DET_SAFE
     if not ok:
         return y0, False, info
     return y, True, info
