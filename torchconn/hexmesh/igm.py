@@ -260,7 +260,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     opened = np.ones(det_ls.size, bool)
     opened[flat] = False  # the flat tets stay flat whatever the map: left out of the untangling
     if injective and (det_ls[opened] <= DET_SAFE).any():
-        inj = minimize_barrier(jac, y_ls, ignore=flat, w_fit=fit_weight, w_sd=sd_weight, backend=backend)
+        # a structure that fails LMFF's conditions has no valid map: untangle it only as far as a short
+        # budget goes (the map still shows where it folds)
+        budget = {} if gates["structure"].passed else {"untangle_rounds": 4, "rounds": 1, "max_iter": 20}
+        inj = minimize_barrier(jac, y_ls, ignore=flat, w_fit=fit_weight, w_sd=sd_weight, backend=backend, **budget)
         y_s = inj.y
     scale = float(2 ** grid_bits)
     uvw_s = prob.corner_params(np.round(y_s * scale) / scale)
