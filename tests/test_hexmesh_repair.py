@@ -261,3 +261,22 @@ def test_driver_on_the_hairpin_and_on_a_clean_field():
 def test_group_helpers_are_consistent():
     G = group_matrices()
     assert _TYP[0] == 0 and (_TYP[1:] > 0).all() and G.shape == (24, 3, 3)
+
+
+def test_benchmark_gives_the_map_its_matchings_and_restores_the_search():
+    from benchmarks.structures import given_matchings, summarize
+    from torchconn.hexmesh import hex_mesh, straighten
+
+    mesh, F, (p, q, v) = hairpin()
+    fm, _ = zip_zipper(mesh, F, None, v)
+    orig = straighten.straighten_singular_edges
+    with given_matchings(fm):
+        r = hex_mesh(mesh, F, extract=False, quality=False)
+    assert straighten.straighten_singular_edges is orig
+    assert r.map.stats["straighten"]["given"] and r.meshability.meshable  # the zipper is gone in the map's graph
+    rec = {"kind": "s", "before": {"meshable": False, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 1,
+                                   "invalid_nodes": 0, "surface_valence2_edges": 0},
+           "after": {"meshable": True, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 0,
+                     "invalid_nodes": 0, "surface_valence2_edges": 0}}
+    s = summarize([rec])["s"]
+    assert s["meshable_before"] == 0 and s["meshable_after"] == 1 and s["zipper_nodes_before"] == 1

@@ -87,9 +87,7 @@ def _targets(g: SingularGraph, e: int) -> list[int]:
     dpar = np.einsum("ji,j->i", g.frames[g.fans.first_tet[r]], g.X[g.edges[e, 1]] - g.X[g.edges[e, 0]])
     q = fan_quarters(a0, g.a1[r], np.broadcast_to(dpar, (24, 3)), np.full(24, g.fans.dihedral[r]))
     want = g.expected[e]
-    out = [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]]
-    # closest to the current transport first: fewest changed frames (misfit) for the same angle
-    return out[:4]
+    return [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]][:4]
 
 
 def _kind(g: SingularGraph, v: int, e1: int, e2: int) -> str:
