@@ -158,7 +158,7 @@ def _row(name: str, mesh_path: str, small_path: str, compiled: bool, dtype: torc
     with torchconn.ops.compiled(compiled):
         if memory:  # one run, peak RSS around it (every block >= 64 KB mmapped: see _run_row)
             if compiled:
-                native.library("curvature"), native.library("so3"), native.library("edge_terms")  # outside the run
+                native.library("curvature"), native.library("so3"), native.library("edge_terms"), native.library("torsion")  # outside the run
             rss0 = _status_mb("VmRSS")
             reset = _reset_peak()
             run()

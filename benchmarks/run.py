@@ -1,6 +1,7 @@
 """Benchmark suite of issue 6: fused kernels against eager references, side by side.
 
-    python -m benchmarks.run [--quick] [--output-dir DIR] [--threads N] [--repeats R]
+    python -m benchmarks.run [--quick] [--output-dir DIR] [--threads N] [--repeats R] [--only CASE ...]
+                             [--sizes TETS ...] [--dtypes float32 float64]
 
 Prints a markdown table and writes ``DIR/benchmark.json``: a list of
 ``{name, size, dtype, seconds, reference_seconds, ratio, peak_mb, ...}`` (``ratio`` =
@@ -531,9 +532,10 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
     w = (0.2 * torch.randn(mesh.edges.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
     phi = (0.2 * torch.randn(mesh.vertices.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
     big = T >= 500_000
+    cases = loss_cases(mesh)  # imports torchconn.frames.kernels, which registers the kernel's C source
     path = "compiled kernel frames/kernels/csrc/frame_loss.c" if torchconn.ops.can_use_compiled("frame_loss", w, phi) \
         else "modules (no compiled kernel)"
-    for name, loss in loss_cases(mesh):
+    for name, loss in cases:
         def fast_fn(loss=loss):
             w.grad = phi.grad = None
             loss(so3.exp(w), so3.exp(phi))["total"].backward()
@@ -668,13 +670,17 @@ def main(argv=None) -> list:
     ap.add_argument("--mouette-timeout", type=float, default=600.0, help="seconds for the mouette run")
     ap.add_argument("--only", nargs="+", default=None,
                     choices=["so3", "operators", "loss", "end_to_end", "under_load"])
+    ap.add_argument("--sizes", nargs="+", type=int, default=None,
+                    help="tet counts of the operator and loss rows (default 10k 100k 1M; quick: 10k 100k)")
+    ap.add_argument("--dtypes", nargs="+", choices=["float32", "float64"], default=["float32", "float64"],
+                    help="dtypes of the operator and loss rows")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     threads = torch.get_num_threads()
     malloc = "resident" if args.malloc == "resident" and keep_memory_resident() else "default"
     repeats = args.repeats or (3 if args.quick else 5)
-    sizes = [10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000]
+    sizes = args.sizes or ([10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000])
     only = set(args.only or ["so3", "operators", "loss"] + ([] if args.quick else ["end_to_end"]))
     print(f"torch {torch.__version__}, {threads} threads, repeats {repeats}, quick={args.quick}, "
           f"malloc={malloc}", flush=True)
@@ -683,7 +689,7 @@ def main(argv=None) -> list:
     if "so3" in only:
         bench_so3(10**5 if args.quick else 10**6, repeats, rows)
         _save(rows, threads, malloc, args.output_dir)
-    for dtype in (torch.float32, torch.float64):
+    for dtype in (getattr(torch, d) for d in args.dtypes):
         for n in sizes:
             if "operators" in only:
                 bench_operators(n, dtype, repeats, rows)

@@ -7,9 +7,9 @@ then :func:`torchconn.hexmesh.repair.repair_singular_graph`; the conditions are 
 :func:`torchconn.hexmesh.meshability.meshability_report` on the mesh the map would see (after
 :func:`torchconn.hexmesh.split.split_for_map`), before and after. With ``--map`` the map stage
 runs too (:func:`torchconn.hexmesh.hex_mesh`): on the field as the jobs mesh it, and on the
-repaired matchings with the frames re-optimized by the connection with those matchings fixed
-(:func:`torchconn.frames.fixed_holonomy.fixed_holonomy_frames`, then ``straighten=False`` so
-that the map takes the repaired graph as it is).
+repaired matchings (given to the map as its straightened ones, :func:`given_matchings`) with the
+frames re-optimized by the connection with those matchings fixed
+(:func:`torchconn.frames.fixed_holonomy.fixed_holonomy_frames`) and with the input frames.
 
     python -m benchmarks.structures --method sh --out OUT [--models s n i] [--map] [--rounds 30]
 
@@ -20,6 +20,7 @@ per model; ``OUT/summary.json`` has the counts per category. Fields are cached i
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import pickle
 import time
@@ -61,11 +62,34 @@ def _conditions(mesh, Fr, fm) -> dict:
     return meshability_report(sr.mesh, sr.tet_frames, sr.face_match).counts()
 
 
-def _map(mesh, F, **kw) -> dict:
+@contextlib.contextmanager
+def given_matchings(face_match):
+    """The map stage takes ``face_match`` as its straightened matchings: ``integer_grid_map`` has
+    no option for given matchings yet, so its straightening step (looked up in
+    :mod:`torchconn.hexmesh.straighten` at call time) is replaced for the duration."""
+    from torchconn.hexmesh import straighten
+
+    orig = straighten.straighten_singular_edges
+
+    def given(mesh, tet_frames, face_match_=None, **kw):
+        return face_match.copy(), {"moves": 0, "given": True}
+
+    straighten.straighten_singular_edges = given
+    try:
+        yield
+    finally:
+        straighten.straighten_singular_edges = orig
+
+
+def _map(mesh, F, face_match=None, **kw) -> dict:
     from torchconn.hexmesh import hex_mesh
 
     t0 = time.perf_counter()
-    r = hex_mesh(mesh, F, **kw)
+    if face_match is None:
+        r = hex_mesh(mesh, F, **kw)
+    else:
+        with given_matchings(face_match):
+            r = hex_mesh(mesh, F, **kw)
     q = r.quality
     return {"valid": bool(r.validity.valid), "good": bool(r.good), "meshable": bool(r.meshability.meshable),
             "conditions": r.meshability.counts(), "inverted_tets": int(r.validity.counts.get("inverted_tets", 0)),
@@ -98,8 +122,10 @@ def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool) -
         fh = fixed_holonomy_frames(rep.mesh, rep.tet_frames, fm2)
         rec["fixed_holonomy"] = {"agree": fh.agree, "misfit_deg_before": fh.misfit_deg_before,
                                  "misfit_deg_after": fh.misfit_deg_after, "seconds": time.perf_counter() - t0}
-        rec["map_repaired"] = _map(rep.mesh, fh.tet_frames, straighten=False)
-        rec["repaired_field_conditions"] = _conditions(rep.mesh, fh.tet_frames, None)
+        rec["fixed_holonomy"]["passes"] = fh.passes
+        rec["map_repaired"] = _map(rep.mesh, fh.tet_frames, fm2)  # the re-optimized frames, the repaired matchings
+        rec["map_repaired_input_frames"] = _map(rep.mesh, rep.tet_frames, fm2)  # the input frames, the repaired matchings
+        rec["repaired_field_conditions"] = _conditions(rep.mesh, fh.tet_frames, None)  # the frames' own matchings
         del np
     return rec
 
@@ -123,7 +149,7 @@ def summarize(recs: list[dict]) -> dict:
             row[f"{k}_before"] = sum(r["before"][k] for r in rs)
             row[f"{k}_after"] = sum(r["after"][k] for r in rs)
         if all("map_repaired" in r for r in rs):
-            for v in ("map_field", "map_repaired"):
+            for v in ("map_field", "map_repaired", "map_repaired_input_frames"):
                 row[f"{v}_valid"] = sum(r[v]["valid"] for r in rs)
                 row[f"{v}_good"] = sum(r[v]["good"] for r in rs)
         out[kind] = row

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchconn import io, so3
-from torchconn.frames.fixed_holonomy import FixedHolonomyField, fixed_holonomy_frames
+from torchconn.frames.fixed_holonomy import FixedHolonomyField, fixed_holonomy_frames, free_region
 from torchconn.hexmesh.cut import face_matchings, tet_charts
 from torchconn.hexmesh.meshability import meshability_report
 from torchconn.hexmesh.repair import zip_zipper
@@ -29,10 +29,10 @@ def _random_case(seed=0):
 
 def test_field_starts_at_the_input_frames_and_is_differentiable():
     mesh, F, fm = _random_case()
-    model = FixedHolonomyField(mesh, F, fm)
+    model = FixedHolonomyField(mesh, F, fm)  # every tet free
     R, Fo = model()
     torch.testing.assert_close(Fo, F, atol=1e-12, rtol=0)  # the matched connection propagates the input
-    # the tree faces hold F_a R = F_b G[h]^T exactly; R is a rotation
+    # the matched connection holds F_a R = F_b G[h]^T exactly; R is a rotation
     G = model.Gh
     a, b = model.dual_edges[:, 0], model.dual_edges[:, 1]
     res = (Fo[a] @ R - Fo[b] @ G.transpose(-1, -2)).abs().amax((-2, -1))
@@ -57,7 +57,9 @@ def test_repaired_hairpin_field_has_the_repaired_singular_graph():
     changed = np.nonzero(fm != face_matchings(mesh, F))[0]
     assert changed.size >= 1  # the frames alone no longer give these matchings
     res = fixed_holonomy_frames(mesh, F, fm, steps=30, lr=0.05, weights={"align": 0.0})
-    assert res.agree == 1.0
+    assert res.agree == 1.0 and 0 < res.free_tets < mesh.n_tets
+    free = free_region(mesh, F, fm, 4)
+    torch.testing.assert_close(res.tet_frames[~torch.as_tensor(free)], F[~torch.as_tensor(free)], atol=0, rtol=0)
     assert (face_matchings(mesh, res.tet_frames) == fm)[(mesh.face_tets.numpy() >= 0).all(1)].all()
     m = meshability_report(mesh, res.tet_frames)  # the field's own singular graph: the repaired one
     assert m.zipper_nodes.size == 0 and m.meshable

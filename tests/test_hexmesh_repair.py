@@ -20,8 +20,8 @@ from torchconn import io
 from torchconn.hexmesh.cut import edge_walks, face_matchings, group_matrices
 from torchconn.hexmesh.meshability import INVALID, ZIPPER, meshability_report
 from torchconn.hexmesh.repair import (MeshLookup, SingularGraph, cone_disk, detach_arc, link_path, move_off_boundary,
-                                      push_inside, repair_feature_sector, repair_singular_graph, solve_disk,
-                                      zip_zipper)
+                                      push_inside, repair_feature_sector, repair_singular_graph, retract_hook,
+                                      solve_disk, spanning_disk, zip_zipper)
 from torchconn.hexmesh.repair.graph import _TYP
 
 from conftest import DATA_DIR
@@ -146,6 +146,27 @@ def test_zip_zipper_removes_the_hairpin():
         zip_zipper(mesh, F, None, mesh.n_vertices)
 
 
+def test_retract_hook_through_the_floor_and_the_least_area_disk():
+    # the hairpin's branches both end on the floor: the hook retracts through it
+    mesh, F, (p, q, v) = hairpin()
+    fm, mv = retract_hook(mesh, F, None, v)
+    assert mv is not None and mv.kind == "retract" and mv.delta < 0
+    g = SingularGraph(mesh, F, fm)
+    _check_consistent(mesh, F, fm, g)
+    assert g.counts()["zipper_nodes"] == 0 and g.counts()["singular_edges"] == 0
+    # the least-area disk of the prism's detach loop is the cone over the link path
+    pm, pF = axis_prism(turns=4.0)
+    X = pm.vertices.numpy()
+    gp, L = SingularGraph(pm, pF), MeshLookup(pm)
+    axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
+    a, w, b = (int(x) for x in axis_v[np.argsort(X[axis_v, 2])][:3])
+    path = link_path(gp, L, w, a, b, np.array([0.0, 0.0, 1.0]))
+    faces, inside, rim = spanning_disk(gp, L, np.r_[a, w, b, path[::-1][1:]])
+    cf, ci, _ = cone_disk(L, w, path)
+    assert set(faces.tolist()) == set(cf.tolist()) and set(inside.tolist()) == set(ci.tolist())
+    assert spanning_disk(gp, L, np.array([a, w, a])) is None  # not a loop of three or more edges
+
+
 def _hexme_case(name):
     pytest.importorskip("gmsh", reason="the HexMe meshes are made by gmsh (torchconn[cad])")
     path = HEXME / f"{name}.yaml"
@@ -245,7 +266,8 @@ def test_driver_on_the_hairpin_and_on_a_clean_field():
     mesh, F, (p, q, v) = hairpin()
     fm, rep = repair_singular_graph(mesh, F)
     assert rep.before["zipper_nodes"] == 1 and rep.after["zipper_nodes"] == 0 and rep.after["meshable"]
-    assert rep.stopped == "meshable" and rep.moves.get("zip", 0) >= 1 and rep.faces_changed >= 1
+    assert rep.stopped == "meshable" and rep.moves.get("zip", 0) + rep.moves.get("retract", 0) >= 1
+    assert rep.faces_changed >= 1
     assert rep.mesh is mesh and rep.splits == 0
     _check_consistent(mesh, F, fm, SingularGraph(mesh, F, fm))
     import json
@@ -261,3 +283,22 @@ def test_driver_on_the_hairpin_and_on_a_clean_field():
 def test_group_helpers_are_consistent():
     G = group_matrices()
     assert _TYP[0] == 0 and (_TYP[1:] > 0).all() and G.shape == (24, 3, 3)
+
+
+def test_benchmark_gives_the_map_its_matchings_and_restores_the_search():
+    from benchmarks.structures import given_matchings, summarize
+    from torchconn.hexmesh import hex_mesh, straighten
+
+    mesh, F, (p, q, v) = hairpin()
+    fm, _ = zip_zipper(mesh, F, None, v)
+    orig = straighten.straighten_singular_edges
+    with given_matchings(fm):
+        r = hex_mesh(mesh, F, extract=False, quality=False)
+    assert straighten.straighten_singular_edges is orig
+    assert r.map.stats["straighten"]["given"] and r.meshability.meshable  # the zipper is gone in the map's graph
+    rec = {"kind": "s", "before": {"meshable": False, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 1,
+                                   "invalid_nodes": 0, "surface_valence2_edges": 0},
+           "after": {"meshable": True, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 0,
+                     "invalid_nodes": 0, "surface_valence2_edges": 0}}
+    s = summarize([rec])["s"]
+    assert s["meshable_before"] == 0 and s["meshable_after"] == 1 and s["zipper_nodes_before"] == 1

@@ -37,6 +37,7 @@ def test_registered_source_outside_csrc_builds_with_the_pool(fresh, monkeypatch,
     if native._compiler() is None:
         pytest.skip("no C compiler on this machine")
     monkeypatch.setattr(native, "_SOURCES", dict(native._SOURCES))
+    assert native.library("plus_one") is None and "plus_one" not in native._LIBS  # unknown: not cached
     src = tmp_path / "src" / "plus_one.c"
     src.parent.mkdir()
     src.write_text('#define TC_POOL_CLIENT\n#include "pool.c"\nint plus_one(int x) { return x + 1; }\n')

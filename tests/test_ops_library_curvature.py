@@ -1,7 +1,7 @@
 """The face-curvature and √R-torsion custom ops against the op contract of issue 11.
 
 ``torchconn::face_curvature`` (+ ``face_curvature_backward``, ``csrc/curvature.c`` on CPU) and
-``torchconn::face_torsion_sqrt`` (+ backward): opcheck (float32/float64, compiled kernels on
+``torchconn::face_torsion_sqrt`` (+ backward; C kernel csrc/torsion.c): opcheck (float32/float64, compiled kernels on
 and off), gradcheck / gradgradcheck through the public functions, a Hessian-vector product
 against central differences, vmap and batched calls against loops, ``torch.compile``, meta
 tensors, the generic loop formula of ``dec`` as reference, the CSR backward independent of the
@@ -18,6 +18,7 @@ import torchconn.ops
 from torchconn import io, so3
 from torchconn.dec import curvature as dec_curvature
 from torchconn.ops import curvature as ops_curvature
+from torchconn.ops import native
 from torchconn.ops import torsion as ops_torsion
 
 DTYPES = [torch.float32, torch.float64]
@@ -203,35 +204,35 @@ def test_curvature_torch_compile_fullgraph(mesh):
 
 
 def _tor_args(mesh, dtype):
-    fi = ops_curvature._face_index(mesh, "cpu")
+    fi, inc_ptr, inc = ops_curvature._tables(mesh, "cpu")
     vec = ops_torsion._edge_vectors(mesh, "cpu", dtype)
-    return _rot(mesh, (2,), dtype, seed=14, scale=1.2), vec, fi
+    return _rot(mesh, (2,), dtype, seed=14, scale=1.2), vec, (fi, inc_ptr, inc)
 
 
 @pytest.mark.parametrize("full", [False, pytest.param(True, marks=pytest.mark.slow)])  # full: ~30 s
 @pytest.mark.parametrize("compiled", SWITCH)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_torsion_opcheck(mesh, dtype, compiled, full):
-    R, vec, fi = _tor_args(mesh, dtype)
-    G = torch.randn(2, fi.shape[1], 3, generator=torch.Generator().manual_seed(15), dtype=dtype)
+    R, vec, tabs = _tor_args(mesh, dtype)
+    G = torch.randn(2, tabs[0].shape[1], 3, generator=torch.Generator().manual_seed(15), dtype=dtype)
     utils = {} if full else {"test_utils": FAST_UTILS}
     with torchconn.ops.compiled(compiled):
-        torch.library.opcheck(ops_torsion._face_torsion_sqrt, (R.requires_grad_(), vec.requires_grad_(), fi), **utils)
+        torch.library.opcheck(ops_torsion._face_torsion_sqrt, (R.requires_grad_(), vec.requires_grad_(), *tabs), **utils)
         torch.library.opcheck(ops_torsion._face_torsion_sqrt_backward,
-                              (R.detach().requires_grad_(), vec.detach(), fi, G.requires_grad_()), **utils)
+                              (R.detach().requires_grad_(), vec.detach(), *tabs, G.requires_grad_()), **utils)
 
 
 @pytest.mark.parametrize("compiled", SWITCH)
 def test_torsion_values_grads_and_higher_order(mesh, compiled):
-    R, vec, fi = _tor_args(mesh, torch.float64)
+    R, vec, tabs = _tor_args(mesh, torch.float64)
     with torchconn.ops.compiled(compiled):
         out = ops_torsion.face_torsion(R, mesh)
         # the previous composition (per-edge root, then gathers), per batch element
-        ref = torch.stack([ops_torsion._combine(R[i], (so3.sqrt(R[i]) @ vec.unsqueeze(-1)).squeeze(-1), fi)
+        ref = torch.stack([ops_torsion._combine(R[i], (so3.sqrt(R[i]) @ vec.unsqueeze(-1)).squeeze(-1), tabs[0])
                            for i in range(2)])
         torch.testing.assert_close(out, ref, atol=1e-13, rtol=0)
         x, v = R.clone().requires_grad_(), vec.clone().requires_grad_()
-        f = lambda A, e: ops_torsion.face_torsion_sqrt(A, e, fi)  # noqa: E731
+        f = lambda A, e: ops_torsion.face_torsion_sqrt(A, e, *tabs)  # noqa: E731
         assert gradcheck(f, (x, v))
         assert gradgradcheck(lambda A, e: f(A, e).square(), (x, v), fast_mode=True)
     on_off = []
@@ -243,8 +244,31 @@ def test_torsion_values_grads_and_higher_order(mesh, compiled):
     torch.testing.assert_close(on_off[0], on_off[1], atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("scale", [0.3, 2.8])
+def test_torsion_compiled_kernel_equals_generic(dtype, scale):
+    """csrc/torsion.c (roots per edge, faces, the edge-wise backward over the incidence table) against
+    the generic kernels, both ops, a batch of 2; scale 2.8: most angles above 120° (the roots'
+    log/exp branch)."""
+    if native.library("torsion") is None:
+        pytest.skip("no C compiler: csrc/torsion.c cannot be built")
+    m = io.box(3)
+    R = _rot(m, (2,), dtype, seed=21, scale=scale)
+    vec = torch.randn(m.edges.shape[0], 3, generator=torch.Generator().manual_seed(22), dtype=torch.float64).to(dtype)
+    tabs = ops_curvature._tables(m, "cpu")
+    G = torch.randn(2, tabs[0].shape[1], 3, generator=torch.Generator().manual_seed(23), dtype=torch.float64).to(dtype)
+    res = {}
+    for on in (True, False):
+        with torchconn.ops.compiled(on):
+            res[on] = (ops_torsion._face_torsion_sqrt(R, vec, *tabs),
+                       *ops_torsion._face_torsion_sqrt_backward(R, vec, *tabs, G))
+    tol = 2e-5 if dtype == torch.float32 else 1e-12
+    for a, b in zip(res[True], res[False]):
+        torch.testing.assert_close(a, b, atol=tol * max(1.0, float(b.abs().max())), rtol=0)
+
+
 def test_torsion_vmap_batched_and_hvp(mesh):
-    R, vec, fi = _tor_args(mesh, torch.float64)
+    R, vec, _ = _tor_args(mesh, torch.float64)
     loop = torch.stack([ops_torsion.face_torsion(R[i], mesh) for i in range(2)])
     torch.testing.assert_close(ops_torsion.face_torsion(R, mesh), loop, atol=1e-14, rtol=0)
     torch.testing.assert_close(torch.func.vmap(lambda A: ops_torsion.face_torsion(A, mesh))(R), loop,
@@ -262,7 +286,7 @@ def test_torsion_vmap_batched_and_hvp(mesh):
 def test_torsion_meta(mesh):
     R = _rot(mesh, (2,)).to("meta")
     out = ops_torsion._face_torsion_sqrt(R, torch.empty(mesh.edges.shape[0], 3, device="meta"),
-                                         ops_curvature._face_index(mesh, "cpu").to("meta"))
+                                         *(t.to("meta") for t in ops_curvature._tables(mesh, "cpu")))
     assert out.shape == (2, mesh.face_edges.shape[0], 3) and out.device.type == "meta"
 
 

@@ -10,7 +10,8 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
 * :mod:`.so3`: ``so3_exp``, ``so3_log``, ``so3_log_checked``, ``so3_sqrt`` (+ backward ops;
   ``csrc/so3.c``; generic formulas in ``_so3_formulas``);
 * :mod:`.curvature`: ``face_curvature`` of sorted-triangle meshes (``csrc/curvature.c``);
-* :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (compiled square root inside torch gathers);
+* :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (``csrc/torsion.c``: roots and solder forms
+  per edge, a race-free backward over the edges' incident faces);
 * :mod:`.tet`: ``tet_dd``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (``csrc/tet.c``; generic SoA
   kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
 * :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot`` / ``tet_dd_frames``, the same with ``θ̃`` (and

@@ -190,6 +190,10 @@ def library(name: str) -> ctypes.CDLL | None:
     """
     with _LOCK:
         if name not in _LIBS:
+            if not _source(name).exists():
+                # not (yet) a kernel library: a package outside ops/ registers its source when it is
+                # imported (register_source); nothing is cached, so a later call after that builds it
+                return None
             lib = _build(name)
             if lib is not None and name != "pool" and hasattr(lib, "tc_pool_attach"):
                 pool = library("pool")

@@ -1,17 +1,18 @@
 """Face torsion of sorted-triangle meshes as an op (report Def. 3.2), and the per-edge gathers it shares.
 
 The hot path, the √R torsion without frames, is the custom op
-``torchconn::face_torsion_sqrt(edge_rot (*B, E, 3, 3), edge_vec (E, 3), face_index (3, F))
--> (*B, F, 3)``: ``Θ = √R_ab e_ab + R_ab √R_bc e_bc - √R_ac e_ac`` (``e_ij = v_j - v_i``), the
-solder form ``θ̃_ij = √R_ij e_ij`` formed once per *edge*. Its backward is the op
+``torchconn::face_torsion_sqrt(edge_rot (*B, E, 3, 3), edge_vec (E, 3), face_index (3, F), inc_ptr,
+inc) -> (*B, F, 3)``: ``Θ = √R_ab e_ab + R_ab √R_bc e_bc - √R_ac e_ac`` (``e_ij = v_j - v_i``), the
+solder form ``θ̃_ij = √R_ij e_ij`` formed once per *edge* (``inc_ptr``, ``inc``: the edge-to-face
+incidence of :func:`torchconn.ops.curvature._tables`). Its backward is the op
 ``torchconn::face_torsion_sqrt_backward`` (gradients for ``edge_rot`` and ``edge_vec``), whose
 own autograd differentiates the generic backward formula (``torch.func.vjp``): double backward
 and Hessian-vector products are exact. Kernels: generic = torch code (the root by the torch
-formulas of :mod:`torchconn.ops._so3_formulas`); CPU = the same with the root and its backward
-computed by the compiled ``csrc/so3.c`` loops when the switch allows (the gathers and 3-vector
-products stay in torch: profiled at 1M tets, the root is the part where C pays, see
-``benchmarks/ops_kernels.py``). Fake kernels and vmap rules (batch = leading dim of
-``edge_rot``/``grad``) as for every op of this package.
+formulas of :mod:`torchconn.ops._so3_formulas`); CPU = ``csrc/torsion.c`` when the switch allows:
+the roots and ``θ̃`` per edge, the faces' sums, and a backward over *edges* that reads each edge's
+incident faces from the incidence table (race-free, no atomics, no per-thread buffers), with the
+root and its backward of ``csrc/so3.c``; no ``√R`` tensor, no ``(F, 3, 3)`` gather. Fake kernels
+and vmap rules (batch = leading dim of ``edge_rot``/``grad``) as for every op of this package.
 
 With frames (the frame-field loss) :func:`face_torsion` composes the so3 ops with torch
 products (batched too); :func:`edge_frames` are the per-edge gathers the frame-field loss shares
@@ -22,17 +23,20 @@ from __future__ import annotations
 
 import torch
 
+import ctypes
+
 from . import _so3_formulas as _f
+from . import native as _native
 from ._cache import edge_ends as _edge_ends
 from ._cache import edge_vectors as _edge_vectors
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from ._mat import _matTvec, _matvec
 from .backend import can_use_compiled
-from .curvature import _face_index, _sorted_triangles
-from .so3 import _bwd_c as _so3_bwd_c
-from .so3 import _map_c as _so3_map_c
+from .curvature import _sorted_triangles
+from .curvature import _tables as _face_tables
 from .so3 import sqrt as _sqrt
+from ..tolerances import get_eps
 
 __all__ = ["edge_frames", "edge_solder_frames", "face_torsion"]
 
@@ -74,29 +78,55 @@ def _torsion_bwd_generic(R, vec, face_index, grad, root=_f.sqrt, root_bwd=_f.sqr
     return g_R + root_bwd(R, g_S), _matTvec(S, g_theta)
 
 
-def _c_root(R):
-    return _so3_map_c("sqrt", R)
+_I64, _P, _I32 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int32
+_C_FWD = {dt: _native.declare("torsion", f"tor_fwd_{sfx}", [_P] * 4 + [_I64] * 3 + [ctypes.c_int, ctypes.c_double],
+                              ctypes.c_int)
+          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
+_C_BWD = {dt: _native.declare("torsion", f"tor_bwd_{sfx}", [_P] * 8 + [_I64] * 3 + [ctypes.c_int, ctypes.c_double],
+                              ctypes.c_int)
+          for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 
 
-def _c_root_bwd(R, G):
-    return _so3_bwd_c("sqrt", R, G)
+def _check_scratch(status: int) -> None:
+    if status != 0:
+        raise MemoryError("torchconn::face_torsion_sqrt: csrc/torsion.c could not map its scratch buffer")
+
+
+def _c_ok(edge_rot, edge_vec, face_index, inc_ptr, inc, *more) -> bool:
+    return (can_use_compiled("torsion", edge_rot, edge_vec, *more) and face_index.dtype == torch.int64
+            and inc_ptr.dtype == inc.dtype == torch.int32)
+
+
+def _c_sizes(edge_rot, face_index):
+    E = edge_rot.shape[-3]
+    return _I64(edge_rot.numel() // (9 * E) if E else 0), _I64(E), _I64(face_index.shape[1])
 
 
 @torch.library.custom_op(qualname("face_torsion_sqrt_backward"), mutates_args=())
 def _face_torsion_sqrt_backward(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor,
-                                grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                                inc_ptr: torch.Tensor, inc: torch.Tensor, grad: torch.Tensor
+                                ) -> tuple[torch.Tensor, torch.Tensor]:
     return _torsion_bwd_generic(edge_rot, edge_vec, face_index, grad)
 
 
 @_face_torsion_sqrt_backward.register_kernel("cpu")
-def _(edge_rot, edge_vec, face_index, grad):
-    if can_use_compiled("so3", edge_rot, edge_vec, grad):
-        return _torsion_bwd_generic(edge_rot, edge_vec, face_index, grad, _c_root, _c_root_bwd)
-    return _torsion_bwd_generic(edge_rot, edge_vec, face_index, grad)
+def _(edge_rot, edge_vec, face_index, inc_ptr, inc, grad):
+    if not _c_ok(edge_rot, edge_vec, face_index, inc_ptr, inc, grad):
+        return _torsion_bwd_generic(edge_rot, edge_vec, face_index, grad)
+    R, v, g = edge_rot.contiguous(), edge_vec.contiguous(), grad.contiguous()
+    fi, ip, ic = face_index.contiguous(), inc_ptr.contiguous(), inc.contiguous()
+    nb, E, F = _c_sizes(R, fi)
+    g_rot = _native.empty(*R.shape, dtype=R.dtype)
+    g_vec = _native.empty(*R.shape[:-2], 3, dtype=R.dtype)  # per batch element (the caller sums)
+    if g_rot.numel():
+        _check_scratch(_C_BWD[R.dtype](_native.ptr(R), _native.ptr(v), _native.ptr(fi), _native.ptr(ip),
+                                       _native.ptr(ic), _native.ptr(g), _native.ptr(g_rot), _native.ptr(g_vec),
+                                       nb, E, F, torch.get_num_threads(), get_eps("small_angle", R.dtype)))
+    return g_rot, g_vec
 
 
 @_face_torsion_sqrt_backward.register_fake
-def _(edge_rot, edge_vec, face_index, grad):
+def _(edge_rot, edge_vec, face_index, inc_ptr, inc, grad):
     return (torch.empty_like(edge_rot, memory_format=torch.contiguous_format),
             edge_rot.new_empty((*edge_rot.shape[:-2], 3)))  # per batch element
 
@@ -106,19 +136,19 @@ def _tbwd_setup(ctx, inputs, output):
 
 
 def _tbwd_backward(ctx, g_R, g_vec):
-    edge_rot, edge_vec, face_index, grad = ctx.saved_tensors
+    edge_rot, edge_vec, face_index, inc_ptr, inc, grad = ctx.saved_tensors
     f = lambda r, v, g: _torsion_bwd_generic(r, v, face_index, g)  # noqa: E731
     _, vjp = torch.func.vjp(f, edge_rot, edge_vec, grad)
     gr, gv, gg = vjp((torch.zeros_like(edge_rot) if g_R is None else g_R,
                       torch.zeros_like(edge_vec) if g_vec is None else g_vec))
-    return gr, gv, None, gg
+    return gr, gv, None, None, None, gg
 
 
 _face_torsion_sqrt_backward.register_autograd(_tbwd_backward, setup_context=_tbwd_setup)
 
 
 _face_torsion_sqrt_backward.register_vmap(leading_vmap(_face_torsion_sqrt_backward, "face_torsion_sqrt_backward",
-                                                       batched=(0, 3), n_out=2))
+                                                       batched=(0, 5), n_out=2))
 
 
 def _sum_batch(g_vec: torch.Tensor, edge_vec: torch.Tensor) -> torch.Tensor:
@@ -127,19 +157,26 @@ def _sum_batch(g_vec: torch.Tensor, edge_vec: torch.Tensor) -> torch.Tensor:
 
 
 @torch.library.custom_op(qualname("face_torsion_sqrt"), mutates_args=())
-def _face_torsion_sqrt(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor) -> torch.Tensor:
+def _face_torsion_sqrt(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor,
+                       inc_ptr: torch.Tensor, inc: torch.Tensor) -> torch.Tensor:
     return _torsion_generic(edge_rot, edge_vec, face_index)
 
 
 @_face_torsion_sqrt.register_kernel("cpu")
-def _(edge_rot, edge_vec, face_index):
-    if can_use_compiled("so3", edge_rot, edge_vec):
-        return _torsion_generic(edge_rot, edge_vec, face_index, _c_root)
-    return _torsion_generic(edge_rot, edge_vec, face_index)
+def _(edge_rot, edge_vec, face_index, inc_ptr, inc):
+    if not _c_ok(edge_rot, edge_vec, face_index, inc_ptr, inc):
+        return _torsion_generic(edge_rot, edge_vec, face_index)
+    R, v, fi = edge_rot.contiguous(), edge_vec.contiguous(), face_index.contiguous()
+    nb, E, F = _c_sizes(R, fi)
+    out = _native.empty(*R.shape[:-3], fi.shape[1], 3, dtype=R.dtype)
+    if out.numel():
+        _check_scratch(_C_FWD[R.dtype](_native.ptr(R), _native.ptr(v), _native.ptr(fi), _native.ptr(out), nb, E, F,
+                                       torch.get_num_threads(), get_eps("small_angle", R.dtype)))
+    return out
 
 
 @_face_torsion_sqrt.register_fake
-def _(edge_rot, edge_vec, face_index):
+def _(edge_rot, edge_vec, face_index, inc_ptr, inc):
     return edge_rot.new_empty((*edge_rot.shape[:-3], face_index.shape[1], 3))
 
 
@@ -148,9 +185,9 @@ def _t_setup(ctx, inputs, output):
 
 
 def _t_backward(ctx, grad):
-    edge_rot, edge_vec, face_index = ctx.saved_tensors
-    g_R, g_vec = _face_torsion_sqrt_backward(edge_rot, edge_vec, face_index, grad)
-    return g_R, _sum_batch(g_vec, edge_vec), None
+    edge_rot, edge_vec, face_index, inc_ptr, inc = ctx.saved_tensors
+    g_R, g_vec = _face_torsion_sqrt_backward(edge_rot, edge_vec, face_index, inc_ptr, inc, grad)
+    return g_R, _sum_batch(g_vec, edge_vec), None, None, None
 
 
 _face_torsion_sqrt.register_autograd(_t_backward, setup_context=_t_setup)
@@ -163,8 +200,8 @@ class _TorsionFn(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(edge_rot, edge_vec, face_index):
-        return _face_torsion_sqrt(edge_rot, edge_vec, face_index)
+    def forward(edge_rot, edge_vec, face_index, inc_ptr, inc):
+        return _face_torsion_sqrt(edge_rot, edge_vec, face_index, inc_ptr, inc)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -173,13 +210,13 @@ class _TorsionFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        edge_rot, edge_vec, face_index = ctx.saved_tensors
-        g_R, g_vec = _TorsionBwdFn.apply(edge_rot, edge_vec, face_index, grad)
-        return g_R, _sum_batch(g_vec, edge_vec), None
+        edge_rot, edge_vec, face_index, inc_ptr, inc = ctx.saved_tensors
+        g_R, g_vec = _TorsionBwdFn.apply(edge_rot, edge_vec, face_index, inc_ptr, inc, grad)
+        return g_R, _sum_batch(g_vec, edge_vec), None, None, None
 
     @staticmethod
-    def jvp(ctx, t_rot, t_vec, _):
-        edge_rot, edge_vec, face_index = ctx.saved_tensors
+    def jvp(ctx, t_rot, t_vec, *_):
+        edge_rot, edge_vec, face_index, _, _ = ctx.saved_tensors
         t_vec = torch.zeros_like(edge_vec) if t_vec is None else t_vec
         f = lambda r, v: _torsion_generic(r, v, face_index)  # noqa: E731
         return _library_jvp(f, (edge_rot, edge_vec), (t_rot, t_vec))
@@ -189,8 +226,8 @@ class _TorsionBwdFn(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(edge_rot, edge_vec, face_index, grad):
-        return _face_torsion_sqrt_backward(edge_rot, edge_vec, face_index, grad)
+    def forward(edge_rot, edge_vec, face_index, inc_ptr, inc, grad):
+        return _face_torsion_sqrt_backward(edge_rot, edge_vec, face_index, inc_ptr, inc, grad)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -202,8 +239,8 @@ class _TorsionBwdFn(torch.autograd.Function):
         return _tbwd_backward(ctx, g_R, g_vec)
 
     @staticmethod
-    def jvp(ctx, t_rot, t_vec, _, t_grad):
-        edge_rot, edge_vec, face_index, grad = ctx.saved_tensors
+    def jvp(ctx, t_rot, t_vec, _fi, _ip, _ic, t_grad):
+        edge_rot, edge_vec, face_index, _, _, grad = ctx.saved_tensors
         f = lambda r, v, g: _torsion_bwd_generic(r, v, face_index, g)  # noqa: E731
         z = torch.zeros_like
         t = (z(edge_rot) if t_rot is None else t_rot, z(edge_vec) if t_vec is None else t_vec,
@@ -211,11 +248,13 @@ class _TorsionBwdFn(torch.autograd.Function):
         return _library_jvp(f, (edge_rot, edge_vec, grad), t)
 
 
-def face_torsion_sqrt(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor) -> torch.Tensor:
-    """``torchconn::face_torsion_sqrt`` (module doc): ``(*B, E, 3, 3), (E, 3), (3, F) -> (*B, F, 3)``."""
+def face_torsion_sqrt(edge_rot: torch.Tensor, edge_vec: torch.Tensor, face_index: torch.Tensor,
+                      inc_ptr: torch.Tensor, inc: torch.Tensor) -> torch.Tensor:
+    """``torchconn::face_torsion_sqrt`` (module doc): ``(*B, E, 3, 3), (E, 3), (3, F)`` and the
+    incidence table ``inc_ptr (E + 1)``, ``inc (3F)`` int32 -> ``(*B, F, 3)``."""
     if torch.compiler.is_compiling():
-        return _face_torsion_sqrt(edge_rot, edge_vec, face_index)
-    return _TorsionFn.apply(edge_rot, edge_vec, face_index)
+        return _face_torsion_sqrt(edge_rot, edge_vec, face_index, inc_ptr, inc)
+    return _TorsionFn.apply(edge_rot, edge_vec, face_index, inc_ptr, inc)
 
 
 # ----------------------------------------------------------------------------- gathers, frames
@@ -291,9 +330,9 @@ def face_torsion(edge_rot: torch.Tensor, mesh, kind: str = "sqrt", frames: torch
     if edge_rot.dim() < 3 or edge_rot.shape[-3:] != (E, 3, 3):
         raise ValueError(f"face_torsion: edge_rot must have shape ({E}, 3, 3) (after optional leading batch dims), "
                          f"one rotation per mesh edge in mesh.edges order, got {tuple(edge_rot.shape)}")
-    fi = _face_index(mesh, edge_rot.device)
+    fi, inc_ptr, inc = _face_tables(mesh, edge_rot.device)
     if kind == "sqrt" and frames is None and edge_frame_rot is None:
-        return face_torsion_sqrt(edge_rot, _edge_vectors(mesh, edge_rot.device, edge_rot.dtype), fi)
+        return face_torsion_sqrt(edge_rot, _edge_vectors(mesh, edge_rot.device, edge_rot.dtype), fi, inc_ptr, inc)
     if frames is not None:
         frames = frames.to(edge_rot)
     th = edge_solder_frames(edge_rot, mesh, kind, frames, edge_frame_rot)

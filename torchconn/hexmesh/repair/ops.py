@@ -25,7 +25,13 @@ and the edges moved:
   shortens the hairpin and merges zipper pairs (a cone move at a tip whose two branches are
   one edge apart zips them);
 * ``feature_sector``: a boundary fan whose angle is not its sharp feature's (a constrained
-  feature sector) given the angle the feature asks for.
+  feature sector) given the angle the feature asks for;
+* ``retract``: a hook, a zipper node one of whose branches reaches the boundary within a few
+  edges, retracted through the boundary (:func:`retract_moves`): the arc's end moves from the
+  short branch's boundary vertex to a boundary vertex next to the long branch, over the
+  least-area disk (:func:`.disk.spanning_disk`) between the old arc, the new end edge and a
+  path on the boundary (whose fans turn about their normal, when that is the arc's axis, and
+  stay flat).
 
 Each public function takes a mesh, per-tet frames and matchings and returns the new matchings
 and a :class:`Move` (or ``None`` when no move lowers the cost); the driver
@@ -38,16 +44,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..meshability import INVALID, ZIPPER, fan_quarters
-from .disk import MeshLookup, cone_disk, link_path, solve_disk
+from .disk import MeshLookup, cone_disk, link_path, solve_disk, spanning_disk
 from .graph import _AXIS, SingularGraph
 
-__all__ = ["Move", "MOVE_KINDS", "best_move", "special_edges", "push_inside", "move_off_boundary", "detach_arc",
-           "zip_zipper", "repair_feature_sector"]
+__all__ = ["Move", "MOVE_KINDS", "best_move", "special_edges", "candidate_moves", "retract_moves", "push_inside",
+           "move_off_boundary", "detach_arc", "zip_zipper", "retract_hook", "repair_feature_sector"]
 
 PATH_MODES = ("aligned", "monotone")
 """Weightings of :func:`.disk.link_path` the candidates are drawn with."""
 
-MOVE_KINDS = ("push_inside", "move_off", "detach", "zip", "feature_sector", "other")
+MOVE_KINDS = ("push_inside", "move_off", "detach", "zip", "retract", "feature_sector", "other")
 """Kinds of :class:`Move` (module docstring)."""
 
 
@@ -87,9 +93,7 @@ def _targets(g: SingularGraph, e: int) -> list[int]:
     dpar = np.einsum("ji,j->i", g.frames[g.fans.first_tet[r]], g.X[g.edges[e, 1]] - g.X[g.edges[e, 0]])
     q = fan_quarters(a0, g.a1[r], np.broadcast_to(dpar, (24, 3)), np.full(24, g.fans.dihedral[r]))
     want = g.expected[e]
-    out = [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]]
-    # closest to the current transport first: fewest changed frames (misfit) for the same angle
-    return out[:4]
+    return [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]][:4]
 
 
 def _kind(g: SingularGraph, v: int, e1: int, e2: int) -> str:
@@ -108,7 +112,10 @@ def _kind(g: SingularGraph, v: int, e1: int, e2: int) -> str:
 
 
 def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2):
-    """Every cone move at ``v`` (module docstring) with its cost change, as :class:`Move` s."""
+    """Every cone move at ``v`` and, at a zipper node, every ``retract`` move (module docstring)
+    with its cost change, as :class:`Move` s."""
+    if g.vcls[v] == ZIPPER and (kinds is None or "retract" in kinds):
+        yield from retract_moves(g, lookup, v)
     sp_e = special_edges(g, lookup, v)
     seen = set()  # the pair (e2, e1) over the reversed path often makes the same singular graph
     for e1 in sp_e.tolist():
@@ -155,6 +162,102 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
                     seen.add(key)
                     yield Move(vertex=int(v), edges=(int(e1), int(e2)), path=path, faces=faces, values=vals,
                                delta=after - before, kind=kind)
+
+
+def _branch(g: SingularGraph, lookup: MeshLookup, v: int, e: int, max_len: int) -> list[int]:
+    """The vertices of the singular arc from ``v`` through edge ``e``, followed through vertices
+    with exactly two interior singular edges, until another vertex (included) or ``max_len`` edges."""
+    out, prev = [int(v)], int(e)
+    while len(out) <= max_len:
+        x = lookup.other_end(prev, out[-1])
+        out.append(x)
+        es = lookup.vertex_edges(x)
+        es = es[~g.boundary[es] & (g.cls[es] >= 0) & (es != prev)]
+        if g.on_b[x] or es.size != 1 or x == v:
+            break
+        prev = int(es[0])
+    return out
+
+
+def _boundary_path(g: SingularGraph, lookup: MeshLookup, a: int, b: int, near: np.ndarray) -> np.ndarray | None:
+    """A shortest path ``a -> b`` over boundary edges between vertices of ``near`` (bool (V,))."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    be = lookup.edges[g.boundary & near[lookup.edges].all(1)]
+    nodes = np.unique(np.r_[be.reshape(-1), a, b])
+    loc = np.searchsorted(nodes, be)
+    w = np.linalg.norm(g.X[be[:, 0]] - g.X[be[:, 1]], axis=1)
+    A = sp.coo_matrix((w, (loc[:, 0], loc[:, 1])), shape=(nodes.size, nodes.size)).tocsr()
+    ia, ib = int(np.searchsorted(nodes, a)), int(np.searchsorted(nodes, b))
+    dist, pred = dijkstra(A, directed=False, indices=ia, return_predecessors=True)
+    if not np.isfinite(dist[ib]):
+        return None
+    out = [ib]
+    while out[-1] != ia:
+        out.append(int(pred[out[-1]]))
+    return nodes[np.array(out[::-1])]
+
+
+def retract_moves(g: SingularGraph, lookup: MeshLookup, v: int, max_len: int = 4):
+    """The ``retract`` moves at a zipper node ``v`` (module docstring), as :class:`Move` s.
+
+    For a branch ``v = s_0, ..., s_k`` that reaches the boundary within ``max_len`` edges and the
+    other branch ``v, c_1, c_2, ...``: for each ``c_j`` (``j <= k + 2``) and each boundary
+    neighbour ``b`` of ``c_j`` (up to 3, nearest first), the loop ``s_k .. s_1 v c_1 .. c_j b``
+    closed by a boundary path ``b -> s_k``; its least-area disk re-solved with ``(v, s_1)`` regular.
+    """
+    es = lookup.vertex_edges(v)
+    es = es[~g.boundary[es] & (g.cls[es] >= 0)]
+    if es.size != 2:
+        return
+    seen = set()
+    for short, long_ in ((es[0], es[1]), (es[1], es[0])):
+        S = _branch(g, lookup, v, int(short), max_len)
+        if not g.on_b[S[-1]]:
+            continue
+        Lb = _branch(g, lookup, v, int(long_), len(S) + 2)
+        for j in range(1, len(Lb)):
+            c = Lb[j]
+            nb = lookup.edges[lookup.vertex_edges(c)].reshape(-1)
+            nb = np.unique(nb[(nb != c) & g.on_b[nb]])
+            if g.on_b[c]:
+                nb = np.array([c])
+            nb = nb[np.argsort(np.linalg.norm(g.X[nb] - g.X[c], axis=1))][:3]
+            for b in nb.tolist():
+                near = np.zeros(g.V, bool)
+                near[np.r_[S, Lb[:j + 1], b]] = True
+                for _ in range(3):  # the boundary path stays within 3 rings of the hook
+                    near[lookup.edges[near[lookup.edges].any(1)].reshape(-1)] = True
+                bp = _boundary_path(g, lookup, b, S[-1], near)
+                if bp is None:
+                    continue
+                head = [*S[::-1], *Lb[1:j + 1]] + ([b] if b != c else [])
+                loop = np.array(head + bp[1:].tolist())
+                if np.unique(loop[:-1]).size != loop.size - 1:
+                    continue
+                disk = spanning_disk(g, lookup, loop)
+                if disk is None:
+                    continue
+                faces, inside, _ = disk
+                e1 = int(lookup.edge_id(v, S[1])[0])
+                seed = [f for f in faces.tolist() if e1 in lookup.face_edges[f]]
+                if len(seed) != 1:
+                    continue
+                vals = solve_disk(g, faces, seed[0], e1, 0, inside)
+                if vals is None or (vals == g.match[faces]).all():
+                    continue
+                before = g.local_cost(faces)
+                token = g.set_matchings(faces, vals)
+                after = g.local_cost(faces)
+                ee = np.unique(g.face_edges[faces])
+                key = (tuple(ee.tolist()), tuple(g.prod[ee].tolist()))
+                g.undo(token)
+                if key in seen:
+                    continue
+                seen.add(key)
+                yield Move(vertex=int(v), edges=(e1, int(long_)), path=loop, faces=faces, values=vals,
+                           delta=after - before, kind="retract")
 
 
 def best_move(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2) -> Move | None:
@@ -204,6 +307,12 @@ def zip_zipper(mesh, tet_frames, face_match, vertex: int, *, weights: dict | Non
     """Move the tip of the hairpin at the zipper node ``vertex`` across a cone of faces (zips its
     branches). Returns ``(face_match, Move or None)``."""
     return _apply(("zip",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def retract_hook(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Retract the hook at the zipper node ``vertex`` through the boundary (module docstring).
+    Returns ``(face_match, Move or None)``."""
+    return _apply(("retract",), mesh, tet_frames, face_match, vertex, weights)
 
 
 def repair_feature_sector(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):

@@ -38,6 +38,15 @@
 #ifndef TC_BODY
 #define TC_BODY
 
+#if defined(__GNUC__) && !defined(__clang__)
+/* The lane loops have no control flow only if GCC if-converts the selects of the scores, which it
+ * does for floating-point operations under -fno-trapping-math (no traps are enabled here; the
+ * option changes no value); jump threading and sinking would move operations into branches (as
+ * in csrc/so3.c). Popped at the end of the file. */
+#pragma GCC push_options
+#pragma GCC optimize("no-thread-jumps", "no-tree-sink", "no-trapping-math")
+#endif
+
 /* entries per task of the buffer sums */
 #define FL_TASK 65536L
 
@@ -62,6 +71,10 @@ static void group_perm(const double* g, int perm[24][3], double sign[24][3]) {
 #undef T
 #undef SFX
 
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC pop_options
+#endif
+
 #else /* ------------------------------------------------------------------ body, T = float | double */
 
 /* C = A B (row-major 3x3) */
@@ -84,25 +97,30 @@ static inline void SFX(mmt)(const T* A, const T* B, T* C) {
 }
 
 /* argmax_k tr(g_k^T M), first index on ties: the 24 scores written out for the group order of
- * torchconn.octahedral.group() (checked against the table passed in, see frame_loss) */
+ * torchconn.octahedral.group() (checked against the table passed in, see frame_loss). A macro on
+ * the nine entries M[0..8] of a local array (not a function taking its address: in a vectorized
+ * lane loop the array then stays in registers), selects only (no branch) */
+#define FL_BEST(best, M)                                                                          \
+    do {                                                                                          \
+        T bs_ = + M[0] + M[4] + M[8];                                                             \
+        best = 0;                                                                                 \
+        FL_S(best, 1, + M[0] - M[4] - M[8]) FL_S(best, 2, - M[0] + M[4] - M[8]) FL_S(best, 3, - M[0] - M[4] + M[8])   \
+        FL_S(best, 4, + M[0] + M[7] - M[5]) FL_S(best, 5, + M[0] - M[7] + M[5]) FL_S(best, 6, - M[0] + M[7] + M[5])   \
+        FL_S(best, 7, - M[0] - M[7] - M[5]) FL_S(best, 8, + M[3] + M[1] - M[8]) FL_S(best, 9, + M[3] - M[1] + M[8])   \
+        FL_S(best, 10, - M[3] + M[1] + M[8]) FL_S(best, 11, - M[3] - M[1] - M[8]) FL_S(best, 12, + M[3] + M[7] + M[2]) \
+        FL_S(best, 13, + M[3] - M[7] - M[2]) FL_S(best, 14, - M[3] + M[7] - M[2]) FL_S(best, 15, - M[3] - M[7] + M[2]) \
+        FL_S(best, 16, + M[6] + M[1] + M[5]) FL_S(best, 17, + M[6] - M[1] - M[5]) FL_S(best, 18, - M[6] + M[1] - M[5]) \
+        FL_S(best, 19, - M[6] - M[1] + M[5]) FL_S(best, 20, + M[6] + M[4] - M[2]) FL_S(best, 21, + M[6] - M[4] + M[2]) \
+        FL_S(best, 22, - M[6] + M[4] + M[2]) FL_S(best, 23, - M[6] - M[4] - M[2])                              \
+    } while (0)
+#define FL_S(best, k, expr) { T s_ = expr; int c_ = s_ > bs_; best = c_ ? (k) : best; bs_ = c_ ? s_ : bs_; }
+
 static inline int SFX(best)(const T* M) {
-    int best = 0;
-    T bs = -INFINITY;
-#define X(k, expr) { T s_ = expr; int b_ = s_ > bs; best = b_ ? k : best; bs = b_ ? s_ : bs; }
-    X(0, + M[0] + M[4] + M[8]) X(1, + M[0] - M[4] - M[8]) X(2, - M[0] + M[4] - M[8])
-    X(3, - M[0] - M[4] + M[8]) X(4, + M[0] + M[7] - M[5]) X(5, + M[0] - M[7] + M[5])
-    X(6, - M[0] + M[7] + M[5]) X(7, - M[0] - M[7] - M[5]) X(8, + M[3] + M[1] - M[8])
-    X(9, + M[3] - M[1] + M[8]) X(10, - M[3] + M[1] + M[8]) X(11, - M[3] - M[1] - M[8])
-    X(12, + M[3] + M[7] + M[2]) X(13, + M[3] - M[7] - M[2]) X(14, - M[3] + M[7] - M[2])
-    X(15, - M[3] - M[7] + M[2]) X(16, + M[6] + M[1] + M[5]) X(17, + M[6] - M[1] - M[5])
-    X(18, - M[6] + M[1] - M[5]) X(19, - M[6] - M[1] + M[5]) X(20, + M[6] + M[4] - M[2])
-    X(21, + M[6] - M[4] + M[2]) X(22, - M[6] + M[4] + M[2]) X(23, - M[6] - M[4] - M[2])
-#undef X
+    int best;
+    FL_BEST(best, M);
     return best;
 }
 
-/* rho and d rho / d d2 (power 2: the identity; power 1, the default of the method: a square root,
- * not pow, which costs ~10x as much per edge) */
 static inline double SFX(rho)(double d2, double p, double eps) {
     if (p == 2.0) return d2;
     if (p == 1.0) return sqrt(d2 + eps * eps) - eps;
@@ -283,62 +301,141 @@ static void SFX(pass1)(void* vc, long t) {
     c->part[t][4] = s_dir;
 }
 
+/* ---- pass 2 in blocks of FL_L faces: gathered into component-major arrays (lane l = face l of
+ * the block), the formulas run as one loop over the lanes that the compiler vectorizes (the same
+ * arithmetic per face as the scalar formulas, in the same order), the gradients go back per face.
+ * Every block computes the holonomy terms and the torsion; a term that is off gets zero inputs
+ * and weights and its results are not read. */
+#ifndef FL_L
+#define FL_L 16
+#endif
+
+typedef struct {
+    T Rab[9][FL_L], Rbc[9][FL_L], Rac[9][FL_L];
+    T tab[3][FL_L], tbc[3][FL_L], tac[3][FL_L];
+    T Hab[9][FL_L];  /* the matching h_ab as a matrix */
+    T ia[FL_L];      /* 1 / area */
+    T gab[9][FL_L], gbc[9][FL_L], gac[9][FL_L];
+    T gtab[3][FL_L], gtbc[3][FL_L], gtac[3][FL_L];
+    T d2[FL_L], n2[FL_L];
+    int g[FL_L];
+} SFX(fblk);
+
+/* lane loop of a face block: flat (H - g, the nearest element g), torsion; with grad the
+ * gradients, kf, kq the weights of flat and torsion (2 w / F) */
+#define FL_FACE_LANES(GRAD)                                                                      \
+    _Pragma("omp simd")                                                                          \
+    for (int l = 0; l < FL_L; ++l) {                                                             \
+        T P[9], H[9], w[3], Th[3];                                                               \
+        for (int i = 0; i < 3; ++i)                                                              \
+            for (int j = 0; j < 3; ++j)                                                          \
+                P[3 * i + j] = b->Rab[3 * i][l] * b->Rbc[j][l] + b->Rab[3 * i + 1][l] * b->Rbc[3 + j][l] \
+                             + b->Rab[3 * i + 2][l] * b->Rbc[6 + j][l];                          \
+        for (int i = 0; i < 3; ++i)                                                              \
+            for (int j = 0; j < 3; ++j)                                                          \
+                H[3 * i + j] = P[3 * i] * b->Rac[3 * j][l] + P[3 * i + 1] * b->Rac[3 * j + 1][l] \
+                             + P[3 * i + 2] * b->Rac[3 * j + 2][l];                              \
+        int g;                                                                                   \
+        FL_BEST(g, H);                                                                           \
+        T d2 = 0;                                                                                \
+        for (int q = 0; q < 9; ++q) { H[q] -= g9[9 * g + q]; d2 += H[q] * H[q]; }               \
+        b->d2[l] = d2;                                                                           \
+        b->g[l] = g;                                                                             \
+        for (int k = 0; k < 3; ++k)                                                              \
+            w[k] = b->Hab[k][l] * b->tbc[0][l] + b->Hab[3 + k][l] * b->tbc[1][l] + b->Hab[6 + k][l] * b->tbc[2][l]; \
+        T n2 = 0;                                                                                \
+        for (int r = 0; r < 3; ++r) {                                                            \
+            Th[r] = b->tab[r][l] + b->Rab[3 * r][l] * w[0] + b->Rab[3 * r + 1][l] * w[1]          \
+                  + b->Rab[3 * r + 2][l] * w[2] - b->tac[r][l];                                  \
+            n2 += Th[r] * Th[r];                                                                 \
+        }                                                                                        \
+        b->n2[l] = n2 * b->ia[l];                                                                \
+        if (GRAD) {                                                                              \
+            T GR[9], gT[3], y[3];                                                                \
+            for (int q = 0; q < 9; ++q) H[q] *= kf;  /* G = dL/dH */                             \
+            for (int i = 0; i < 3; ++i)                                                          \
+                for (int j = 0; j < 3; ++j)                                                      \
+                    GR[3 * i + j] = H[3 * i] * b->Rac[j][l] + H[3 * i + 1] * b->Rac[3 + j][l]     \
+                                  + H[3 * i + 2] * b->Rac[6 + j][l];                             \
+            const T kt = kq * b->ia[l];                                                          \
+            for (int r = 0; r < 3; ++r) gT[r] = kt * Th[r];                                      \
+            for (int i = 0; i < 3; ++i)                                                          \
+                for (int j = 0; j < 3; ++j) {                                                    \
+                    b->gab[3 * i + j][l] = GR[3 * i] * b->Rbc[3 * j][l] + GR[3 * i + 1] * b->Rbc[3 * j + 1][l] \
+                                         + GR[3 * i + 2] * b->Rbc[3 * j + 2][l] + gT[i] * w[j];   \
+                    b->gbc[3 * i + j][l] = b->Rab[i][l] * GR[j] + b->Rab[3 + i][l] * GR[3 + j]    \
+                                         + b->Rab[6 + i][l] * GR[6 + j];                         \
+                    b->gac[3 * i + j][l] = H[i] * P[j] + H[3 + i] * P[3 + j] + H[6 + i] * P[6 + j]; \
+                }                                                                                \
+            for (int r = 0; r < 3; ++r)                                                          \
+                y[r] = b->Rab[r][l] * gT[0] + b->Rab[3 + r][l] * gT[1] + b->Rab[6 + r][l] * gT[2]; \
+            for (int r = 0; r < 3; ++r) {                                                        \
+                b->gtab[r][l] = gT[r];                                                           \
+                b->gtac[r][l] = -gT[r];                                                          \
+                b->gtbc[r][l] = b->Hab[3 * r][l] * y[0] + b->Hab[3 * r + 1][l] * y[1] + b->Hab[3 * r + 2][l] * y[2]; \
+            }                                                                                    \
+        }                                                                                        \
+    }
+
+/* not inlined: inlined into the face loop, gcc may no longer vectorize the lane loop */
+__attribute__((noinline)) static void SFX(face_fwd)(SFX(fblk)* b, const T* g9) {
+    const T kf = 0, kq = 0;
+    (void)kf; (void)kq;
+    FL_FACE_LANES(0)
+}
+__attribute__((noinline)) static void SFX(face_grad)(SFX(fblk)* b, const T* g9, T kf, T kq) {
+    FL_FACE_LANES(1)
+}
+
 /* pass 2, stripe t of the faces: flat (and the regular-face flags), torsion through the matchings */
 static void SFX(pass2)(void* vc, long t) {
     SFX(fl_t)* c = (SFX(fl_t)*)vc;
     const int grad = c->grad, do_f = c->do_f, do_q = c->do_q, do_r = c->do_r;
-    const int (*perm)[3] = c->perm;
-    const T (*sign)[3] = c->sign;
     const T* R = c->R;
+    T g9[24 * 9];
+    for (int k = 0; k < 24; ++k)
+        for (int q = 0; q < 9; ++q) g9[9 * k + q] = (T)0;
+    for (int k = 0; k < 24; ++k)
+        for (int cc = 0; cc < 3; ++cc) g9[9 * k + 3 * c->perm[k][cc] + cc] = c->sign[k][cc];
     double s_flat = 0, s_tor = 0;
     T* gRb = c->bR[t];
     T* gTb = c->bTh[t];
+    SFX(fblk) blk;
+    SFX(fblk)* b = &blk;
     const long lo = c->F * t / c->nt, hi = c->F * (t + 1) / c->nt;
-    for (long f = lo; f < hi; ++f) {
-        long ab = c->fidx[3 * f], bc = c->fidx[3 * f + 1], ac = c->fidx[3 * f + 2];
-        const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
-        if (do_f || do_r) {
-            T P[9], H[9], d2 = 0;
-            SFX(mm)(Rab, Rbc, P);
-            SFX(mmt)(P, Rac, H);
-            int g = SFX(best)(H);
-            if (do_r) c->regular[f] = (unsigned char)(g == 0);
-            if (do_f) {
-                for (int cc = 0; cc < 3; ++cc) H[3 * perm[g][cc] + cc] -= sign[g][cc];  /* H - g */
-                for (int q = 0; q < 9; ++q) d2 += H[q] * H[q];
-                s_flat += d2;
-                if (grad) {
-                    T GR[9], t1[9];
-                    for (int q = 0; q < 9; ++q) H[q] *= c->kf;  /* G = dL/dH */
-                    SFX(mm)(H, Rac, GR);                        /* G R_ac */
-                    SFX(mmt)(GR, Rbc, t1);                      /* -> R_ab */
-                    for (int q = 0; q < 9; ++q) gRb[9 * ab + q] += t1[q];
-                    SFX(mtm)(Rab, GR, t1);                      /* -> R_bc */
-                    for (int q = 0; q < 9; ++q) gRb[9 * bc + q] += t1[q];
-                    SFX(mtm)(H, P, t1);                         /* G^T P -> R_ac */
-                    for (int q = 0; q < 9; ++q) gRb[9 * ac + q] += t1[q];
-                }
+    for (long f0 = lo; f0 < hi; f0 += FL_L) {
+        const int n = (int)(hi - f0 < FL_L ? hi - f0 : FL_L);
+        for (int l = 0; l < FL_L; ++l) {
+            const long f = f0 + (l < n ? l : 0);
+            const long ab = c->fidx[3 * f], bc = c->fidx[3 * f + 1], ac = c->fidx[3 * f + 2];
+            const T *Rab = R + 9 * ab, *Rbc = R + 9 * bc, *Rac = R + 9 * ac;
+            for (int q = 0; q < 9; ++q) { b->Rab[q][l] = Rab[q]; b->Rbc[q][l] = Rbc[q]; b->Rac[q][l] = Rac[q]; }
+            if (do_q) {
+                const T *tab = c->theta + 3 * ab, *tbc = c->theta + 3 * bc, *tac = c->theta + 3 * ac;
+                for (int r = 0; r < 3; ++r) { b->tab[r][l] = tab[r]; b->tbc[r][l] = tbc[r]; b->tac[r][l] = tac[r]; }
+                const T* hm = g9 + 9 * c->hidx[ab];
+                for (int q = 0; q < 9; ++q) b->Hab[q][l] = hm[q];
+                b->ia[l] = (T)1 / c->area[f];
+            } else {
+                for (int r = 0; r < 3; ++r) b->tab[r][l] = b->tbc[r][l] = b->tac[r][l] = 0;
+                for (int q = 0; q < 9; ++q) b->Hab[q][l] = 0;
+                b->ia[l] = 0;
             }
         }
-        if (do_q) {  /* Th = t_ab + R_ab w - t_ac, w = h_ab^T t_bc: w[k] = sign[k] t_bc[perm[k]] */
-            const T *tab = c->theta + 3 * ab, *tbc = c->theta + 3 * bc, *tac = c->theta + 3 * ac;
-            const int h = c->hidx[ab];
-            T w[3], Th[3], n2 = 0;
-            for (int k = 0; k < 3; ++k) w[k] = sign[h][k] * tbc[perm[h][k]];
-            for (int r = 0; r < 3; ++r) {
-                Th[r] = tab[r] + Rab[3 * r] * w[0] + Rab[3 * r + 1] * w[1] + Rab[3 * r + 2] * w[2] - tac[r];
-                n2 += Th[r] * Th[r];
-            }
-            s_tor += n2 / c->area[f];
-            if (grad) {
-                T k = c->kq / c->area[f], gT[3], y[3];
-                for (int r = 0; r < 3; ++r) gT[r] = k * Th[r];
-                for (int r = 0; r < 3; ++r) y[r] = Rab[r] * gT[0] + Rab[3 + r] * gT[1] + Rab[6 + r] * gT[2];
-                for (int r = 0; r < 3; ++r) {
-                    gTb[3 * ab + r] += gT[r];
-                    gTb[3 * ac + r] -= gT[r];
-                    gTb[3 * bc + perm[h][r]] += sign[h][r] * y[r];  /* h R_ab^T gT */
-                    for (int cc = 0; cc < 3; ++cc) gRb[9 * ab + 3 * r + cc] += gT[r] * w[cc];
+        if (grad) SFX(face_grad)(b, g9, c->kf, c->kq);
+        else SFX(face_fwd)(b, g9);
+        for (int l = 0; l < n; ++l) {
+            const long f = f0 + l;
+            if (do_f) s_flat += b->d2[l];
+            if (do_q) s_tor += b->n2[l];
+            if (do_r) c->regular[f] = (unsigned char)(b->g[l] == 0);
+            if (grad && (do_f || do_q)) {
+                const long ab = c->fidx[3 * f], bc = c->fidx[3 * f + 1], ac = c->fidx[3 * f + 2];
+                T *dab = gRb + 9 * ab, *dbc = gRb + 9 * bc, *dac = gRb + 9 * ac;
+                for (int q = 0; q < 9; ++q) { dab[q] += b->gab[q][l]; dbc[q] += b->gbc[q][l]; dac[q] += b->gac[q][l]; }
+                if (do_q) {
+                    T *eab = gTb + 3 * ab, *ebc = gTb + 3 * bc, *eac = gTb + 3 * ac;
+                    for (int r = 0; r < 3; ++r) { eab[r] += b->gtab[r][l]; ebc[r] += b->gtbc[r][l]; eac[r] += b->gtac[r][l]; }
                 }
             }
         }
@@ -385,6 +482,234 @@ static void SFX(pass3)(void* vc, long t) {
     }
 }
 
+/* ---- passes 1 and 3 in blocks of FL_L edges (as pass 2): for power 1 or 2 (rho a square root or the
+ * identity, which vectorize; another power runs the scalar passes above). Every block computes
+ * every edge term; a term that is off gets weight 0 and its results are not read. */
+
+/* C = A B, C = A^T B, C = A B^T on local 3x3 arrays (macros: no address of a lane's array is taken) */
+#define FL_MM(C, A, B) for (int i_ = 0; i_ < 3; ++i_) for (int j_ = 0; j_ < 3; ++j_) \
+    C[3 * i_ + j_] = A[3 * i_] * B[j_] + A[3 * i_ + 1] * B[3 + j_] + A[3 * i_ + 2] * B[6 + j_];
+#define FL_MTM(C, A, B) for (int i_ = 0; i_ < 3; ++i_) for (int j_ = 0; j_ < 3; ++j_) \
+    C[3 * i_ + j_] = A[i_] * B[j_] + A[3 + i_] * B[3 + j_] + A[6 + i_] * B[6 + j_];
+#define FL_MMT(C, A, B) for (int i_ = 0; i_ < 3; ++i_) for (int j_ = 0; j_ < 3; ++j_) \
+    C[3 * i_ + j_] = A[3 * i_] * B[3 * j_] + A[3 * i_ + 1] * B[3 * j_ + 1] + A[3 * i_ + 2] * B[3 * j_ + 2];
+
+typedef struct {
+    T R[9][FL_L], Fi[9][FL_L], Fj[9][FL_L], v[3][FL_L], gt[3][FL_L];
+    int h[FL_L];
+    T G[9][FL_L], gFi[9][FL_L], gFj[9][FL_L], th[3][FL_L];
+    T ss[FL_L], st[FL_L], sd[FL_L];
+} SFX(eblk);
+
+/* lane l: the block's arrays into local ones */
+#define FL_LOAD(X, src, n) for (int q_ = 0; q_ < n; ++q_) X[q_] = b->src[q_][l];
+
+/* pass 1 lanes: smooth, tie (match h), the matched solder form, dirichlet; with GRAD the gradient
+ * rows of R and the per-edge frame gradients. p2: power 2 (else 1); ws, wt, wd: 2 w / E */
+#define FL_EDGE1_LANES(GRAD)                                                                     \
+    _Pragma("omp simd")                                                                          \
+    for (int l = 0; l < FL_L; ++l) {                                                             \
+        T R[9], Fi[9], Fj[9], D[9], G[9], FiR[9], M[9], Gh[9], Fjh[9], A[9], gFi[9], gFj[9], t1[9]; \
+        FL_LOAD(R, R, 9) FL_LOAD(Fi, Fi, 9) FL_LOAD(Fj, Fj, 9)                                   \
+        T d2 = 0;                                                                                \
+        for (int q = 0; q < 9; ++q) { D[q] = R[q] - ((q % 4) == 0 ? (T)1 : (T)0); d2 += D[q] * D[q]; } \
+        T r1 = (T)sqrt(d2 + e2);                                                                 \
+        b->ss[l] = p2 ? d2 : r1 - eps_;                                                          \
+        T k = ws * (p2 ? (T)1 : (T)0.5 / r1);                                                    \
+        for (int q = 0; q < 9; ++q) G[q] = k * D[q];                                             \
+        FL_MM(FiR, Fi, R)                                                                        \
+        FL_MTM(M, Fj, FiR)                                                                       \
+        int h;                                                                                   \
+        FL_BEST(h, M);                                                                           \
+        b->h[l] = h;                                                                             \
+        for (int q = 0; q < 9; ++q) Gh[q] = g9[9 * h + q];                                       \
+        FL_MM(Fjh, Fj, Gh)                                                                       \
+        d2 = 0;                                                                                  \
+        for (int q = 0; q < 9; ++q) { D[q] = FiR[q] - Fjh[q]; d2 += D[q] * D[q]; }               \
+        r1 = (T)sqrt(d2 + e2);                                                                   \
+        b->st[l] = p2 ? d2 : r1 - eps_;                                                          \
+        /* the matched solder form t = F_i^T sqrt(A) v, A = (F_i R)(F_j h)^T, sqrt in closed form */ \
+        FL_MMT(A, FiR, Fjh)                                                                      \
+        T c = (T)0.5 * (T)sqrt((1 + A[0] + A[4] + A[8]) > (T)1e-30 ? (1 + A[0] + A[4] + A[8]) : (T)1e-30); \
+        T sa = (T)0.25 / c, sb = (T)0.25 / ((T)1 + c), u[3];                                     \
+        for (int i = 0; i < 3; ++i) {                                                            \
+            u[i] = 0;                                                                            \
+            for (int j = 0; j < 3; ++j)                                                          \
+                u[i] += ((i == j ? (T)1 : (T)0) + sa * (A[3 * i + j] - A[3 * j + i])              \
+                         + sb * (A[3 * i + j] + A[3 * j + i] - (i == j ? (T)2 : (T)0))) * b->v[j][l]; \
+        }                                                                                        \
+        for (int i = 0; i < 3; ++i) b->th[i][l] = Fi[i] * u[0] + Fi[3 + i] * u[1] + Fi[6 + i] * u[2]; \
+        /* dirichlet: |F_i g - F_j|^2, g = argmax tr(g^T F_i^T F_j) */                          \
+        FL_MTM(M, Fi, Fj)                                                                        \
+        int g;                                                                                   \
+        FL_BEST(g, M);                                                                           \
+        for (int q = 0; q < 9; ++q) Gh[q] = g9[9 * g + q];  /* now g as a matrix */              \
+        FL_MM(t1, Fi, Gh)                                                                        \
+        T dd = 0;                                                                                \
+        for (int q = 0; q < 9; ++q) { t1[q] -= Fj[q]; dd += t1[q] * t1[q]; }                     \
+        b->sd[l] = dd;                                                                           \
+        if (GRAD) {                                                                              \
+            T kt = wt * (p2 ? (T)1 : (T)0.5 / r1), GhT[9];                                       \
+            for (int q = 0; q < 9; ++q) D[q] *= kt;  /* dL/d(F_i R) */                           \
+            FL_MTM(M, Fi, D)                         /* F_i^T G -> R */                          \
+            for (int q = 0; q < 9; ++q) G[q] += M[q];                                            \
+            FL_MMT(gFi, D, R)                        /* G R^T -> F_i */                          \
+            for (int q = 0; q < 9; ++q) GhT[q] = g9[9 * h + 3 * (q % 3) + q / 3];                \
+            FL_MM(gFj, D, GhT)                       /* -(G h^T) -> F_j */                       \
+            for (int q = 0; q < 9; ++q) { t1[q] *= wd; gFj[q] = -gFj[q] - t1[q]; }               \
+            FL_MMT(M, t1, Gh)                        /* wd D g^T -> F_i */                       \
+            for (int q = 0; q < 9; ++q) {                                                        \
+                gFi[q] += M[q];                                                                  \
+                b->G[q][l] = G[q]; b->gFi[q][l] = gFi[q]; b->gFj[q][l] = gFj[q];                 \
+            }                                                                                    \
+        }                                                                                        \
+    }
+
+__attribute__((noinline)) static void SFX(edge1_fwd)(SFX(eblk)* b, const T* g9, int p2, T e2, T eps_) {
+    const T ws = 0, wt = 0, wd = 0;
+    (void)ws; (void)wt; (void)wd;
+    FL_EDGE1_LANES(0)
+}
+__attribute__((noinline)) static void SFX(edge1_grad)(SFX(eblk)* b, const T* g9, int p2, T e2, T eps_, T ws, T wt,
+                                                      T wd) {
+    FL_EDGE1_LANES(1)
+}
+
+/* the group as a (24, 9) table in T */
+static void SFX(group9)(const SFX(fl_t)* c, T* g9) {
+    for (int k = 0; k < 24; ++k)
+        for (int q = 0; q < 9; ++q) g9[9 * k + q] = (T)0;
+    for (int k = 0; k < 24; ++k)
+        for (int cc = 0; cc < 3; ++cc) g9[9 * k + 3 * c->perm[k][cc] + cc] = c->sign[k][cc];
+}
+
+/* pass 1 in blocks (power 1 or 2), stripe t of the edges */
+static void SFX(pass1v)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    const long E = c->E, V = c->V;
+    const int grad = c->grad, do_s = c->do_s, do_t = c->do_t, do_q = c->do_q, do_d = c->do_d;
+    const int p2 = c->power == 2.0;
+    const T e2 = (T)(c->eps * c->eps), eps_ = (T)c->eps;
+    T g9[24 * 9];
+    SFX(group9)(c, g9);
+    if (grad) {
+        if (t > 0) memset(c->bR[t], 0, sizeof(T) * (size_t)(12 * E + 9 * V));
+        else { memset(c->gF, 0, sizeof(T) * (size_t)(9 * V)); if (do_q) memset(c->gtheta, 0, sizeof(T) * (size_t)(3 * E)); }
+    }
+    T* gFb = c->bF[t];
+    double s_smooth = 0, s_tie = 0, s_dir = 0;
+    SFX(eblk) blk;
+    SFX(eblk)* b = &blk;
+    const T ws = do_s ? c->ws : 0, wt = do_t ? c->wt : 0, wd = do_d ? c->wd : 0;
+    const long lo = E * t / c->nt, hi = E * (t + 1) / c->nt;
+    for (long e0 = lo; e0 < hi; e0 += FL_L) {
+        const int n = (int)(hi - e0 < FL_L ? hi - e0 : FL_L);
+        for (int l = 0; l < FL_L; ++l) {
+            const long e = e0 + (l < n ? l : 0);
+            const T *Re = c->R + 9 * e, *Fi = c->Fr + 9 * c->edges[2 * e], *Fj = c->Fr + 9 * c->edges[2 * e + 1];
+            for (int q = 0; q < 9; ++q) { b->R[q][l] = Re[q]; b->Fi[q][l] = Fi[q]; b->Fj[q][l] = Fj[q]; }
+            for (int r = 0; r < 3; ++r) b->v[r][l] = c->vec[3 * e + r];
+        }
+        if (grad) SFX(edge1_grad)(b, g9, p2, e2, eps_, ws, wt, wd);
+        else SFX(edge1_fwd)(b, g9, p2, e2, eps_);
+        for (int l = 0; l < n; ++l) {
+            const long e = e0 + l;
+            if (do_s) s_smooth += b->ss[l];
+            if (do_t) s_tie += b->st[l];
+            if (do_d) s_dir += b->sd[l];
+            if (do_t || do_q) c->hidx[e] = (unsigned char)b->h[l];
+            if (do_q) for (int r = 0; r < 3; ++r) c->theta[3 * e + r] = b->th[r][l];
+            if (grad) {
+                T* gr = c->gR + 9 * e;
+                for (int q = 0; q < 9; ++q) gr[q] = b->G[q][l];
+                if (do_t || do_d) {
+                    T *bi = gFb + 9 * c->edges[2 * e], *bj = gFb + 9 * c->edges[2 * e + 1];
+                    for (int q = 0; q < 9; ++q) { bi[q] += b->gFi[q][l]; bj[q] += b->gFj[q][l]; }
+                }
+            }
+        }
+    }
+    c->part[t][0] = s_smooth;
+    c->part[t][1] = s_tie;
+    c->part[t][4] = s_dir;
+}
+
+/* pass 3 lanes: backward of t = F_i^T sqrt(A) v, A = (F_i R)(F_j h)^T, for the incoming gt */
+#define FL_EDGE3_LANES                                                                           \
+    _Pragma("omp simd")                                                                          \
+    for (int l = 0; l < FL_L; ++l) {                                                             \
+        T R[9], Fi[9], Fj[9], Gh[9], FiR[9], Fjh[9], A[9], gS[9], gA[9], gFiR[9], t1[9], gt[3], v[3], u[3], gu[3]; \
+        FL_LOAD(R, R, 9) FL_LOAD(Fi, Fi, 9) FL_LOAD(Fj, Fj, 9) FL_LOAD(gt, gt, 3) FL_LOAD(v, v, 3) \
+        const int h = b->h[l];                                                                   \
+        for (int q = 0; q < 9; ++q) Gh[q] = g9[9 * h + q];                                       \
+        FL_MM(FiR, Fi, R)                                                                        \
+        FL_MM(Fjh, Fj, Gh)                                                                       \
+        FL_MMT(A, FiR, Fjh)                                                                      \
+        T c = (T)0.5 * (T)sqrt((1 + A[0] + A[4] + A[8]) > (T)1e-30 ? (1 + A[0] + A[4] + A[8]) : (T)1e-30); \
+        T sa = (T)0.25 / c, sb = (T)0.25 / ((T)1 + c);                                           \
+        for (int i = 0; i < 3; ++i) {                                                            \
+            u[i] = 0;                                                                            \
+            for (int j = 0; j < 3; ++j)                                                          \
+                u[i] += ((i == j ? (T)1 : (T)0) + sa * (A[3 * i + j] - A[3 * j + i])              \
+                         + sb * (A[3 * i + j] + A[3 * j + i] - (i == j ? (T)2 : (T)0))) * v[j];  \
+        }                                                                                        \
+        for (int r = 0; r < 3; ++r) gu[r] = Fi[3 * r] * gt[0] + Fi[3 * r + 1] * gt[1] + Fi[3 * r + 2] * gt[2]; \
+        for (int r = 0; r < 3; ++r)                                                              \
+            for (int q = 0; q < 3; ++q) gS[3 * r + q] = gu[r] * v[q];                            \
+        /* gA from gS (sqrt_rot_back) */                                                         \
+        T da = -(T)0.25 / (c * c), db = -(T)0.25 / (((T)1 + c) * ((T)1 + c)), dot_an = 0, dot_sy = 0; \
+        for (int i = 0; i < 3; ++i)                                                              \
+            for (int j = 0; j < 3; ++j) {                                                        \
+                dot_an += gS[3 * i + j] * (A[3 * i + j] - A[3 * j + i]);                         \
+                dot_sy += gS[3 * i + j] * (A[3 * i + j] + A[3 * j + i] - (i == j ? (T)2 : (T)0)); \
+            }                                                                                    \
+        T gtr = (da * dot_an + db * dot_sy) / ((T)8 * c);                                        \
+        for (int i = 0; i < 3; ++i)                                                              \
+            for (int j = 0; j < 3; ++j)                                                          \
+                gA[3 * i + j] = sa * (gS[3 * i + j] - gS[3 * j + i]) + sb * (gS[3 * i + j] + gS[3 * j + i]) \
+                              + (i == j ? gtr : (T)0);                                           \
+        FL_MM(gFiR, gA, Fjh)                       /* dA = d(FiR) (F_j h)^T */                    \
+        FL_MTM(t1, gA, FiR)                        /* g(F_j h) = gA^T FiR */                      \
+        FL_MMT(A, t1, Gh)                          /* gF_j = g(F_j h) h^T */                      \
+        for (int q = 0; q < 9; ++q) b->gFj[q][l] = A[q];                                         \
+        FL_MMT(A, gFiR, R)                         /* gF_i = gFiR R^T + u gt^T */                \
+        for (int r = 0; r < 3; ++r)                                                              \
+            for (int q = 0; q < 3; ++q) b->gFi[3 * r + q][l] = A[3 * r + q] + u[r] * gt[q];       \
+        FL_MTM(A, Fi, gFiR)                        /* gR += F_i^T gFiR */                         \
+        for (int q = 0; q < 9; ++q) b->G[q][l] = A[q];                                           \
+    }
+
+__attribute__((noinline)) static void SFX(edge3)(SFX(eblk)* b, const T* g9) {
+    FL_EDGE3_LANES
+}
+
+/* pass 3 in blocks, stripe t of the edges */
+static void SFX(pass3v)(void* vc, long t) {
+    SFX(fl_t)* c = (SFX(fl_t)*)vc;
+    T g9[24 * 9];
+    SFX(group9)(c, g9);
+    T* gFb = c->bF[t];
+    SFX(eblk) blk;
+    SFX(eblk)* b = &blk;
+    const long lo = c->E * t / c->nt, hi = c->E * (t + 1) / c->nt;
+    for (long e0 = lo; e0 < hi; e0 += FL_L) {
+        const int n = (int)(hi - e0 < FL_L ? hi - e0 : FL_L);
+        for (int l = 0; l < FL_L; ++l) {
+            const long e = e0 + (l < n ? l : 0);
+            const T *Re = c->R + 9 * e, *Fi = c->Fr + 9 * c->edges[2 * e], *Fj = c->Fr + 9 * c->edges[2 * e + 1];
+            for (int q = 0; q < 9; ++q) { b->R[q][l] = Re[q]; b->Fi[q][l] = Fi[q]; b->Fj[q][l] = Fj[q]; }
+            for (int r = 0; r < 3; ++r) { b->v[r][l] = c->vec[3 * e + r]; b->gt[r][l] = c->gtheta[3 * e + r]; }
+            b->h[l] = c->hidx[e];
+        }
+        SFX(edge3)(b, g9);
+        for (int l = 0; l < n; ++l) {
+            const long e = e0 + l;
+            T *bi = gFb + 9 * c->edges[2 * e], *bj = gFb + 9 * c->edges[2 * e + 1], *gr = c->gR + 9 * e;
+            for (int q = 0; q < 9; ++q) { bi[q] += b->gFi[q][l]; bj[q] += b->gFj[q][l]; gr[q] += b->G[q][l]; }
+        }
+    }
+}
+
 /* One item (no batch): the terms that are on (do_s smooth, do_t tie, do_f flat, do_q torsion,
  * do_d dirichlet) and, with do_r, the regular-face flags regular (F) (1 where the holonomy's
  * nearest element of O is the identity); with grad, the gradient of sum_k wts[k] term_k.
@@ -418,12 +743,13 @@ static void SFX(frame_loss_one)(long E, long V, long F, int nt,
     c.wd = (T)(grad ? wts[4] * 2.0 / En : 0);
 
     /* ---- pass 1: edges (smooth, tie, match, solder form, dirichlet); gR rows written here */
-    tc_parallel(nt, nt, SFX(pass1), &c);
+    const int blocked = power == 2.0 || power == 1.0;  /* rho vectorizes (a square root at most) */
+    tc_parallel(nt, nt, blocked ? SFX(pass1v) : SFX(pass1), &c);
 
     /* ---- pass 2: faces (flat, regular flags, torsion) */
     if (do_f || do_q || do_r) {
-        c.kf = (T)(grad ? wts[2] * 2.0 / Fn : 0);
-        c.kq = (T)(grad ? wts[3] * 2.0 / Fn : 0);
+        c.kf = (T)(grad && do_f ? wts[2] * 2.0 / Fn : 0);  /* a face block computes both: off = weight 0 */
+        c.kq = (T)(grad && do_q ? wts[3] * 2.0 / Fn : 0);
         tc_parallel(nt, nt, SFX(pass2), &c);
         if (grad && (do_f || do_q)) {
             SFX(reduce_into)(gR, c.bR, nt, 9 * E);
@@ -432,7 +758,7 @@ static void SFX(frame_loss_one)(long E, long V, long F, int nt,
     }
 
     /* ---- pass 3: edges, backward of the solder form t_ij = F_i^T sqrt((F_i R)(F_j h)^T) v */
-    if (grad && do_q) tc_parallel(nt, nt, SFX(pass3), &c);
+    if (grad && do_q) tc_parallel(nt, nt, blocked ? SFX(pass3v) : SFX(pass3), &c);
     if (grad) SFX(reduce_into)(gF, c.bF, nt, 9 * V);
 
     double s[5] = {0, 0, 0, 0, 0};
