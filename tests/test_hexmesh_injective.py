@@ -206,8 +206,10 @@ def test_flat_tets_tells_coplanar_from_collapsed_and_free_tets():
     point = ({12: 1.0}, {13: 1.0}, {14: 1.0})
     tets = [[(O, O, O)] + free, plane, [free[0], point, point, free[1]]]
     prob = _hand_built_problem(tets, 15)
-    flat, collapsed = prob.flat_tets()
+    flat, collapsed, line_face = prob.flat_tets()
     assert flat.tolist() == [1, 2] and collapsed.tolist() == [False, True]
+    # tet 2's corners 1 and 2 coincide: the faces opposite 0 and 3 hold both, hence a line
+    assert line_face.tolist() == [-1, 0]
 
 
 # ----------------------------------------------------------------------------- seamless check
@@ -269,3 +271,26 @@ def test_two_close_singular_lines_greedy_rounding_folds_the_injective_one_keeps_
     assert inj.gates["quantization"].counts["refined"] == 2
     sing = inj.charts.singular_edge
     assert sing.sum() == greedy.charts.singular_edge.sum() > 0
+
+
+@pytest.mark.slow  # a HexMe model through the map stage: ~15-40 s
+def test_a_hexme_field_whose_least_squares_map_folds_gets_a_valid_seamless_map_and_igm():
+    """s03c (the pentagon) with the SH field: its least-squares map folds; the foldover-free solve
+    untangles it and the injective rounding keeps it valid."""
+    from pathlib import Path
+
+    pytest.importorskip("gmsh", reason="CAD input needs gmsh (pip install 'torchconn[cad]')")
+    p = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hexme" / "meta" / "s03c_pentagon.yaml"
+    if not p.exists():
+        pytest.skip(f"HexMe parameter file {p} not found (the shared data folder is absent)")
+    from torchconn.frames import design
+    from torchconn.hexmesh import integer_grid_map
+    from torchconn.mesh.cad import load_hexme
+
+    mesh = load_hexme(p, dtype=torch.float64)
+    frames = design(mesh, "sh_baseline").vertex_frames
+    m = integer_grid_map(mesh, frames)
+    assert m.stats["seamless"]["inverted_least_squares"] > 0  # the least-squares map folds
+    assert m.stats["seamless"]["injective"]["inverted_after"] == 0
+    assert m.gates["seamless"].passed and m.validity.valid, m.validity.reasons
+    assert m.stats["quantization"]["method"] == "injective"

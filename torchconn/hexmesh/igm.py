@@ -116,12 +116,19 @@ class IntegerGridMap:
         return None
 
 
-def _flat_keep_edges(mesh, charts: TetCharts) -> np.ndarray:
-    """Edges whose midpoint would be as constrained as their ends (boundary, singular, feature)."""
-    keep = charts.singular_edge.copy()
+def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np.ndarray, np.ndarray]:
+    """``(keep, line_keep)`` ``(E,)`` bool: edges whose midpoint would be constrained (boundary,
+    singular, feature edges), and those whose midpoint would stay on their ends' line (singular
+    and feature edges)."""
+    line_keep = charts.singular_edge.copy()
+    fe = prob.feature_edges
+    if fe.shape[0]:
+        eid, _ = mesh.edge_index(torch.as_tensor(fe[:, 0]), torch.as_tensor(fe[:, 1]))
+        line_keep[eid.cpu().numpy()] = True
+    keep = line_keep.copy()
     bfe = mesh.face_edges.cpu().numpy()[mesh.boundary_face_index.cpu().numpy()].reshape(-1)
     keep[bfe] = True
-    return keep
+    return keep, line_keep
 
 
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
@@ -227,15 +234,17 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     for rnd in range(flat_rounds + 1):
         charts = tet_charts(mesh, Fr, face_match)
         prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
-        flat, collapsed = prob.flat_tets()
+        flat, collapsed, line_face = prob.flat_tets()
         if rnd == flat_rounds or not (~collapsed).any() or not split:
             break
-        from .split import split_tets_edges
+        from .split import open_flat_tets
 
-        mesh, Fr, par, face_match, n = split_tets_edges(mesh, Fr, flat[~collapsed], face_match,
-                                                        _flat_keep_edges(mesh, charts))
+        keep, line_keep = _flat_keep_edges(mesh, charts, prob)
+        mesh, Fr, par, face_match, n = open_flat_tets(mesh, Fr, flat[~collapsed], line_face[~collapsed], face_match,
+                                                      keep, line_keep)
         parent = parent[par]
-        splits["flat"] += n
+        splits["flat"] += n["edge"]
+        splits["flat_centroid"] = splits.get("flat_centroid", 0) + n["centroid"]
     timings["charts_and_constraints_s"] = time.perf_counter() - t0
     from .meshability import meshability_report
 

@@ -134,7 +134,7 @@ class SeamlessProblem:
     def _corner_rows(self) -> np.ndarray:
         return self.corner_var.reshape(-1)
 
-    def flat_tets(self, samples: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def flat_tets(self, samples: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The tets that the constraints flatten: zero parametric volume for **every** value of the
         free unknowns. No map is valid while one is left.
 
@@ -146,11 +146,12 @@ class SeamlessProblem:
         per tet (Schwartz-Zippel). ``seed`` makes it deterministic.
 
         Returns:
-            ``(flat (k,), collapsed (k,) bool)``: the flat tets, and those among them with two
-            corners that the constraints send to **one point** (a collapsed edge: two singular
-            or feature curves, or a zig-zag of one, that the constraints make meet; no refinement
-            of the tet opens it, the singular structure must change). The others are coplanar:
-            splitting an edge whose midpoint is free opens them.
+            ``(flat (k,), collapsed (k,) bool, line_face (k,) int)``: the flat tets; those with
+            two corners that the constraints send to **one point** (a collapsed edge: singular or
+            feature curves, or a zig-zag of one, that the constraints make meet; no refinement
+            opens it, the singular structure must change); and for each, a local face (the one
+            opposite that corner) whose three corners the constraints put on **one line** (``-1``
+            if none: the tet is only coplanar, and a free vertex anywhere in it opens it).
         """
         from .predicates import orient3d
 
@@ -159,16 +160,25 @@ class SeamlessProblem:
         T = self.corner_var.shape[0]
         flat = np.ones(T, bool)
         same = np.ones((T, 6), bool)  # corner pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3) equal so far
+        line = np.ones((T, 4), bool)  # the face opposite corner k has collinear corners so far
         pa, pb = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
+        opp = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
         for _ in range(samples):
             y = rng.integers(-1024, 1025, size=m).astype(np.float64)
             uvw = self.corner_params(y)
             flat &= orient3d(uvw[:, 0], uvw[:, 1], uvw[:, 2], uvw[:, 3]) == 0
             same &= (uvw[:, pa] == uvw[:, pb]).all(-1)
+            for k in range(4):
+                a, b, c = uvw[:, opp[k, 0]], uvw[:, opp[k, 1]], uvw[:, opp[k, 2]]
+                # dyadic input: the cross product's components are exact enough to test for zero
+                # (every product and sum of a few dyadics with small exponents is exact in float64)
+                line[:, k] &= (np.cross(b - a, c - a) == 0).all(-1)
             if not flat.any():
                 break
         idx = np.nonzero(flat)[0]
-        return idx, same[idx].any(1)
+        collapsed = same[idx].any(1)
+        lf = np.where(line[idx].any(1), line[idx].argmax(1), -1)
+        return idx, collapsed, lf
 
 # ----------------------------------------------------------------------------- building
 def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool = True,

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["SplitResult", "split_for_map", "split_edges", "split_tets_edges", "SPLIT_RULES"]
+__all__ = ["SplitResult", "split_for_map", "split_edges", "split_tets_edges", "split_tets_centroid", "open_flat_tets", "SPLIT_RULES"]
 
 SPLIT_RULES = ("singular", "boundary")
 
@@ -250,3 +250,115 @@ def split_tets_edges(mesh, tet_frames, tets: np.ndarray, face_match: np.ndarray 
     chosen = _independent(mesh.tet_edges.cpu().numpy(), pick, edges.shape[0])
     new, Fr, parent, fm = split_edges(mesh, tet_frames, chosen, face_match)
     return new, Fr, parent, fm, int(chosen.size)
+
+
+def split_tets_centroid(mesh, tet_frames, tets: np.ndarray, face_match: np.ndarray | None = None):
+    """Split each tet of ``tets`` into four at its centroid (a new, free interior vertex).
+
+    Child ``k`` is the parent with corner ``k`` replaced by the centroid (same orientation); it
+    holds the parent's face opposite corner ``k``, whose matching and CAD tags it keeps; the faces
+    between children get the identity matching; every child keeps the parent's frame (so every
+    holonomy, hence the singular structure, is unchanged). Original vertices keep their index.
+
+    Returns ``(mesh, tet_frames, parent (T',), face_match (F',) or None)``.
+    """
+    from ..mesh.cad import cad_tags_from_elements
+    from ..mesh.tet import TetMesh
+    from .cut import GROUP_INV
+
+    tets = np.unique(np.asarray(tets, np.int64))
+    old_t = mesh.tets.cpu().numpy()
+    X = mesh.vertices.detach().cpu()
+    V, T = X.shape[0], old_t.shape[0]
+    if tets.size == 0:
+        return mesh, torch.as_tensor(tet_frames), np.arange(T), face_match
+    m = V + np.arange(tets.size)
+    newX = torch.cat([X, X[torch.as_tensor(old_t[tets])].mean(1)])
+    keep = np.ones(T, bool)
+    keep[tets] = False
+    children = []
+    for k in range(4):
+        c = old_t[tets].copy()
+        c[:, k] = m
+        children.append(c)
+    new_tets = np.concatenate([old_t[keep]] + children)
+    parent = np.concatenate([np.nonzero(keep)[0]] + [tets] * 4)
+    Fr = torch.as_tensor(tet_frames)[torch.as_tensor(parent)]
+    new = TetMesh(newX, torch.as_tensor(new_tets), dtype=mesh.vertices.dtype)
+    new_match = None
+    if face_match is not None:
+        nv = V + tets.size
+        okey = np.sort(mesh.faces.cpu().numpy(), axis=1) @ np.array([nv * nv, nv, 1])
+        order = np.argsort(okey)
+        old_ft = mesh.face_tets.cpu().numpy()
+        nft = new.face_tets.cpu().numpy()
+        nkey = np.sort(new.faces.cpu().numpy(), axis=1) @ np.array([nv * nv, nv, 1])
+        new_match = np.zeros(nft.shape[0], np.int64)
+        inter = np.nonzero((nft >= 0).all(1))[0]
+        pos = np.searchsorted(okey[order], nkey[inter]).clip(max=okey.size - 1)
+        found = okey[order][pos] == nkey[inter]
+        of = order[pos]
+        g = np.asarray(face_match)[of]
+        same = parent[nft[inter, 0]] == old_ft[of, 0]
+        new_match[inter] = np.where(found, np.where(same, g, GROUP_INV[g]), 0)
+    cad = getattr(mesh, "cad", None)
+    if cad is not None:
+        faces = mesh.faces.cpu().numpy()
+        fs = cad.face_surface.cpu().numpy()
+        tf = np.nonzero(fs >= 0)[0]
+        new.cad = cad_tags_from_elements(new, faces[tf], fs[tf], cad.feature_edges.cpu().numpy(),
+                                         cad.feature_edge_curve.cpu().numpy(), cad.corner_vertices, cad.corner_point,
+                                         source="split")
+    return new, Fr, parent, new_match
+
+
+def open_flat_tets(mesh, tet_frames, tets: np.ndarray, line_face: np.ndarray, face_match: np.ndarray | None,
+                   keep_edges: np.ndarray, line_keep_edges: np.ndarray):
+    """One round of refinement of tets the constraints flatten (not collapsed ones).
+
+    * a tet with a face the constraints put on one line (``line_face (k,)``, its local index, or
+      -1; :meth:`~.seamless.SeamlessProblem.flat_tets`) gets that face's longest edge not in
+      ``line_keep_edges (E,)`` (singular and feature edges: a midpoint there stays on the line)
+      split: the midpoint leaves the line;
+    * another tet with an edge whose midpoint would be free (not in ``keep_edges (E,)``:
+      boundary, singular, feature edges) gets its longest such edge split;
+    * a tet with neither is split at its centroid (:func:`split_tets_centroid`).
+
+    Edge splits go first (one round: edges that share no tet); a centroid split is made on a tet
+    no edge split touched. Returns ``(mesh, tet_frames, parent (T',), face_match, {"edge": n,
+    "centroid": n})``.
+    """
+    tets = np.asarray(tets, np.int64)
+    line_face = np.asarray(line_face, np.int64)
+    X = mesh.vertices.detach().cpu().double().numpy()
+    edges = mesh.edges.cpu().numpy()
+    te_all = mesh.tet_edges.cpu().numpy()
+    te = te_all[tets]  # (k, 6) local edges (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
+    length = np.linalg.norm(X[edges[te, 1]] - X[edges[te, 0]], axis=2)
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    on_face = np.zeros((tets.size, 6), bool)
+    has_line = line_face >= 0
+    on_face[has_line] = (pairs[None, :, :] != line_face[has_line, None, None]).all(-1)
+    ok_line = on_face & ~np.asarray(line_keep_edges, bool)[te]
+    ok_free = ~np.asarray(keep_edges, bool)[te]
+    use = np.where(has_line[:, None], ok_line, ok_free)
+    pick_ok = use.any(1)
+    pick = te[np.arange(tets.size), np.where(use, length, -1.0).argmax(1)]
+    counts = {"edge": 0, "centroid": 0}
+    parent = np.arange(mesh.n_tets)
+    chosen = _independent(te_all, np.unique(pick[pick_ok]), edges.shape[0])
+    cen = tets[~pick_ok & ~has_line]  # a line face with no splittable edge: left as it is
+    if chosen.size:
+        mesh, tet_frames, par, face_match = split_edges(mesh, tet_frames, chosen, face_match)
+        counts["edge"] = int(chosen.size)
+        parent = par
+        if cen.size:  # a tet no edge split touched keeps one child: find its new index
+            first = np.full(par.max() + 1, -1, np.int64)
+            once = np.bincount(par, minlength=par.max() + 1) == 1
+            first[par[::-1]] = np.arange(par.size)[::-1]
+            cen = first[cen[once[cen]]]
+    if cen.size:
+        mesh, tet_frames, par, face_match = split_tets_centroid(mesh, tet_frames, cen, face_match)
+        counts["centroid"] = int(cen.size)
+        parent = parent[par]
+    return mesh, tet_frames, parent, face_match, counts
