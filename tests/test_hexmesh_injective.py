@@ -294,3 +294,36 @@ def test_a_hexme_field_whose_least_squares_map_folds_gets_a_valid_seamless_map_a
     assert m.stats["seamless"]["injective"]["inverted_after"] == 0
     assert m.gates["seamless"].passed and m.validity.valid, m.validity.reasons
     assert m.stats["quantization"]["method"] == "injective"
+
+
+# ----------------------------------------------------------------------------- refinement of flat tets
+def test_centroid_and_edge_splits_keep_the_vertices_the_orientation_and_the_singular_graph():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_hexmesh_map import axis_prism
+
+    from torchconn.hexmesh.cut import face_matchings
+    from torchconn.hexmesh.split import open_flat_tets, split_tets_centroid
+
+    mesh, frames = axis_prism(turns=4)  # a valence-3 axis
+    fm = face_matchings(mesh, frames)
+    ch = tet_charts(mesh, frames, fm)
+    tets = np.arange(0, mesh.n_tets, 7)
+    new, F2, parent, fm2 = split_tets_centroid(mesh, frames, tets, fm)
+    assert new.n_tets == mesh.n_tets + 3 * tets.size and new.n_vertices == mesh.n_vertices + tets.size
+    assert torch.equal(new.vertices[: mesh.n_vertices], mesh.vertices)
+    X, T = new.vertices.numpy(), new.tets.numpy()
+    P = X[T]
+    assert (np.einsum("ti,ti->t", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) > 0).all()
+    assert np.bincount(parent, minlength=mesh.n_tets)[tets].tolist() == [4] * tets.size
+    ch2 = tet_charts(new, F2, fm2)
+    assert ch2.counts()["singular_edges"] == ch.counts()["singular_edges"]
+    assert ch2.counts()["valence3_edges"] == ch.counts()["valence3_edges"]
+    # one round of the flat-tet refinement: edge splits where an edge is free, centroids elsewhere
+    keep = ch.singular_edge.copy()
+    keep[mesh.face_edges.numpy()[mesh.boundary_face_index.numpy()].reshape(-1)] = True
+    line_face = -np.ones(tets.size, np.int64)
+    new, F2, parent, fm2, n = open_flat_tets(mesh, frames, tets, line_face, fm, keep, ch.singular_edge)
+    assert n["edge"] + n["centroid"] > 0 and tet_charts(new, F2, fm2).counts()["singular_edges"] == ch.counts()["singular_edges"]
