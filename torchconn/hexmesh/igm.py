@@ -108,12 +108,12 @@ class IntegerGridMap:
 
     @property
     def first_failed(self) -> str | None:
-        """The first stage whose gate failed (``None``: the map is valid)."""
-        for name in ("structure", "seamless", "quantization"):
-            g = self.gates.get(name)
-            if g is not None and not g.passed:
-                return name
-        return None
+        """The first stage whose gate failed (``None``: the map is valid). LMFF's conditions
+        predict, they do not decide: a structure gate that fails before a valid seamless map or a
+        valid integer-grid map did not stop the map, and is not named."""
+        from .validity import first_failed
+
+        return first_failed(self.gates)
 
 
 def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np.ndarray, np.ndarray]:

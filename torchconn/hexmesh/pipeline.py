@@ -71,12 +71,11 @@ class HexMeshResult:
 
     @property
     def first_failed(self) -> str | None:
-        """The first stage whose gate failed (``None``: every stage passed)."""
-        for name in STAGES:
-            g = self.gates.get(name)
-            if g is not None and not g.passed:
-                return name
-        return None
+        """The first stage whose gate failed and stopped the pipeline (``None``: none did;
+        :func:`~.validity.first_failed`)."""
+        from .validity import first_failed
+
+        return first_failed(self.gates)
 
     @property
     def points(self) -> np.ndarray:

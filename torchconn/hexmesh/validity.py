@@ -37,7 +37,7 @@ import numpy as np
 
 from .cut import face_corner_pairs, group_matrices
 
-__all__ = ["MapValidity", "Gate", "check_map", "check_seamless", "check_params", "structure_gate",
+__all__ = ["MapValidity", "Gate", "check_map", "check_seamless", "check_params", "structure_gate", "first_failed",
            "VALIDITY_CHECKS", "FEATURE_CHECKS", "SEAMLESS_CHECKS", "STRUCTURE_CHECKS", "STAGES"]
 
 VALIDITY_CHECKS = ("unmeshable_singular_edges", "inverted_tets", "degenerate_tets", "broken_transitions",
@@ -131,6 +131,17 @@ class Gate:
         if self.before is not None:
             out["valid_before"] = self.before
         return out
+
+
+def first_failed(gates: dict) -> str | None:
+    """The first stage of :data:`STAGES` whose gate failed and stopped the pipeline: a failed
+    gate followed by a passed one (LMFF's conditions flag a structure, yet the seamless map is
+    valid) did not stop it. ``None`` when no stage did."""
+    order = [s for s in STAGES if s in gates]
+    for i, name in enumerate(order):
+        if not gates[name].passed and not any(gates[later].passed for later in order[i + 1:] if later != "extraction"):
+            return name
+    return None
 
 
 def structure_gate(mesh, meshability, flat: np.ndarray, collapsed: np.ndarray) -> Gate:
