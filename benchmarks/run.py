@@ -51,7 +51,10 @@ Cases
    one-thread time / default-threads time (issue 24's target with the spinner: >= 1/1.5).
 
 Timing: each figure is the median of ``--repeats`` runs after one warm-up run; fast and
-reference are measured alternately in the same process (``ratio`` is taken side by side). At
+reference are measured alternately in the same process (``ratio`` is taken side by side). The
+operator and loss rows also record ``cpu_seconds``, the median process CPU time (all threads) of
+the fast runs: on a machine other processes load, wall time measures the load too, CPU time much
+less (the table prints it in the note). At
 ≥ 1M tets the reference is run once after its warm-up (it takes tens of seconds; noted in the
 row). ``--threads`` sets ``torch.set_num_threads`` (default: torch's default). On a shared
 machine torch's own OpenMP threads spin at their barriers (unless ``OMP_WAIT_POLICY=PASSIVE``
@@ -183,29 +186,39 @@ def _peak_mb(fn) -> float:
         lib.mallopt(_M_MMAP_THRESHOLD, 2**30 if _RESIDENT["on"] else 32 * 2**20)
 
 
+#: Process CPU seconds of the fast runs of the last :func:`_side_by_side` (median): on a machine
+#: other processes load, wall time measures the load as much as the code; the CPU time of the
+#: process (all its threads) much less so. Recorded as ``cpu_seconds`` where the rows take it.
+_LAST_CPU = {"fast": None}
+
+
 def _side_by_side(fast_fn, ref_fn, repeats: int, ref_repeats: int | None = None):
-    """Medians of alternated runs after one warm-up each: ``(fast_s, ref_s)``."""
+    """Medians of alternated runs after one warm-up each: ``(fast_s, ref_s)`` (wall time); the
+    median process CPU time of the fast runs goes to ``_LAST_CPU["fast"]``."""
     ref_repeats = repeats if ref_repeats is None else ref_repeats
     fast_fn()
     if ref_fn is not None:
         ref_fn()
-    tf, tr = [], []
+    tf, tr, cf = [], [], []
     for i in range(max(repeats, ref_repeats)):
         if i < repeats:
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             fast_fn()
             tf.append(time.perf_counter() - t0)
+            cf.append(time.process_time() - c0)
         if ref_fn is not None and i < ref_repeats:
             t0 = time.perf_counter()
             ref_fn()
             tr.append(time.perf_counter() - t0)
+    _LAST_CPU["fast"] = statistics.median(cf)
     return statistics.median(tf), (statistics.median(tr) if tr else None)
 
 
 def _row(name, size, dtype, seconds, ref_seconds, peak_mb, **extra):
     ratio = (ref_seconds / seconds) if (ref_seconds is not None and seconds) else None
     row = {"name": name, "size": size, "dtype": dtype, "seconds": seconds,
-           "reference_seconds": ref_seconds, "ratio": ratio, "peak_mb": peak_mb}
+           "reference_seconds": ref_seconds, "ratio": ratio, "peak_mb": peak_mb,
+           "loadavg_1min": os.getloadavg()[0]}  # the machine's load when the row was written
     row.update(extra)
     return row
 
@@ -434,12 +447,15 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
     note = "reference: 1 run after warm-up" if big else ""
     t, tr = _side_by_side(fast_cd, ref_cd, repeats, ref_rep)
     rows.append(_row("curvature+averaged_dnabla", T, dname, t, tr, _peak_mb(fast_cd), reference=ref_name,
+                     cpu_seconds=_LAST_CPU["fast"],
                      max_abs_diff=d_cd, unit="tets", note=("√R = exp(ω/2) from params; " + note).strip("; ")))
     t2, _ = _side_by_side(fast_cd_sqrt, None, repeats)
     rows.append(_row("curvature+averaged_dnabla(sqrt)", T, dname, t2, tr, _peak_mb(fast_cd_sqrt),
+                     cpu_seconds=_LAST_CPU["fast"],
                      reference=ref_name, unit="tets", note=("√R = so3.sqrt(R); " + note).strip("; ")))
     t3, tr3 = _side_by_side(fast_tor, ref_tor, repeats, ref_rep)
     rows.append(_row("torsion(sqrt)", T, dname, t3, tr3, _peak_mb(fast_tor), reference="generic loop torsion",
+                     cpu_seconds=_LAST_CPU["fast"],
                      max_abs_diff=d_tor, unit="tets", note=note))
 
 
@@ -555,6 +571,7 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
             continue
         t, tr = _side_by_side(fast_fn, ref_fn, repeats, 1 if big else repeats)
         rows.append(_row(name, T, dname, t, tr, _peak_mb(fast_fn), unit="tets", max_rel_diff=rel,
+                         cpu_seconds=_LAST_CPU["fast"],
                          reference="eager composition of the library's single-term functions (generic "
                                    "curvature/torsion loops, dense d∇ tables, matrix_exp)", note=note))
         if name.endswith("(default)"):
@@ -650,6 +667,8 @@ def table(rows: list) -> str:
         diff = (f"{_fmt(r.get('max_rel_diff'), '.1e')} rel" if r.get("max_rel_diff") is not None
                 else _fmt(r.get("max_abs_diff"), ".1e"))
         note = r.get("note", "") or r.get("reference", "")
+        if r.get("cpu_seconds") is not None:
+            note = f"CPU {r['cpu_seconds']:.3f} s; {note}"
         if r.get("failed"):
             note = f"**FAILED**: {r['failed']}; {note}"
         lines.append(f"| {r['name']} | {size} | {r['dtype']} | {_fmt(r['seconds'], '.4f')} | "
@@ -683,7 +702,7 @@ def main(argv=None) -> list:
     sizes = args.sizes or ([10_000, 100_000] if args.quick else [10_000, 100_000, 1_000_000])
     only = set(args.only or ["so3", "operators", "loss"] + ([] if args.quick else ["end_to_end"]))
     print(f"torch {torch.__version__}, {threads} threads, repeats {repeats}, quick={args.quick}, "
-          f"malloc={malloc}", flush=True)
+          f"malloc={malloc}, load average {os.getloadavg()[0]:.1f} ({os.cpu_count()} CPUs)", flush=True)
     rows: list = []
     t_start = time.perf_counter()
     if "so3" in only:

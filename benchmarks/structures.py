@@ -12,6 +12,7 @@ frames re-optimized by the connection with those matchings fixed
 (:func:`torchconn.frames.fixed_holonomy.fixed_holonomy_frames`) and with the input frames.
 
     python -m benchmarks.structures --method sh --out OUT [--models s n i] [--map] [--rounds 30]
+    python -m benchmarks.structures --set shared --models 78322_gear.2 fandisk --out OUT
 
 Writes ``OUT/<model>__<method>.json`` per model (kept: a rerun skips them) and prints one line
 per model; ``OUT/summary.json`` has the counts per category. Fields are cached in
@@ -29,7 +30,7 @@ from pathlib import Path
 CONDS = ("complex_edges", "zipper_nodes", "invalid_nodes", "surface_valence2_edges")
 
 
-def _field(model: str, method: str, cache: Path):
+def _field(model: str, method: str, cache: Path, set_name: str = "hexme"):
     import torch
 
     from benchmarks.frames_hexme import load_case, run_method
@@ -39,7 +40,7 @@ def _field(model: str, method: str, cache: Path):
     if path.is_file():
         d = pickle.loads(path.read_bytes())
         return d["mesh"], torch.as_tensor(d["tet_frames"]), d["field_s"]
-    mesh = load_case("hexme", model)
+    mesh = load_case(set_name, model)
     t0 = time.perf_counter()
     if method == "sh":
         from torchconn.frames.design import design
@@ -97,7 +98,7 @@ def _map(mesh, F, face_match=None, **kw) -> dict:
             "seconds": time.perf_counter() - t0}
 
 
-def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool) -> dict:
+def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool, set_name: str = "hexme") -> dict:
     import numpy as np
     import torch
 
@@ -105,14 +106,15 @@ def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool) -
     from torchconn.hexmesh.straighten import straighten_singular_edges
 
     torch.set_num_threads(1)
-    mesh, Fr, field_s = _field(model, method, out / "fields")
+    mesh, Fr, field_s = _field(model, method, out / "fields", set_name)
     t0 = time.perf_counter()
     fm, _ = straighten_singular_edges(mesh, Fr, boundary_moves=True)
     straighten_s = time.perf_counter() - t0
     before = _conditions(mesh, Fr, fm)
     fm2, rep = repair_singular_graph(mesh, Fr, fm, max_rounds=rounds)
     after = _conditions(rep.mesh, rep.tet_frames, fm2)
-    rec = {"model": model, "method": method, "kind": model[0], "tets": int(mesh.n_tets), "field_s": field_s,
+    kind = model[0] if set_name == "hexme" else "shared"
+    rec = {"model": model, "method": method, "kind": kind, "tets": int(mesh.n_tets), "field_s": field_s,
            "straighten_s": straighten_s, "before": before, "after": after, "repair": rep.as_dict()}
     if with_map:
         from torchconn.frames.fixed_holonomy import fixed_holonomy_frames
@@ -136,7 +138,7 @@ def _strict(c: dict) -> bool:
 
 def summarize(recs: list[dict]) -> dict:
     out = {}
-    for kind in ("s", "n", "i"):
+    for kind in ("s", "n", "i", "shared"):
         rs = [r for r in recs if r["kind"] == kind]
         if not rs:
             continue
@@ -159,6 +161,7 @@ def summarize(recs: list[dict]) -> dict:
 def main(argv=None) -> Path:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--method", default="sh", choices=("sh", "connection"))
+    ap.add_argument("--set", default="hexme", choices=("hexme", "shared"), help="HexMe c models or the shared meshes")
     ap.add_argument("--models", nargs="*", default=None, help="name prefixes (default: every c model)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--rounds", type=int, default=30)
@@ -168,13 +171,13 @@ def main(argv=None) -> Path:
 
     a.out.mkdir(parents=True, exist_ok=True)
     recs = []
-    for model in list_cases("hexme", ("c",), a.models):
+    for model in list_cases(a.set, ("c",), a.models):
         path = a.out / f"{model}__{a.method}.json"
         if path.is_file():
             rec = json.loads(path.read_text())
         else:
             t0 = time.perf_counter()
-            rec = run_model(model, a.method, a.out, a.rounds, a.map)
+            rec = run_model(model, a.method, a.out, a.rounds, a.map, a.set)
             rec["wall_s"] = time.perf_counter() - t0
             path.write_text(json.dumps(rec, indent=1, default=float))
         recs.append(rec)

@@ -177,10 +177,11 @@ def link_path(g, lookup: MeshLookup, v: int, a: int, b: int, axis_world: np.ndar
 
     Edge weights: 1, plus 4 for a boundary edge and 2 per boundary end (other than ``a``, ``b``:
     the new arc should leave the boundary), 5 per end whose spoke is singular (other arcs at
-    ``v``); with the arc's world axis ``axis_world``, ``mode="aligned"`` adds 2 (1 - |cos|) per
-    edge across the axis, ``mode="monotone"`` 2 per spoke length by which an end lies outside
-    the heights of ``a`` and ``b`` along the axis (the arc ``.. a P b ..`` should not turn back
-    on ``P``: a zipper); ``blocked`` vertices are left out (another way around).
+    ``v``); with the arc's world axis ``axis_world``, ``mode="aligned"`` adds 2 (1 - c) per edge
+    (``c`` the absolute cosine of its angle to the axis), ``mode="monotone"`` 2 per spoke length
+    by which an end lies outside the heights of ``a`` and ``b`` along the axis (the arc
+    ``.. a P b ..`` should not turn back on ``P``: a zipper); ``blocked`` vertices are left out
+    (another way around).
     """
     fs = lookup.vertex_faces(v)
     fs = fs[g.interior_face[fs]]

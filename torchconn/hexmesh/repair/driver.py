@@ -49,8 +49,8 @@ class RepairReport:
         splits: edges split to make room around stuck vertices (:func:`room_edges`).
         mesh, tet_frames, parent_tet: the mesh the returned matchings live on (the input mesh
             unless edges were split: then its refinement, original vertices first with their
-            coordinates, each child tet with its parent's frame, ``parent_tet (T',)``).
-        seconds: wall time.
+            coordinates, each child tet with its parent's frame, ``parent_tet (T',)``); and
+            ``seconds``, the wall time.
     """
 
     before: dict
