@@ -8,7 +8,11 @@
   and relaxed integers as :func:`~torchconn.hexmesh.elimination.eliminate_reference` (the per-row
   rule over every row), bit for bit: on random systems of the seamless problem's row kinds (cut
   links with translations, anchors, half-turn rows, integer rows; random orders), on the
-  constraints of real problems (random and turning fields), on a contradictory system.
+  constraints of real problems (random and turning fields), on a contradictory system;
+* the injective rounding takes a least-squares re-solve only when it keeps every tet positive
+  (the box: everything at once; a fold: refused, the injective moves round it), with the same
+  guarantee; the greedy rounding in blocks (no ``|I| x |I|`` matrix) ends with every integer
+  exact and the continuous unknowns optimal for them.
 """
 from __future__ import annotations
 
@@ -210,3 +214,60 @@ def test_eliminate_equals_the_reference_on_real_constraints(seed, monkeypatch):
         assert _dyadic(ref)
         _assert_same_elimination(eliminate(rows, n, is_int), ref)
     assert half > 0 or seed != 3  # this random field has half-turn edges
+
+
+# ----------------------------------------------------------------------------- rounding
+def _box_problem(n=3, h=0.3):
+    from torchconn import io
+    from torchconn.hexmesh.injective import TetJacobians
+    from torchconn.hexmesh.quantize import solve_fixed
+
+    mesh = io.box(n)
+    frames = torch.eye(3, dtype=torch.float64).expand(mesh.n_tets, 3, 3).clone()
+    prob = seamless.build_problem(mesh, tet_charts(mesh, frames), h)
+    A, b, _ = prob.energy_matrices()
+    y = solve_fixed(A, b, np.zeros(A.shape[0], bool), np.zeros(0))
+    return prob, A, b, y, TetJacobians.of_problem(prob)
+
+
+def test_injective_rounding_takes_the_least_squares_re_solve_when_it_folds_nothing():
+    from torchconn.hexmesh.quantize import round_injective
+
+    prob, A, b, y, jac = _box_problem(3, h=0.3)  # the box is 3.33 units: its planes are not integers
+    im = prob.free_is_int
+    yq, info = round_injective(jac, y, im, lsq=(A, b))
+    assert info["failed"] == [] and info["rounded"] == im.sum()
+    assert info["lsq_accepted"] == 1 and info["moves"] == 0  # everything at once
+    assert np.array_equal(yq[im], np.round(y[im])) and (np.linalg.det(jac(yq)) > 0).all()
+    # and it is the least-squares optimum with those integers (gradient zero on the others)
+    g = A @ yq - b
+    assert np.abs(g[~im]).max() < 1e-9
+
+
+def test_injective_rounding_refuses_a_least_squares_map_that_folds():
+    from torchconn.hexmesh.quantize import round_injective
+
+    prob, A, b, y, jac = _box_problem(3, h=0.3)
+    im = prob.free_is_int
+    # an objective whose optimum with the box's planes rounded flips the box (a mirrored fit):
+    # the injective rounding must refuse it and move the planes instead
+    flipped = y.copy()
+    flipped[~im] = -y[~im]
+    b_bad = A @ flipped
+    yq, info = round_injective(jac, y, im, lsq=(A, b_bad))
+    assert info["lsq_tries"] >= 1 and info["lsq_accepted"] == 0 and info["moves"] >= 1
+    assert info["failed"] == [] and np.array_equal(yq[im], np.round(yq[im]))
+    assert (np.linalg.det(jac(yq)) > 0).all()
+
+
+def test_greedy_rounding_in_blocks_makes_no_dense_matrix_and_ends_exact():
+    from torchconn.hexmesh.quantize import round_greedy
+
+    prob, A, b, y, _ = _box_problem(4, h=0.27)
+    im = prob.free_is_int
+    yb, info = round_greedy(A, b, im, dense_budget=0)
+    assert info.get("blocks") and 1 <= info["steps"] <= 5
+    assert np.array_equal(yb[im], np.round(yb[im]))
+    assert np.abs((A @ yb - b)[~im]).max() < 1e-9  # the continuous unknowns optimal for the integers
+    yd, _ = round_greedy(A, b, im)  # the one-factorization rounding: same integers on this box
+    assert np.array_equal(yd[im], yb[im])

@@ -216,10 +216,17 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     timings["split_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     splits["flat"] = 0
+    sub = {"charts": 0.0, "problem": 0.0, "flat": 0.0}
     for rnd in range(flat_rounds + 1):
+        t1 = time.perf_counter()
         charts = tet_charts(mesh, Fr, face_match)
+        t2 = time.perf_counter()
         prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
+        t3 = time.perf_counter()
         flat, collapsed = prob.flat_tets()
+        sub["charts"] += t2 - t1
+        sub["problem"] += t3 - t2
+        sub["flat"] += time.perf_counter() - t3
         if rnd == flat_rounds or not (~collapsed).any() or not split:
             break
         from .split import split_tets_edges
@@ -229,6 +236,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         parent = parent[par]
         splits["flat"] += n
     timings["charts_and_constraints_s"] = time.perf_counter() - t0
+    timings.update({f"charts_and_constraints.{k}_s": v for k, v in sub.items()})
     from .meshability import meshability_report
 
     t0 = time.perf_counter()
@@ -244,6 +252,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     int_mask = prob.free_is_int
     vol_total = float(prob.vol.sum())
     y_ls = solve_fixed(A, b, np.zeros_like(int_mask), np.zeros(0), backend=backend)
+    timings["seamless.least_squares_s"] = time.perf_counter() - t0
     e_cont = float(y_ls @ (A @ y_ls) - 2 * b @ y_ls + c) / vol_total
     jac = TetJacobians.of_problem(prob)
     det_ls = np.linalg.det(jac(y_ls))
@@ -279,17 +288,21 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     qstats = {"integers": int(int_mask.sum())}
     try:
         if injective and seamless_validity.valid and (np.linalg.det(jac(y_s)) > 0).all():
+            # the least-squares re-solves are tried first when the seamless map is the least-squares one
             y, rinfo = round_injective(jac, y_s, int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend,
-                                       progress=cb)
+                                       progress=cb, lsq=(A, b) if inj is None else None)
             qstats.update(method="injective", rounded=rinfo["rounded"], failed=len(rinfo["failed"]),
                           rounded_away=rinfo["rounded_away"], moves=rinfo["moves"],
-                          max_rounding=rinfo["max_rounding"])
+                          max_rounding=rinfo["max_rounding"], lsq_tries=rinfo["lsq_tries"],
+                          lsq_accepted=rinfo["lsq_accepted"])
             if rinfo["failed"]:
                 # what could not be rounded without a fold is rounded anyway, the rest untangled as far
                 # as it goes: the map's report says where it folds
                 I = np.asarray(rinfo["failed"], np.int64)
                 y[I] = np.round(y[I])
+                t1 = time.perf_counter()
                 y = minimize_barrier(jac, y, fixed=int_mask, w_fit=fit_weight, w_sd=sd_weight, backend=backend).y
+                timings["quantization.untangle_failed_s"] = time.perf_counter() - t1
         else:
             y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
                                     flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))
