@@ -234,26 +234,54 @@ def _sequential(row_iter, is_int: np.ndarray, opaque: np.ndarray | None = None):
 
 
 def _integer_rule(items):
-    """:func:`_sequential` for rows over integer variables only (the same rule and result), with
-    the common cases short-cut: a row of two variables neither of which is eliminated is reduced
-    without lookups, and a reduced row whose coefficients are all ``±1`` with an integer constant
-    pivots on its largest variable (every variable passes the integral test)."""
-    expr: dict[int, tuple[dict, float]] = {}
+    """:func:`_sequential` for rows over integer variables only: the same rule and result (exact
+    for dyadic coefficients), faster where the rows are simple. A variable eliminated by a
+    single term with coefficient ``±1`` (``x_p = ±x_q + c``, most rows: equal translations, equal
+    boundary planes) is an *alias*, kept in a union-find with path compression; the others keep
+    a dictionary expression, resolved lazily. A row of two free variables is reduced without
+    lookups, and a reduced row whose coefficients are all ``±1`` with an integer constant pivots
+    on its largest variable (every variable passes the integral test).
+
+    Returns ``(eliminated {v: None}, resolve, redundant, conflicts [(r, residual)], relaxed)``.
+    """
+    alias: dict[int, tuple[float, int, float]] = {}  # x_v = s x_t + c
+    expr: dict[int, tuple[dict, float]] = {}  # x_v = terms . x + c (possibly stale)
     redundant = 0
     conflicts = []
     relaxed = []
 
-    def stale(terms: dict) -> bool:
-        return any(w in expr for w in terms)
+    def find(v: int) -> tuple[float, int, float]:
+        chain = []
+        u = v
+        while u in alias:
+            chain.append(u)
+            u = alias[u][1]
+        s_acc, c_acc = 1.0, 0.0
+        for w in reversed(chain):
+            s, _, c = alias[w]
+            s_acc, c_acc = s * s_acc, s * c_acc + c
+            alias[w] = (s_acc, u, c_acc)
+        return alias[v]
 
-    def resolve(v: int) -> tuple[dict, float]:
+    def stale(terms: dict) -> bool:
+        return any(w in alias or w in expr for w in terms)
+
+    def gen_dep(w: int):
+        if w in expr:
+            return w
+        if w in alias:
+            r = find(w)[1]
+            return r if r in expr else None
+        return None
+
+    def resolve_gen(v: int) -> tuple[dict, float]:
         if not stale(expr[v][0]):
             return expr[v]
         stack = [v]
         while stack:
             u = stack[-1]
             terms, c = expr[u]
-            pending = [w for w in terms if w in expr and stale(expr[w][0])]
+            pending = [g for g in (gen_dep(w) for w in terms) if g is not None and stale(expr[g][0])]
             if pending:
                 stack.extend(pending)
                 continue
@@ -263,7 +291,17 @@ def _integer_rule(items):
             out: dict[int, float] = {}
             cc = c
             for w, a in terms.items():
-                if w in expr:
+                if w in alias:
+                    sw, r, kw = find(w)
+                    cc += a * kw
+                    if r in expr:
+                        tr, cr = expr[r]
+                        for z, b in tr.items():
+                            out[z] = out.get(z, 0.0) + a * (sw * b)
+                        cc += a * (sw * cr)
+                    else:
+                        out[r] = out.get(r, 0.0) + a * sw
+                elif w in expr:
                     tw, cw = expr[w]
                     for z, b in tw.items():
                         out[z] = out.get(z, 0.0) + a * b
@@ -273,16 +311,36 @@ def _integer_rule(items):
             expr[u] = ({z: b for z, b in out.items() if b != 0.0}, cc)
         return expr[v]
 
+    def resolve(v: int) -> tuple[dict, float]:
+        if v in expr:
+            return resolve_gen(v)
+        s, r, c = find(v)
+        if r in expr:
+            tr, cr = resolve_gen(r)
+            return {z: s * b for z, b in tr.items()}, s * cr + c
+        return {r: s}, c
+
     for r, vars_, coefs, c in items:
-        if len(vars_) == 2 and vars_[0] not in expr and vars_[1] not in expr and vars_[0] != vars_[1]:
+        if (len(vars_) == 2 and vars_[0] != vars_[1] and vars_[0] not in alias and vars_[0] not in expr
+                and vars_[1] not in alias and vars_[1] not in expr):
             red = {vars_[0]: coefs[0], vars_[1]: coefs[1]}
         else:
             red = {}
             for v, a in zip(vars_, coefs):
                 if a == 0.0:
                     continue
-                if v in expr:
-                    tv, cv = resolve(v)
+                if v in alias:
+                    sv, rv, kv = find(v)
+                    c += a * kv
+                    if rv in expr:
+                        tv, cv = resolve_gen(rv)
+                        for z, b in tv.items():
+                            red[z] = red.get(z, 0.0) + a * (sv * b)
+                        c += a * (sv * cv)
+                    else:
+                        red[rv] = red.get(rv, 0.0) + a * sv
+                elif v in expr:
+                    tv, cv = resolve_gen(v)
                     for z, b in tv.items():
                         red[z] = red.get(z, 0.0) + a * b
                     c += a * cv
@@ -309,8 +367,15 @@ def _integer_rule(items):
                 p = min(red, key=lambda z: (abs(red[z]), -z))
                 relaxed.append(p)
         a_p = red.pop(p)
+        if len(red) == 1:
+            (z, b), = red.items()
+            if b == a_p or b == -a_p:
+                alias[p] = (-b / a_p, z, -c / a_p)
+                continue
         expr[p] = ({z: -b / a_p for z, b in red.items()}, -c / a_p)
-    return expr, resolve, redundant, conflicts, relaxed
+    eliminated = dict.fromkeys(alias)
+    eliminated.update(dict.fromkeys(expr))
+    return eliminated, resolve, redundant, conflicts, relaxed
 
 
 def eliminate_reference(rows: ConstraintRows, n_vars: int, is_int: np.ndarray, *, order=None) -> Elimination:
