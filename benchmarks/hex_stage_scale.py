@@ -24,9 +24,12 @@ one after the other. Every run is a child process (``--threads`` for torch, Open
 results in docs/results/ use 1): its peak memory is sampled from ``/proc/self/statm`` every 10 ms
 by a thread (numpy, scipy and CHOLMOD allocate outside Python, so ``tracemalloc`` does not see
 them) and attributed to the step running at that moment (the steps' own ``stats["timings"]``,
-which follow one another); ``peak_mb`` is the process's ``getrusage`` maximum resident size. A run
+which follow one another), as is its CPU time (``<step>_cpu``: on a shared machine the wall
+time grows with the load, the CPU time much less); ``peak_mb`` is the process's ``getrusage``
+maximum resident size. A run
 past ``--timeout`` is a row with that error. The time to mesh the model and to compute its field
-is not counted.
+is not counted. The HexMe files are read from ``../shared/data`` beside this checkout (or
+``$TORCHCONN_DATA``).
 
 Output: ``DIR/scale.csv`` / ``DIR/models.csv`` (one row per case and variant, every step's seconds
 ``<step>_s`` and peak ``<step>_mb``) and the markdown tables ``DIR/scale.md`` / ``DIR/models.md``.
@@ -49,7 +52,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("TORCHCONN_DATA", ROOT.parent / "shared" / "data"))
 CACHE = Path("/work/dev/cache")
 SEAMLESS_TARGET_S, SEAMLESS_TARGET_MB = 120.0, 8192.0
 HEX_TARGET_S = 60.0
@@ -61,11 +64,12 @@ HEX_STEPS = ("extract", "untangle", "quality")
 
 # ----------------------------------------------------------------------------- memory sampling
 class RSSSampler:
-    """Resident set size of this process every ``period`` seconds, as ``(time, MB)`` pairs."""
+    """Resident set size and CPU time of this process every ``period`` seconds, as
+    ``(time, MB, cpu seconds)`` triples."""
 
     def __init__(self, period: float = 0.01):
         self.period = period
-        self.samples: list[tuple[float, float]] = []
+        self.samples: list[tuple[float, float, float]] = []
         self._stop = threading.Event()
         self._page = os.sysconf("SC_PAGE_SIZE") / 2**20
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -76,7 +80,7 @@ class RSSSampler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.samples.append((time.perf_counter(), self.rss_mb()))
+            self.samples.append((time.perf_counter(), self.rss_mb(), time.process_time()))
             self._stop.wait(self.period)
 
     def __enter__(self):
@@ -86,17 +90,23 @@ class RSSSampler:
     def __exit__(self, *exc):
         self._stop.set()
         self._thread.join()
-        self.samples.append((time.perf_counter(), self.rss_mb()))
+        self.samples.append((time.perf_counter(), self.rss_mb(), time.process_time()))
+
+    def cpu(self, t: float) -> float:
+        """Process CPU seconds at the last sample at or before ``t``."""
+        before = [c for tt, _, c in self.samples if tt <= t]
+        return before[-1] if before else self.samples[0][2]
 
     def peak(self, t0: float, t1: float) -> float:
         """Peak RSS (MB) over the samples in ``[t0, t1]`` (and the last one before ``t0``)."""
-        before = [mb for t, mb in self.samples if t <= t0]
-        inside = [mb for t, mb in self.samples if t0 < t <= t1]
+        before = [mb for t, mb, _ in self.samples if t <= t0]
+        inside = [mb for t, mb, _ in self.samples if t0 < t <= t1]
         return max(inside + before[-1:], default=float("nan"))
 
 
 def _step_peaks(sampler: RSSSampler, start: float, timings: dict, steps) -> dict:
-    """``{step_s, step_mb}`` from a stage's consecutive step durations starting at ``start``."""
+    """``{step_s, step_mb, step_cpu}`` from a stage's consecutive step durations starting at
+    ``start`` (``cpu``: process CPU seconds, which a loaded machine inflates less than wall time)."""
     out = {}
     t = start
     for name in steps:
@@ -105,17 +115,18 @@ def _step_peaks(sampler: RSSSampler, start: float, timings: dict, steps) -> dict
             continue
         out[f"{name}_s"] = float(dt)
         out[f"{name}_mb"] = sampler.peak(t, t + dt)
+        out[f"{name}_cpu"] = sampler.cpu(t + dt) - sampler.cpu(t)
         t += dt
     return out
 
 
 # ----------------------------------------------------------------------------- the child
-def _load(model: str, lmax: float | None):
+def _load(model: str, lmax: float | None, data: str | None = None):
     import torch
 
     from torchconn.mesh.cad import load_hexme
 
-    path = DATA / "hexme" / "meta" / f"{model}.yaml"
+    path = Path(data or DATA) / "hexme" / "meta" / f"{model}.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such HexMe parameter file")
     options = {} if lmax is None else {"Mesh.CharacteristicLengthMax": float(lmax)}
@@ -156,7 +167,7 @@ def run_child(job: dict) -> dict:
     torch.set_num_threads(int(job["threads"]))
     rec = {"case": case_name(job["model"], job.get("lmax")), "variant": job["variant"], "field": job["field"],
            "error": ""}
-    mesh = _load(job["model"], job.get("lmax"))
+    mesh = _load(job["model"], job.get("lmax"), job.get("data"))
     rec.update(tets=mesh.n_tets, vertices=mesh.n_vertices)
     F = _frames(job, mesh)
     if job["mode"] == "field":
@@ -186,6 +197,7 @@ def run_child(job: dict) -> dict:
             stats = r.map.stats
             rec.update(hexes=int(r.hexes.shape[0]), good=bool(r.good))
         rec["total_s"] = total
+        rec["total_cpu"] = sampler.cpu(time.perf_counter()) - sampler.cpu(t0)
         rec["total_mb"] = sampler.peak(t0, time.perf_counter())
     rec["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     rec.update(map_tets=int(map_tets), first_failed=first or "", gates=" ".join(
@@ -223,8 +235,8 @@ def _run(job: dict, timeout: float, path: str) -> dict:
 
 
 def _table(rows: list[dict], steps, title: str) -> list[str]:
-    cols = ["case", "variant", "tets", "map_tets"] + [f"{s}_s" for s in steps] + ["total_s", "total_mb", "peak_mb",
-                                                                                   "first_failed", "error"]
+    cols = ["case", "variant", "tets", "map_tets"] + [f"{s}_s" for s in steps] + ["total_s", "total_cpu", "total_mb",
+                                                                                   "peak_mb", "first_failed", "error"]
     if any("hexes" in r for r in rows):
         cols[-2:-2] = ["hexes", "good"]
     out = [f"### {title}", "", "| " + " | ".join(c.removesuffix("_s") if c.endswith("_s") and c != "total_s" else c
@@ -237,12 +249,13 @@ def _table(rows: list[dict], steps, title: str) -> list[str]:
                 v = f"{v:.0f}" if c.endswith("_mb") else f"{v:.2f}"
             cells.append(str(v))
         out.append("| " + " | ".join(cells) + " |")
-    mb_cols = [f"{s}_mb" for s in steps]
-    out += ["", f"Peak resident memory per step (MB) — {title}:", "",
-            "| case | variant | " + " | ".join(s for s in steps) + " |", "|---|---|" + "---|" * len(steps)]
-    for r in rows:
-        out.append(f"| {r.get('case')} | {r.get('variant')} | " + " | ".join(
-            f"{r[c]:.0f}" if isinstance(r.get(c), float) else "" for c in mb_cols) + " |")
+    for suffix, what, fmt in (("_cpu", "CPU seconds per step", "{:.2f}"), ("_mb", "Peak resident memory per step (MB)",
+                                                                          "{:.0f}")):
+        out += ["", f"{what}:", "", "| case | variant | " + " | ".join(s for s in steps) + " |",
+                "|---|---|" + "---|" * len(steps)]
+        for r in rows:
+            out.append(f"| {r.get('case')} | {r.get('variant')} | " + " | ".join(
+                fmt.format(r[s + suffix]) if isinstance(r.get(s + suffix), float) else "" for s in steps) + " |")
     return out
 
 
@@ -310,7 +323,7 @@ def main(argv: list[str] | None = None) -> Path:
     rows = []
     for model, lmax in cases:
         base = {"model": model, "lmax": lmax, "field": a.field, "cache": a.cache, "threads": a.threads,
-                "out": str(out.resolve())}
+                "out": str(out.resolve()), "data": str(DATA.resolve())}
         if a.field == "sh":  # the field once, for every variant
             rec = _run({**base, "mode": "field", "variant": "field"}, a.timeout, str(ROOT))
             if rec.get("error"):
