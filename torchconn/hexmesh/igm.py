@@ -231,10 +231,17 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     timings["split_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     splits["flat"] = 0
+    sub = {"charts": 0.0, "problem": 0.0, "flat": 0.0}
     for rnd in range(flat_rounds + 1):
+        t1 = time.perf_counter()
         charts = tet_charts(mesh, Fr, face_match)
+        t2 = time.perf_counter()
         prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
+        t3 = time.perf_counter()
         flat, collapsed, line_face = prob.flat_tets()
+        sub["charts"] += t2 - t1
+        sub["problem"] += t3 - t2
+        sub["flat"] += time.perf_counter() - t3
         if rnd == flat_rounds or not (~collapsed).any() or not split:
             break
         from .split import open_flat_tets
@@ -246,6 +253,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         splits["flat"] += n["edge"]
         splits["flat_centroid"] = splits.get("flat_centroid", 0) + n["centroid"]
     timings["charts_and_constraints_s"] = time.perf_counter() - t0
+    timings.update({f"charts_and_constraints.{k}_s": v for k, v in sub.items()})
     from .meshability import meshability_report
 
     t0 = time.perf_counter()
@@ -261,6 +269,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     int_mask = prob.free_is_int
     vol_total = float(prob.vol.sum())
     y_ls = solve_fixed(A, b, np.zeros_like(int_mask), np.zeros(0), backend=backend)
+    timings["seamless.least_squares_s"] = time.perf_counter() - t0
     e_cont = float(y_ls @ (A @ y_ls) - 2 * b @ y_ls + c) / vol_total
     jac = TetJacobians.of_problem(prob)
     det_ls = np.linalg.det(jac(y_ls))
@@ -304,9 +313,11 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         if injective and (np.linalg.det(jac(y_s))[opened] > 0).all():
             refine = 1
             y_start = y_s
+            lsq_map = inj is None
             while True:
+                # the least-squares re-solves are tried first when the map rounded is the least-squares one
                 y, rinfo = round_injective(jac, y_start, int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
-                                           backend=backend, progress=cb)
+                                           backend=backend, progress=cb, lsq=(A, b) if lsq_map else None)
                 if not rinfo["failed"] or refine >= 2 ** refine_limit:
                     break
                 # no injective rounding at this size: the map at half the edge length is the same map
@@ -315,23 +326,27 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
                 h_q = h / refine
                 prob = build_problem(mesh, charts, h_q, features=features, feature_max_deg=feature_max_deg)
                 jac = TetJacobians.of_problem(prob)
+                A, b, c = prob.energy_matrices()
                 y_start = y_s * refine
+                lsq_map = False  # the shortcut at the first size only (the scaled map may be untangled again)
                 if (np.linalg.det(jac(y_start))[opened] <= 0).any():
                     y_start = minimize_barrier(jac, y_start, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
                                                backend=backend).y
             if refine > 1:
                 h = h_q
-                A, b, c = prob.energy_matrices()
             qstats.update(method="injective", rounded=rinfo["rounded"], failed=len(rinfo["failed"]),
                           rounded_away=rinfo["rounded_away"], moves=rinfo["moves"],
-                          max_rounding=rinfo["max_rounding"], refined=refine)
+                          max_rounding=rinfo["max_rounding"], refined=refine,
+                          lsq_tries=rinfo["lsq_tries"], lsq_accepted=rinfo["lsq_accepted"])
             if rinfo["failed"]:
                 # what could not be rounded without a fold is rounded anyway, the rest untangled as far
                 # as it goes: the map's report says where it folds
                 I = np.asarray(rinfo["failed"], np.int64)
                 y[I] = np.round(y[I])
+                t1 = time.perf_counter()
                 y = minimize_barrier(jac, y, fixed=int_mask, ignore=flat, w_fit=fit_weight, w_sd=sd_weight,
                                      backend=backend).y
+                timings["quantization.untangle_failed_s"] = time.perf_counter() - t1
         else:
             y, rinfo = round_greedy(A, b, int_mask, batch_error=batch_error, backend=backend, progress=cb,
                                     flips=lambda yy: int((param_volumes(prob.corner_params(yy)) <= 0).sum()))

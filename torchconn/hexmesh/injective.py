@@ -22,12 +22,12 @@ too, it lets a tangle pass through folds on its way out, and becomes a barrier a
 :func:`minimize_barrier` runs untangling (``eps`` lowered after each solve), AlgoHex's shifted
 rounds where tets stay inverted, then the barrier energy with every tet held positive.
 
-Each Newton step: the per-tet gradients and ``9 x 9`` Hessians in ``J`` (batched autograd in
-torch), each Hessian projected onto the positive semidefinite cone (eigenvalues clamped at 0,
-only where a Cholesky attempt fails), assembled in the eliminated space,
-``H = (G Z)^T blockdiag(H_t) (G Z)``, and one sparse Cholesky solve (:mod:`.solver`). With the
-barrier energy the line search never crosses ``det J_t + eps_t = 0``: the step is capped at 0.9
-times the first positive root of the cubic ``det(J_t + s dJ_t) + eps_t`` over all tets
+Each Newton step: the per-tet gradients and ``9 x 9`` Hessians in ``J`` (batched closed forms in
+torch, tested against batched autograd, :func:`_rowwise_derivatives`), each Hessian projected onto the positive
+semidefinite cone (eigenvalues clamped at 0, only where a Cholesky attempt fails), assembled in
+the eliminated space, ``H = (G Z)^T blockdiag(H_t) (G Z)``, and one sparse Cholesky solve
+(:mod:`.solver`). With the barrier energy the line search never crosses ``det J_t + eps_t = 0``: the step is capped at
+0.9 times the first positive root of the cubic ``det(J_t + s dJ_t) + eps_t`` over all tets
 (:func:`first_root`), then backtracked (Armijo).
 
 Unknowns may be held fixed: the quantization moves integer unknowns to their rounded values along
@@ -144,6 +144,96 @@ def _rowwise_derivatives(fn, j: torch.Tensor, eps: torch.Tensor, hessian: bool):
     return f.detach(), g.detach(), H
 
 
+def _linear_tables(dtype, device):
+    """Constant ``(81, 9)`` maps: ``K[(ijkl), (mn)] = e_ikm e_jln`` (the Hessian of ``det`` is
+    ``K vec J``), ``A[(ijkl), (lj)] = delta_ik`` and ``B[(ijkl), (ik)] = delta_jl``."""
+    E = torch.zeros(3, 3, 3, dtype=dtype, device=device)
+    E[0, 1, 2] = E[1, 2, 0] = E[2, 0, 1] = 1.0
+    E[0, 2, 1] = E[2, 1, 0] = E[1, 0, 2] = -1.0
+    K = torch.einsum("ikm,jln->ijklmn", E, E).reshape(81, 9)
+    eye = torch.eye(3, dtype=dtype, device=device)
+    A = torch.einsum("ik,la,jb->ijklab", eye, eye, eye).reshape(81, 9)  # picks M_lj
+    B = torch.einsum("jl,ia,kb->ijklab", eye, eye, eye).reshape(81, 9)  # picks M_ik
+    return K, A, B
+
+
+def _det_parts(J: torch.Tensor):
+    """``det J (T,)``, the cofactor matrix ``C (T, 3, 3)`` (its gradient), and its Hessian
+    ``d2 det / dJ_ij dJ_kl = sum_mn e_ikm e_jln J_mn`` as ``(T, 9, 9)``."""
+    K, _, _ = _linear_tables(J.dtype, J.device)
+    C = _adj(J).transpose(-1, -2)
+    det = (J * C).sum((-2, -1)) / 3.0  # Euler: det is cubic, J : C = 3 det
+    Hd = (J.reshape(-1, 9) @ K.T).reshape(-1, 9, 9)
+    return det, C, Hd
+
+
+def _sd_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
+    """``(f, g, H)`` of :func:`_sd` in closed form (the autograd reference is
+    :func:`_rowwise_derivatives`, tests). With ``d = det J``, ``C`` its cofactors and
+    ``q = |C|^2 = (|J|^4 - |J^T J|^2) / 2``: ``f = |J|^2 + q (d + eps)^-2 - 6``,
+    ``dq/dJ = 2 (|J|^2 J - J J^T J)``."""
+    T = j.shape[0]
+    J = j.reshape(T, 3, 3)
+    det, C, Hd = _det_parts(J)
+    n2 = j.square().sum(-1)
+    JtJ = J.transpose(1, 2) @ J
+    JJt = J @ J.transpose(1, 2)
+    q = C.square().sum((-2, -1))
+    u = det + eps
+    h = u.pow(-2)
+    gq = 2.0 * (n2[:, None, None] * J - J @ JtJ)
+    c9 = C.reshape(T, 9)
+    gh = -2.0 * u.pow(-3)[:, None] * c9
+    f = n2 + q * h - 6.0
+    g = 2.0 * j + h[:, None] * gq.reshape(T, 9) + q[:, None] * gh
+    if not hessian:
+        return f, g, None
+    # D[ij, kl] = d(J J^T J)_ij / dJ_kl = delta_ik (J^T J)_lj + J_il J_kj + delta_jl (J J^T)_ik
+    _, A, B = _linear_tables(j.dtype, j.device)
+    # the middle term J_il J_kj: the outer product [(il), (kj)] reordered to [(ij), (kl)]
+    mid = (j[:, :, None] * j[:, None, :]).reshape(T, 3, 3, 3, 3).permute(0, 1, 4, 3, 2).reshape(T, 9, 9)
+    D = (JtJ.reshape(T, 9) @ A.T + JJt.reshape(T, 9) @ B.T).reshape(T, 9, 9) + mid
+    Hq = 2.0 * (2.0 * j[:, :, None] * j[:, None, :] + n2[:, None, None] * torch.eye(9, dtype=j.dtype, device=j.device)
+                - D)
+    Hh = 6.0 * u.pow(-4)[:, None, None] * c9[:, :, None] * c9[:, None, :] - 2.0 * u.pow(-3)[:, None, None] * Hd
+    gq9 = gq.reshape(T, 9)
+    H = (2.0 * torch.eye(9, dtype=j.dtype, device=j.device) + h[:, None, None] * Hq
+         + gq9[:, :, None] * gh[:, None, :] + gh[:, :, None] * gq9[:, None, :] + q[:, None, None] * Hh)
+    return f, g, H
+
+
+def _untangling_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
+    """``(f, g, H)`` of :func:`_untangling` in closed form: ``f = |J|^2 phi(d) + psi(d)`` with
+    ``phi = chi^(-2/3) / 3`` and ``psi = (d^2 + 1) / (2 chi)`` of ``d = det J``, so
+    ``g = 2 phi J + (|J|^2 phi' + psi') C`` and
+    ``H = 2 phi I + 2 phi' (J (x) C + C (x) J) + (|J|^2 phi'' + psi'') C (x) C + (|J|^2 phi' + psi') d2det``."""
+    T = j.shape[0]
+    J = j.reshape(T, 3, 3)
+    det, C, Hd = _det_parts(J)
+    n2 = j.square().sum(-1)
+    r = torch.sqrt(eps * eps + det * det)
+    chi = 0.5 * (det + r)
+    c1 = 0.5 * (1.0 + det / r)  # chi'
+    c2 = 0.5 * eps * eps / r.pow(3)  # chi''
+    phi = chi.pow(-2.0 / 3.0) / 3.0
+    phi1 = -(2.0 / 9.0) * chi.pow(-5.0 / 3.0) * c1
+    phi2 = (10.0 / 27.0) * chi.pow(-8.0 / 3.0) * c1 * c1 - (2.0 / 9.0) * chi.pow(-5.0 / 3.0) * c2
+    dd1 = det * det + 1.0
+    psi = dd1 / (2.0 * chi)
+    psi1 = det / chi - dd1 * c1 / (2.0 * chi * chi)
+    psi2 = 1.0 / chi - 2.0 * det * c1 / (chi * chi) - dd1 * c2 / (2.0 * chi * chi) + dd1 * c1 * c1 / chi.pow(3)
+    c9 = C.reshape(T, 9)
+    a1 = n2 * phi1 + psi1
+    f = n2 * phi + psi
+    g = 2.0 * phi[:, None] * j + a1[:, None] * c9
+    if not hessian:
+        return f, g, None
+    H = (2.0 * phi[:, None, None] * torch.eye(9, dtype=j.dtype, device=j.device)
+         + 2.0 * phi1[:, None, None] * (j[:, :, None] * c9[:, None, :] + c9[:, :, None] * j[:, None, :])
+         + (n2 * phi2 + psi2)[:, None, None] * c9[:, :, None] * c9[:, None, :] + a1[:, None, None] * Hd)
+    return f, g, H
+
+
 def _project_psd(H: torch.Tensor) -> torch.Tensor:
     """Symmetrize ``(T, 9, 9)`` blocks and clamp the negative eigenvalues of those a Cholesky
     attempt rejects (each block eigen-decomposed at O(1) scale: its own round-off, not the
@@ -168,7 +258,7 @@ def untangling_terms(J: torch.Tensor, eps: float, w_fit: float, *, hessian: bool
     :func:`barrier_terms`."""
     j = J.reshape(-1, 9)
     eye = torch.eye(3, dtype=J.dtype, device=J.device).reshape(9)
-    f, g, H = _rowwise_derivatives(_untangling, j, torch.tensor(float(eps), dtype=J.dtype), hessian)
+    f, g, H = _untangling_derivatives(j, torch.tensor(float(eps), dtype=J.dtype), hessian)
     f = f + w_fit * (j - eye).square().sum(1)
     g = g + 2.0 * w_fit * (j - eye)
     if hessian:
@@ -197,7 +287,7 @@ def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float,
     g = 2.0 * w_fit * r
     Hs = None
     if w_sd:
-        fs, gs, Hs = _rowwise_derivatives(_sd, j, eps, hessian)
+        fs, gs, Hs = _sd_derivatives(j, eps, hessian)
         f = f + w_sd * fs
         g = g + w_sd * gs
     if not hessian:

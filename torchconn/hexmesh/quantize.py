@@ -9,7 +9,13 @@ integer unknowns ``I``, fixing a set ``B`` to values ``n_B`` moves the others to
 ``y_I + C_{IB} C_{BB}^{-1} (n_B - y_B)`` and leaves ``C - C_{IB} C_{BB}^{-1} C_{BI}`` (the
 conditional mean and covariance of the Gaussian ``exp(-E)``): a dense update of size ``|I|``,
 after ``|I|`` solves against the factor (batched right-hand sides). The continuous unknowns are
-solved once at the end with every integer fixed.
+solved once at the end with every integer fixed. Where ``|I|^2`` would pass a memory budget
+(large meshes) the rounding goes in blocks by distance thresholds, each followed by a
+least-squares re-solve, and no ``|I| x |I|`` matrix is made.
+
+Injective rounding (:func:`round_injective`) of a seamless map with no inverted tet moves
+batches of integers by the foldover-free solve; where the least-squares re-solve of a batch keeps
+every tet positive it is taken without the barrier's Newton steps.
 
 Stiffening: tets whose parametric volume is not positive get their weight multiplied by
 ``stiffening_factor`` and the continuous unknowns are solved again (integers kept), up to
@@ -34,7 +40,8 @@ def param_volumes(uvw: np.ndarray) -> np.ndarray:
 
 
 def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch_error: float = 0.5,
-                 backend: str = "auto", progress=None, flips=None, flip_budget: int = 40_000_000) -> tuple[np.ndarray, dict]:
+                 backend: str = "auto", progress=None, flips=None, flip_budget: int = 40_000_000,
+                 dense_budget: int = 2**26, thresholds=(0.1, 0.2, 0.3, 0.4, 0.5)) -> tuple[np.ndarray, dict]:
     """Greedy multiple rounding of the integer unknowns of ``min y^T A y - 2 b^T y`` (module docstring).
 
     Args:
@@ -50,6 +57,11 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
             flipped tets is kept (then the nearer one). The conditional optimum of every unknown
             is kept up to date by rank-one updates of the ``(m, |I|)`` conditional covariance
             columns, from the same single factorization.
+        dense_budget: the largest ``|I|^2`` (entries of the dense conditional covariance) for the
+            one-factorization greedy rounding; above it (large meshes: ``|I| > 8192`` by default,
+            512 MB) the rounding goes in blocks instead (:func:`_round_blocks`: the integers within
+            ``thresholds[k]`` of an integer rounded together, each block followed by a
+            least-squares re-solve with a fresh factorization), so no ``|I| x |I|`` matrix is made.
 
     Returns:
         ``(y (m,), info)``: ``y`` with every integer unknown an exact integer and the continuous
@@ -66,6 +78,8 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
         return y0, info
     if flips is not None and m * I.size <= flip_budget:
         return _round_flip_aware(fac, y0, I, flips, info, progress)
+    if I.size * I.size > dense_budget:
+        return _round_blocks(A, b, int_mask, y0, info, thresholds, backend, progress)
     # C = (A^{-1})_{II}, from |I| solves in batches
     C = np.empty((I.size, I.size))
     for s in range(0, I.size, _RHS_BATCH):
@@ -119,6 +133,33 @@ def round_greedy(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, *, batch
     info["max_rounding"] = max_round
     info["undetermined"] = undetermined
     y = solve_fixed(A, b, int_mask, x, backend=backend)
+    return y, info
+
+
+def _round_blocks(A, b, int_mask, y0, info, thresholds, backend, progress):
+    """Rounding in blocks: for each threshold, the unfixed integers within it of an integer (at
+    least the closest one) are rounded together, then every unfixed unknown re-solved by least
+    squares with the rounded ones fixed (:func:`solve_fixed`); the rest at the last threshold."""
+    I = np.nonzero(int_mask)[0]
+    y = y0.copy()
+    fixed = np.zeros(y.size, bool)
+    max_round = 0.0
+    steps = 0
+    for k, th in enumerate(thresholds):
+        rem = I[~fixed[I]]
+        if not rem.size:
+            break
+        d = np.abs(y[rem] - np.round(y[rem]))
+        last = k == len(thresholds) - 1
+        sel = rem if last else (rem[d <= th] if (d <= th).any() else rem[np.argsort(d, kind="stable")[:1]])
+        max_round = max(max_round, float(np.abs(y[sel] - np.round(y[sel])).max()))
+        y[sel] = np.round(y[sel])
+        fixed[sel] = True
+        y = solve_fixed(A, b, fixed, y[fixed], backend=backend)
+        steps += 1
+        if progress is not None:
+            progress(int(fixed[I].sum()), I.size)
+    info.update(steps=steps, max_rounding=max_round, blocks=True)
     return y, info
 
 
@@ -194,7 +235,7 @@ def solve_fixed(A: sp.csr_matrix, b: np.ndarray, int_mask: np.ndarray, int_value
 
 def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1, 0.2, 0.3, 0.4, 0.5),
                     ignore: np.ndarray | None = None, w_fit: float = 1.0, w_sd: float = 1.0, backend: str = "auto",
-                    progress=None) -> tuple[np.ndarray, dict]:
+                    progress=None, lsq: tuple | None = None) -> tuple[np.ndarray, dict]:
     """Round the integer unknowns of a map with no inverted tet, keeping it so.
 
     The integers are rounded in batches: those within ``thresholds[k]`` of an integer (at least
@@ -206,6 +247,15 @@ def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1
     once (the others' moves change what it meets). After each threshold the distances are
     recomputed from the current map.
 
+    With ``lsq = (A, b)`` (the least-squares energy ``y^T A y - 2 b^T y`` of the same unknowns,
+    given when its optimum is the seamless map, i.e. that map did not fold): every integer is
+    first rounded at once, and each batch before its injective move, by the plain least-squares
+    re-solve with the batch and the integers rounded before fixed (one factorization); when every
+    determinant of that map stays above the moves' floor (``1e-9``) it is taken without the
+    barrier's Newton steps. The guarantee is the same (no accepted map has a tet at or below the
+    floor); the map reached may differ (least squares instead of the barrier's optimum between the
+    integers). Counted in ``info["lsq_accepted"]``.
+
     Args:
         jac: the :class:`~.injective.TetJacobians` of the seamless problem.
         y: ``(m,)`` the free unknowns of a map with every ``det J > 0`` (but the ``ignore (k,)``
@@ -214,38 +264,63 @@ def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1
         thresholds: the distance thresholds of the batches.
         w_fit, w_sd, backend: of the injective solve.
         progress: optional ``progress(n_rounded, n_total)``.
+        lsq: optional ``(A, b)``, see above.
 
     Returns:
         ``(y, info)``: ``y`` with every integer it could round an exact integer and no tet
         inverted; ``info``: ``n_integers``, ``rounded``, ``failed`` (free indices of the integers
         left unrounded: the map is then not an integer-grid map), ``rounded_away`` (to the farther
-        neighbour), ``moves`` (injective solves), ``max_rounding``.
+        neighbour), ``moves`` (injective solves), ``max_rounding``, ``lsq_tries`` /
+        ``lsq_accepted`` (least-squares re-solves tried / taken).
     """
     from .injective import move_fixed
 
     y = np.array(y, np.float64, copy=True)
     I = np.nonzero(int_mask)[0]
     done = np.zeros(y.size, bool)
-    info = {"n_integers": int(I.size), "rounded": 0, "failed": [], "rounded_away": 0, "moves": 0, "max_rounding": 0.0}
+    info = {"n_integers": int(I.size), "rounded": 0, "failed": [], "rounded_away": 0, "moves": 0, "max_rounding": 0.0,
+            "lsq_tries": 0, "lsq_accepted": 0}
     kw = dict(w_fit=w_fit, w_sd=w_sd, backend=backend, ignore=ignore)
+    opened = None if ignore is None else np.setdiff1d(np.arange(jac.n_tets), ignore)
+
+    def accept(idx, tgt, y_new):
+        nonlocal y
+        y = y_new
+        done[idx] = True
+        info["rounded"] += idx.size
+        info["max_rounding"] = max(info["max_rounding"], float(np.abs(tgt - y0_of[idx]).max()))
+        if progress is not None:
+            progress(info["rounded"], I.size)
+
+    def try_lsq(idx, tgt):
+        if lsq is None:
+            return False
+        from .injective import _DET_MOVE_MIN
+
+        info["lsq_tries"] += 1
+        fixed = done.copy()
+        fixed[idx] = True
+        vals = y.copy()
+        vals[idx] = tgt
+        y_new = solve_fixed(lsq[0], lsq[1], fixed, vals[fixed], backend=backend)
+        det = np.linalg.det(jac(y_new))
+        if (det if opened is None else det[opened]).min(initial=np.inf) <= _DET_MOVE_MIN:
+            return False
+        info["lsq_accepted"] += 1
+        accept(idx, tgt, y_new)
+        return True
 
     def try_move(idx, tgt):
-        nonlocal y
         info["moves"] += 1
         y_new, ok, _ = move_fixed(jac, y, idx, tgt, held=done, **kw)
         if ok:
-            y = y_new
-            done[idx] = True
-            info["rounded"] += idx.size
-            info["max_rounding"] = max(info["max_rounding"], float(np.abs(tgt - y0_of[idx]).max()))
-            if progress is not None:
-                progress(info["rounded"], I.size)
+            accept(idx, tgt, y_new)
         return ok
 
     def round_batch(idx):
         """Round ``idx`` to their nearest integers, halving on failure; returns the ones left."""
         tgt = np.round(y[idx])
-        if try_move(idx, tgt):
+        if try_lsq(idx, tgt) or try_move(idx, tgt):
             return np.zeros(0, np.int64)
         if idx.size > 1:
             h = idx.size // 2
@@ -260,6 +335,8 @@ def round_injective(jac, y: np.ndarray, int_mask: np.ndarray, *, thresholds=(0.1
         return i
 
     y0_of = y.copy()
+    if I.size:
+        try_lsq(I, np.round(y[I]))  # everything at once, when the least-squares map stays valid
     for th in thresholds:
         rem = I[~done[I]]
         if not rem.size:

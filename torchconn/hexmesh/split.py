@@ -16,6 +16,11 @@ share a tet, so every parent tet is split at most once per round):
 
 * ``"singular"``: a non-singular edge whose two ends lie on singular edges;
 * ``"boundary"``: an interior edge whose two ends lie on the boundary.
+
+The singular edges are found once (:func:`~.cut.tet_charts` of the input) and carried through the
+rounds by vertex pairs (a split singular edge becomes its two halves; the edges a split creates
+inside a parent are regular), not recomputed per round: a split keeps every holonomy. Cost on the
+1M-tet ``i02c_m2@lmax=0.14``: docs/results/hexmesh.md (``python -m benchmarks.hex_stage_scale``).
 """
 from __future__ import annotations
 
@@ -191,7 +196,7 @@ def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rul
         face_match: ``(F,)`` face matchings to use and carry (default: the best ones).
         rules: a subset of :data:`SPLIT_RULES`.
     """
-    from .cut import tet_charts
+    from .cut import face_matchings, tet_charts
 
     unknown = [r for r in rules if r not in SPLIT_RULES]
     if unknown:
@@ -200,15 +205,22 @@ def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rul
     parent = np.arange(mesh.n_tets)
     counts = {r: 0 for r in SPLIT_RULES}
     rounds = 0
+    given = face_match is not None
+    sing = None
+    if "singular" in rules:
+        # the singular edges once: a split keeps every holonomy (module docstring), so afterwards
+        # they are the halves of the singular edges split and the others, carried by vertex pairs
+        if not given:
+            face_match = face_matchings(mesh, Fr)
+        sing = tet_charts(mesh, Fr, face_match).singular_edge
     for _ in range(max_rounds):
         edges = mesh.edges.cpu().numpy()
         V, E = mesh.n_vertices, edges.shape[0]
         cand_by_rule = {}
         if "singular" in rules:
-            ch = tet_charts(mesh, Fr, face_match)
             sv = np.zeros(V, bool)
-            sv[edges[ch.singular_edge].reshape(-1)] = True
-            cand_by_rule["singular"] = np.nonzero(~ch.singular_edge & sv[edges[:, 0]] & sv[edges[:, 1]])[0]
+            sv[edges[sing].reshape(-1)] = True
+            cand_by_rule["singular"] = np.nonzero(~sing & sv[edges[:, 0]] & sv[edges[:, 1]])[0]
         if "boundary" in rules:
             bv = np.zeros(V, bool)
             bv[mesh.boundary_vertices.cpu().numpy()] = True
@@ -225,8 +237,37 @@ def split_for_map(mesh, tet_frames, face_match: np.ndarray | None = None, *, rul
         mesh, Fr, par, face_match = split_edges(mesh, Fr, chosen, face_match)
         parent = parent[par]
         rounds += 1
+        if sing is not None:
+            sing = _carry_edges(sing, edges, V, chosen, mesh)
+    if not given:
+        face_match = None
     return SplitResult(mesh=mesh, tet_frames=Fr, parent_tet=parent, splits=counts, rounds=rounds,
                        face_match=face_match)
+
+
+def _carry_edges(flag: np.ndarray, edges: np.ndarray, V: int, chosen: np.ndarray, new_mesh) -> np.ndarray:
+    """``(E',)`` bool on ``new_mesh``'s edges: the edges flagged in ``flag (E,)`` (of the mesh with
+    ``edges (E, 2)`` and ``V`` vertices) after :func:`split_edges` of ``chosen`` (midpoint of
+    ``chosen[k]`` is vertex ``V + k``): a flagged edge split becomes its two halves."""
+    mid = np.full(edges.shape[0], -1, np.int64)
+    mid[chosen] = V + np.arange(chosen.size)
+    keep = flag & (mid < 0)
+    halves = flag & (mid >= 0)
+    pairs = np.concatenate([edges[keep], np.stack([edges[halves, 0], mid[halves]], 1),
+                            np.stack([mid[halves], edges[halves, 1]], 1)])
+    pairs = np.sort(pairs, axis=1)
+    new_edges = new_mesh.edges.cpu().numpy()
+    V2 = new_mesh.n_vertices
+    keys = new_edges[:, 0] * V2 + new_edges[:, 1]
+    out = np.zeros(new_edges.shape[0], bool)
+    if pairs.shape[0]:
+        k = pairs[:, 0] * V2 + pairs[:, 1]
+        order = np.argsort(keys)
+        pos = np.searchsorted(keys[order], k)
+        if not np.array_equal(keys[order][np.minimum(pos, keys.size - 1)], k):  # pragma: no cover - a bug
+            raise RuntimeError("a carried edge is missing from the refined mesh")
+        out[order[pos]] = True
+    return out
 
 
 def split_tets_edges(mesh, tet_frames, tets: np.ndarray, face_match: np.ndarray | None = None,
