@@ -8,11 +8,14 @@ judged before the next (:class:`~.validity.Gate`):
    :meth:`.seamless.SeamlessProblem.flat_tets`), the charts and the cut (:mod:`.cut`), the
    constraints eliminated (:mod:`.seamless`). Passes when the singular graph meets LMFF's local
    conditions (:mod:`.meshability`) and no tet is flat.
-2. **seamless map** — the frame-fitting least squares with every integer relaxed; where it folds,
+2. **frames** (with ``integrable=True``) — integrable coframes near the field's, by a continuation
+   on the torsion of the coframes under the matched connection (:mod:`.integrable`); the seamless
+   map then fits them. Passes when no coframe is inverted and the alignment does not conflict.
+3. **seamless map** — the frame-fitting least squares with every integer relaxed; where it folds,
    the foldover-free solve (:mod:`.injective`: per-tet barrier, PSD-projected Newton). Snapped to
    the grid and checked exactly (:func:`~.validity.check_seamless`): no inverted or flat tet,
    seams, singular edges on parametric lines, boundary faces on parametric planes.
-3. **quantization** — from a valid seamless map, every integer rounded by injective moves
+4. **quantization** — from a valid seamless map, every integer rounded by injective moves
    (:func:`~.quantize.round_injective`: no tet ever folds); from an invalid one, greedy rounding
    with the least-squares re-solves (:func:`~.quantize.round_greedy`). Snapped and checked
    (:func:`~.validity.check_map`).
@@ -127,7 +130,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
                      straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
                      injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0,
-                     batch_error: float = 0.5, stiffening_iters: int = 10, stiffening_factor: float = 4.0,
+                     integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
+                     stiffening_factor: float = 4.0,
                      grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
     """The integer-grid map of a frame field, in gated stages (module docstring).
 
@@ -153,6 +157,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             rounding and stiffening, as CubeCover).
         fit_weight, sd_weight: weights of the frame fitting and the symmetric Dirichlet barrier
             in the foldover-free solve (:mod:`.injective`).
+        integrable: stage 2, the integrable frames (:mod:`.integrable`): the seamless map fits
+            coframes made integrable by the torsion continuation instead of the rotation field
+            (``stats["integrable"]``: the torsion and the coframes' inverted tets per round;
+            ``gates["frames"]``).
         batch_error, stiffening_iters, stiffening_factor: of the greedy rounding and the
             stiffening (:mod:`.quantize`), used when the seamless map is not valid.
         grid_bits: the snapping grid (module docstring).
@@ -235,6 +243,17 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     mesh_report = meshability_report(mesh, charts.frames, charts=charts)
     timings["meshability_s"] = time.perf_counter() - t0
     gates = {"structure": structure_gate(mesh, mesh_report, flat, collapsed)}
+
+    # ------------------------------------------------------------------ 2. frames
+    if integrable:
+        from .integrable import integrable_frames
+
+        t0 = time.perf_counter()
+        intf = integrable_frames(mesh, charts, prob, backend=backend)
+        prob = prob.with_targets(intf.targets())
+        stats["integrable"] = intf.summary()
+        gates["frames"] = intf.gate()
+        timings["integrable_s"] = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ 3. seamless map
     t0 = time.perf_counter()

@@ -24,8 +24,8 @@ from .validity import MapValidity, check_map
 
 __all__ = ["HexMeshResult", "hex_mesh", "MAP_OPTIONS"]
 
-MAP_OPTIONS = ("edge_length", "straighten", "straighten_boundary", "touch_rounds", "split", "features", "feature_max_deg", "batch_error",
-               "stiffening_iters", "stiffening_factor", "grid_bits", "backend")
+MAP_OPTIONS = ("edge_length", "straighten", "straighten_boundary", "touch_rounds", "split", "features", "feature_max_deg",
+               "integrable", "batch_error", "stiffening_iters", "stiffening_factor", "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
 #: The extraction's lattice-point limit per tet (``extract_hexes``' default, which
 #: :func:`hex_mesh` uses): a map whose tets exceed it has an edge length too small for the mesh.
