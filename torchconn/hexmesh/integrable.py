@@ -105,9 +105,10 @@ SCHEDULE = ((1e4, 1e4), (1e3, 1e5), (1e2, 1e6), (1e1, 1e7), (0.0, 1e8), (0.0, 1e
 # ----------------------------------------------------------------------------- the corner complex
 @dataclass
 class CornerComplex:
-    """The corner complex of a tet mesh with per-tet charts (module docstring), as flat arrays.
+    """The corner complex of a tet mesh with per-tet charts (module docstring), as flat arrays
+    (``Fi`` interior faces, ``Q = 3 Fi`` quads, ``T`` tets).
 
-    Attributes (``Fi`` interior faces, ``Q = 3 Fi`` quads, ``T`` tets):
+    Attributes:
         face: ``(Fi,)`` the interior faces (ids of ``mesh.faces``); tet0, tet1: ``(Fi,)``
             ``mesh.face_tets`` of each; face_rot: ``(Fi, 3, 3)`` float64 ``R_f``
             (``u_t1 = R_f u_t0 + s_f``); face_weight: ``(Fi,)`` ``(vol_t0 + vol_t1) / 4V``.
@@ -443,6 +444,19 @@ def coframe_space(mesh, charts: TetCharts, prob) -> CoframeSpace:
 
 
 # ----------------------------------------------------------------------------- the solve
+class _CoframeBarrier(_Barrier):
+    """:mod:`.injective`'s shifted barrier on the coframes (no fitting term), its energy offset by
+    the symmetric Dirichlet's value at a rotation (``|J|^2 + |J^-1|^2 = 6`` per unit volume; the
+    tet weights sum to 1): the minimizer is unchanged, and :func:`~.injective._newton`'s relative
+    stopping test has a scale that does not vanish when the field is integrable already."""
+
+    def __init__(self, eps: np.ndarray):
+        super().__init__(eps, 0.0, 1.0)
+
+    def energy(self, J: np.ndarray, vol: np.ndarray) -> float:
+        return super().energy(J, vol) + 6.0
+
+
 @dataclass
 class IntegrableFrames:
     """What :func:`integrable_frames` returns.
@@ -530,7 +544,7 @@ def _figures(cc: CornerComplex, K: sp.csr_matrix, S: sp.csr_matrix, J: np.ndarra
             "min_det": float(det.min(initial=np.inf))}
 
 
-def integrable_frames(mesh, charts: TetCharts, prob, *, schedule=SCHEDULE, max_iter: int = 30,
+def integrable_frames(mesh, charts: TetCharts, prob, *, schedule=SCHEDULE, max_iter: int = 20,
                       tol: float = 1e-6, backend: str = "auto", callback=None) -> IntegrableFrames:
     """Integrable coframes near the combed frames of ``charts`` (module docstring).
 
@@ -577,7 +591,7 @@ def integrable_frames(mesh, charts: TetCharts, prob, *, schedule=SCHEDULE, max_i
     for k, (ws, wi) in enumerate(schedule):
         history = []
         P = (ws * Ps + wi * Pt).tocsr()
-        y, it, conv = _newton(jac, y, _Barrier(eps, 0.0, 1.0), free, max_iter=max_iter, tol=tol, backend=backend,
+        y, it, conv = _newton(jac, y, _CoframeBarrier(eps), free, max_iter=max_iter, tol=tol, backend=backend,
                               history=history, rnd=("integrable", k), quad=(P, np.zeros(y.size)))
         det = np.linalg.det(jac(y))
         eps = _shifts(det, PENALTY_ROUND)  # a tet that became positive loses its shift for good
