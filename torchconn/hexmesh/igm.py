@@ -160,7 +160,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         integrable: stage 2, the integrable frames (:mod:`.integrable`): the seamless map fits
             coframes made integrable by the torsion continuation instead of the rotation field
             (``stats["integrable"]``: the torsion and the coframes' inverted tets per round;
-            ``gates["frames"]``).
+            ``gates["frames"]``); the map's ``energy*`` figures are then those of the coframe fit,
+            ``|grad u B^-1 - I|^2``.
         batch_error, stiffening_iters, stiffening_factor: of the greedy rounding and the
             stiffening (:mod:`.quantize`), used when the seamless map is not valid.
         grid_bits: the snapping grid (module docstring).

@@ -241,15 +241,14 @@ def _loop_transports(cc: CornerComplex) -> tuple[np.ndarray, np.ndarray]:
     loop, ``I`` and ``R_f^T``)."""
     L = cc.loop_rot()
     Q = L.shape[0]
-    out = []
-    for k in (0, 2):
-        cols = []
+    # one batched call: basis values e_j on loop edge k, for (k, j) in {0, 2} x {0, 1, 2}
+    th = torch.zeros(2, 3, Q, 4, 3, dtype=torch.float64)
+    for a, k in enumerate((0, 2)):
         for j in range(3):
-            th = torch.zeros(Q, 4, 3, dtype=torch.float64)
-            th[:, k, j] = 1.0
-            cols.append(_torsion.two_prong(L, th, torch.zeros_like(th), 0))
-        out.append(torch.stack(cols, -1).numpy())
-    return out[0], out[1]
+            th[a, j, :, k, j] = 1.0
+    out = _torsion.two_prong(L, th, torch.zeros_like(th), 0)  # (2, 3, Q, 3): column j of C_k
+    C = out.permute(0, 2, 3, 1).numpy()  # (2, Q, i, j)
+    return C[0], C[1]
 
 
 def torsion_matrix(cc: CornerComplex) -> sp.csr_matrix:
@@ -273,7 +272,8 @@ def torsion_matrix(cc: CornerComplex) -> sp.csr_matrix:
         cols = 9 * tq[:, None, None, None] + jl[None, None]
         blocks.append((vals.reshape(-1), rows.reshape(-1), np.broadcast_to(cols, (Q, 3, 3, 3)).reshape(-1)))
     v, r, cl = (np.concatenate(x) for x in zip(*blocks))
-    return sp.csr_matrix((v, (r, cl)), shape=(3 * Q, 9 * T))
+    nz = v != 0  # the transports are signed permutations: two thirds of each block are zeros
+    return sp.csr_matrix((v[nz], (r[nz], cl[nz])), shape=(3 * Q, 9 * T))
 
 
 def smoothness_matrix(cc: CornerComplex) -> sp.csr_matrix:
@@ -288,7 +288,8 @@ def smoothness_matrix(cc: CornerComplex) -> sp.csr_matrix:
         cols = np.broadcast_to(9 * t[:, None, None] + np.arange(9)[None, None, :], (Fi, 9, 9))
         parts.append((vals.reshape(-1), rows.reshape(-1), cols.reshape(-1)))
     v, r, c = (np.concatenate(x) for x in zip(*parts))
-    return sp.csr_matrix((v, (r, c)), shape=(9 * Fi, 9 * T))
+    nz = v != 0
+    return sp.csr_matrix((v[nz], (r[nz], c[nz])), shape=(9 * Fi, 9 * T))
 
 
 # ----------------------------------------------------------------------------- alignment
