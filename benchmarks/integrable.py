@@ -200,7 +200,7 @@ def main(argv=None):
         (a.out / f"{model}__{a.field}__{variant}.json").write_text(json.dumps(rec, indent=1))
         return
     prefixes = [p.strip() for p in a.models.split(",") if p.strip()]
-    models = [m for m in SIMPLE + NASTY if any(m.startswith(p) for p in prefixes)]
+    models = list(dict.fromkeys(m for p in prefixes for m in SIMPLE + NASTY if m.startswith(p)))  # in the given order
     for model in models:
         for v in VARIANTS:
             path = a.out / f"{model}__{a.field}__{v}.json"

@@ -56,20 +56,25 @@ weight is its volume weight. The two penalty terms are quadratic in ``J`` (const
 :func:`~.injective._newton` minimizes: per-tet barrier terms plus a constant quadratic; PSD-projected
 Newton, one sparse Cholesky per step, a line search that never crosses ``det J = 0``.
 
-Alignment (hard, linear; the axes are those of :mod:`.seamless`'s constraints):
+Alignment (hard, linear): the coframes the seamless problem's own constraints allow
+(:func:`coframe_space`, read off :func:`~.seamless.build_problem` tet by tet, so that the two
+stages cannot disagree):
 
 * a boundary face of tet ``t`` with parameter axis ``k`` (``prob.boundary_axis``): row ``k`` of
   ``B_t`` is parallel to the face normal (``B_t[k] . a = 0`` for the face's tangents ``a``: the face
   lies on a plane ``u_k = c``);
-* a constrained singular or feature edge with direction ``e`` and parameter axis ``k_t`` in tet
-  ``t`` (the start tet's axis carried around the edge by the transitions, :class:`~.cut.EdgeWalks`),
-  for every tet ``t`` at the edge: the other two rows are orthogonal to ``e``.
+* a constrained singular or feature edge ``e`` with parameter axis ``k_t`` in tet ``t`` (the start
+  tet's axis carried around the edge by the transitions), in every tet at the edge: the other two
+  rows are orthogonal to ``e``;
+* what these imply together (a tet edge between two corners on one boundary plane or on one
+  feature line lies in that plane or on that line).
 
-Each row ``(t, i)`` of ``J`` is written in an orthonormal basis of its allowed subspace
-(:func:`coframe_space`); a row whose constraints leave only ``0`` (e.g. two boundary faces of one
-tet on different planes of one axis), or whose rows are forced into dependent spaces (``det J = 0``
-for every choice: two singular edges of one tet along one axis), is a **conflict**: the tet's
-constraints are dropped and it is reported (the seamless map cannot be valid there either).
+Each tet's ``vec(J_t)`` is written in an orthonormal basis of its allowed subspace; a tet where every
+allowed ``J_t`` has ``det J_t = 0`` (a row forced to ``0``: two boundary faces of one tet on
+different planes of one axis; or rows forced into dependent spaces: two singular edges of one tet
+along one axis) is a **conflict**: its constraints are dropped and it is reported (the seamless
+map cannot be valid there either: these are the tets that
+:meth:`~.seamless.SeamlessProblem.flat_tets` finds).
 
 Continuation (:data:`SCHEDULE`): rounds of ``(w_s, w_i)``, each a Newton solve from the previous
 round's coframes; AlgoHex's ``(1e4, 1e4) -> (1e3, 1e5) -> (1e2, 1e6) -> (1e1, 1e7) -> (0, 1e8) -> (0, 1e9)``.
@@ -91,7 +96,7 @@ import torch
 
 from ..dec import torsion as _torsion
 from ..tolerances import get_eps
-from .cut import TetCharts, edge_walks, face_corner_pairs, group_matrices
+from .cut import TetCharts, face_corner_pairs, group_matrices
 from .injective import DET_SAFE, PENALTY_ROUND, PENALTY_START, TetJacobians, _Barrier, _newton, _shifts
 
 __all__ = ["CornerComplex", "corner_complex", "quad_torsion", "torsion_energy", "smoothness_energy",
@@ -295,153 +300,92 @@ def smoothness_matrix(cc: CornerComplex) -> sp.csr_matrix:
 # ----------------------------------------------------------------------------- alignment
 @dataclass
 class CoframeSpace:
-    """The normalized coframes allowed by the alignment constraints: ``vec(J) = GZ y``.
+    """The normalized coframes that the seamless problem's constraints allow: ``vec(J) = GZ y + j0``.
 
     Attributes:
-        basis: ``(T, 3, 3, 3)`` float64, ``basis[t, i, :, :dims[t, i]]`` orthonormal columns that
-            span the allowed values of row ``i`` of ``J_t`` (the rest zero); dims: ``(T, 3)``.
-        GZ: ``(9T, m)`` CSR, ``m = dims.sum()``: the unknowns ``y`` of row ``(t, i)`` are consecutive.
-        conflicts: ``(k,)`` int64 the tets whose constraints admit no coframe with ``det J > 0``:
-            a row forced to ``0``, or rows forced into dependent spaces (``conflict_flat (k,)``
-            bool; e.g. two singular edges of one tet along one parameter axis: the tets that
-            :meth:`~.seamless.SeamlessProblem.flat_tets` finds collapsed). Their constraints are
-            dropped (every row free) and they are reported (:meth:`IntegrableFrames.gate`).
-        counts: constrained rows per kind (``boundary_rows``, ``edge_rows``), conflicts per kind.
+        basis: ``(T, 9, 9)`` float64, ``basis[t, :, :dims[t]]`` orthonormal columns spanning the
+            allowed ``vec(J_t)`` (row-major, entry ``(i, l)`` at ``3 i + l``; the rest zero);
+            dims: ``(T,)``.
+        j0: ``(T, 3, 3)`` the constant part (zero when every constraint is homogeneous, as
+            :func:`~.seamless.build_problem`'s are).
+        GZ: ``(9T, m)`` CSR, ``m = dims.sum()``: the unknowns ``y`` of tet ``t`` are consecutive.
+        conflicts: ``(k,)`` int64 the tets where every allowed coframe has ``det J = 0`` (a row
+            forced to ``0``, or rows forced into dependent spaces: the tets that
+            :meth:`~.seamless.SeamlessProblem.flat_tets` finds); their constraints are dropped
+            (``J_t`` free) and they are reported (:meth:`IntegrableFrames.gate`).
+        counts: ``constrained_tets`` (``dims < 9``), ``constraints`` (``sum 9 - dims``), ``conflicts``.
     """
 
     basis: np.ndarray
     dims: np.ndarray
+    j0: np.ndarray
     GZ: sp.csr_matrix
     conflicts: np.ndarray
-    conflict_flat: np.ndarray
     counts: dict = field(default_factory=dict)
 
     def project(self, J: np.ndarray) -> np.ndarray:
         """``y (m,)``: the orthogonal projection of normalized coframes ``J (T, 3, 3)`` on the space."""
-        y = np.einsum("tild,til->tid", self.basis, J)
-        return y.reshape(-1, 3)[self._mask()]
-
-    def _mask(self) -> np.ndarray:
-        return (np.arange(3)[None, :] < self.dims.reshape(-1)[:, None])
+        y = np.einsum("tkd,tk->td", self.basis, (J - self.j0).reshape(-1, 9))
+        return y[np.arange(9)[None, :] < self.dims[:, None]]
 
 
-def _edge_tet_axes(mesh, charts: TetCharts, edge_ids: np.ndarray, start_axis: np.ndarray):
-    """Every tet at each edge of ``edge_ids`` with the edge's parameter axis in that tet's chart:
-    ``start_axis`` in the walk's start tet (``charts.edge_start_tet``), carried by the transitions
-    of the faces the walk crosses (:class:`~.cut.EdgeWalks`). Returns ``(edge_pos, tet, axis)``
-    (``edge_pos`` indexes ``edge_ids``). Loops over the steps of the walks (the largest valence)."""
-    walks = edge_walks(mesh)
-    face_tets = mesh.face_tets.cpu().numpy()
-    G = group_matrices()
-    start = walks.start[edge_ids]
-    if np.any(start != charts.edge_start_tet[edge_ids]):  # pragma: no cover - one walk for both
-        raise RuntimeError("edge walks and charts disagree on the start tets")
-    pos = [np.arange(edge_ids.size)]
-    tet = [start]
-    ax = [np.asarray(start_axis, np.int64)]
-    lens = np.diff(walks.ptr)[edge_ids]
-    cur_ax = ax[0].copy()
-    for k in range(int(lens.max(initial=0))):  # loop over the steps of the walks
-        live = np.nonzero(lens > k)[0]
-        s = walks.ptr[edge_ids[live]] + k
-        f = walks.face[s]
-        R = G[charts.face_rot[f]]
-        R = np.where(walks.forward[s][:, None, None], R, np.transpose(R, (0, 2, 1)))  # chart from -> to
-        to = np.where(face_tets[f, 0] == walks.from_tet[s], face_tets[f, 1], face_tets[f, 0])
-        cur_ax[live] = np.abs(R[np.arange(live.size), :, cur_ax[live]]).argmax(1)
-        back = to == start[live]  # an interior walk closes at its start tet
-        pos.append(live[~back])
-        tet.append(to[~back])
-        ax.append(cur_ax[live][~back])
-    return np.concatenate(pos), np.concatenate(tet), np.concatenate(ax)
+_SAMPLES = 12  # random seamless maps per coframe space (the allowed space of a tet has dimension <= 9)
 
 
-def coframe_space(mesh, charts: TetCharts, prob) -> CoframeSpace:
-    """The alignment constraints of the module docstring, with the boundary, singular and feature
-    axes of the seamless problem ``prob`` (:func:`~.seamless.build_problem`), as per-row bases.
+def coframe_space(prob) -> CoframeSpace:
+    """The alignment constraints of the module docstring, read off the seamless problem ``prob``
+    (:func:`~.seamless.build_problem`) tet by tet: ``J_t = h (grad u_t) F_t`` of every seamless map
+    ``u`` (every value of the free unknowns) spans the allowed space of tet ``t``.
 
-    A row's constraint directions ``c`` (``J_t[i] . c = 0``, ``c = F_t^T a`` for a world direction
-    ``a``) are summed into their Gram matrix ``sum c c^T``; its eigenvectors with eigenvalues at most
-    ``get_eps("identity", float64)`` span the allowed row space."""
-    tets = mesh.tets.cpu().numpy()
-    edges = mesh.edges.cpu().numpy()
-    X = mesh.vertices.detach().cpu().double().numpy()
-    Fr = np.asarray(charts.frames, np.float64)
-    T = tets.shape[0]
-    gram = np.zeros((T, 3, 3, 3))  # per (tet, row): sum of c c^T
-    counts = {}
-
-    def add(t, i, a):  # constraint J_t[i] . (F_t^T a) = 0, a (k, 3) unit world vectors
-        c = np.einsum("kml,km->kl", Fr[t], a)
-        np.add.at(gram, (t, i), c[:, :, None] * c[:, None, :])
-
-    # boundary faces: row k is normal to the face (orthogonal to both tangents)
-    bfaces = mesh.boundary_faces.cpu().numpy()
-    if bfaces.size:
-        P = X[bfaces]
-        u = P[:, 1] - P[:, 0]
-        n = np.cross(u, P[:, 2] - P[:, 0])
-        u /= np.linalg.norm(u, axis=1, keepdims=True)
-        v = np.cross(n, u)
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
-        bt, bk = prob.boundary_tet, prob.boundary_axis
-        add(bt, bk, u)
-        add(bt, bk, v)
-    counts["boundary_rows"] = int(bfaces.shape[0])
-
-    # constrained singular and feature edges: in every tet at the edge, the transverse rows
-    sing = np.nonzero(charts.singular_edge & charts.edge_meshable)[0]
-    eids, axes = [sing], [charts.edge_axis[sing]]
-    fed = prob.feature_edges[prob.feature_constrained]
-    if fed.size:
-        eid, _ = mesh.edge_index(torch.as_tensor(fed[:, 0]), torch.as_tensor(fed[:, 1]))
-        eid = eid.cpu().numpy()
-        ft = charts.edge_start_tet[eid]
-        dpar = np.einsum("kji,kj->ki", Fr[ft], X[fed[:, 1]] - X[fed[:, 0]])
-        eids.append(eid)
-        axes.append(np.abs(dpar).argmax(1))  # build_problem's feature axis
-    eids, axes = np.concatenate(eids), np.concatenate(axes)
-    n_edge_rows = 0
-    if eids.size:
-        pos, t, k = _edge_tet_axes(mesh, charts, eids, axes)
-        d = X[edges[eids[pos], 1]] - X[edges[eids[pos], 0]]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        for s in (1, 2):
-            add(t, (k + s) % 3, d)
-        n_edge_rows = 2 * t.size
-    counts["edge_rows"] = int(n_edge_rows)
-
-    lam, vec = np.linalg.eigh(gram.reshape(-1, 3, 3))  # ascending
-    tol = get_eps("identity", torch.float64)
-    free = lam <= tol
-    # the allowed eigenvectors first (eigh sorts ascending, so they are the leading columns)
-    basis = np.where(free[:, None, :], vec, 0.0).reshape(T, 3, 3, 3)
-    dims = free.sum(1).reshape(T, 3)
-    zero_row = (dims == 0).any(1)
-    # rows whose allowed spaces are dependent: det J = 0 for every choice (a polynomial in the row
-    # coefficients: zero at three random points means zero, but with probability ~0)
+    ``grad u_t = U_t D_t`` (``U_t`` the corner differences, ``D_t = prob.tet_grad``) is linear in the
+    free unknowns, so the span of ``_SAMPLES`` random seamless maps' ``J_t`` is the whole allowed
+    space with probability 1; its orthonormal basis comes from their SVD (singular values at most
+    ``get_eps("identity", float64)`` times the largest are dropped). This is the boundary rows
+    parallel to the face normals, the rows across a singular or feature edge orthogonal to it (in
+    every tet at the edge, the axis carried by the transitions), and what these constraints imply
+    together (a tet edge between two corners on one boundary plane or one feature line); a tet
+    where every allowed ``J_t`` has ``det = 0`` (three random points of the space, each
+    ``|det| <= eps * prod |rows|``) is a conflict (:class:`CoframeSpace`)."""
+    if prob.tet_grad is None:
+        raise ValueError("coframe_space needs a SeamlessProblem from build_problem (tet_grad)")
+    T = prob.corner_var.shape[0]
+    M = prob.edge_length * prob.tet_grad @ np.asarray(prob.charts.frames, np.float64)  # J_t = U_t M_t
     rng = np.random.default_rng(0)
-    flat = ~zero_row
+    Y = rng.standard_normal((prob.elim.free.size, _SAMPLES))
+    x = prob.elim.Z @ Y  # (n, k): the homogeneous part
+    u = x[prob.corner_var]  # (T, 4, 3, k)
+    U = np.transpose(u[:, 1:] - u[:, :1], (0, 2, 1, 3))  # (T, i, m, k): corner differences
+    Js = np.einsum("timk,tml->tilk", U, M).reshape(T, 9, _SAMPLES)
+    z = prob.elim.z0[prob.corner_var]  # (T, 4, 3)
+    j0 = np.transpose(z[:, 1:] - z[:, :1], (0, 2, 1)) @ M
+    W, sig, _ = np.linalg.svd(Js, full_matrices=True)  # (T, 9, 9), (T, 9) descending
+    tol = get_eps("identity", torch.float64)
+    keep = sig > tol * np.maximum(sig[:, :1], np.finfo(float).tiny)
+    keep &= sig[:, :1] > 0
+    dims = keep.sum(1)
+    basis = np.where(keep[:, None, :], W, 0.0)  # the kept columns lead (singular values descend)
+    # flat: det J = 0 on the whole space (a cubic in the coefficients: zero at three random points)
+    flat = np.ones(T, bool)
     for _ in range(3):
-        J = np.einsum("tild,tid->til", basis, rng.standard_normal((T, 3, 3)))
+        J = np.einsum("tkd,td->tk", basis, rng.standard_normal((T, 9))).reshape(T, 3, 3) + j0
         scale = np.prod(np.linalg.norm(J, axis=2), axis=1)
         flat &= np.abs(np.linalg.det(J)) <= tol * np.maximum(scale, np.finfo(float).tiny)
-    bad = np.nonzero(zero_row | flat)[0]
-    basis[bad] = np.eye(3)[None, None]  # their constraints are dropped (reported)
-    dims[bad] = 3
-    r = np.repeat(np.arange(3 * T), 3)
-    c = np.tile(np.arange(3), 3 * T)
-    keep = c < dims.reshape(-1)[r]
-    off = np.concatenate([[0], np.cumsum(dims.reshape(-1))])
-    col = off[r[keep]] + c[keep]
-    b = basis.reshape(3 * T, 3, 3)
-    rows_ = 3 * r[keep][:, None] + np.arange(3)[None, :]  # J entry 9 t + 3 i + l = 3 (3 t + i) + l
-    vals = b[r[keep], :, c[keep]]  # (n, 3): component l of basis column c
-    GZ = sp.csr_matrix((vals.reshape(-1), (rows_.reshape(-1), np.repeat(col, 3))), shape=(9 * T, int(off[-1])))
-    counts["conflicts_zero_row"] = int(zero_row.sum())
-    counts["conflicts_flat"] = int(flat.sum())
-    return CoframeSpace(basis=basis, dims=dims, GZ=GZ, conflicts=bad.astype(np.int64), conflict_flat=flat[bad],
-                        counts=counts)
+    bad = np.nonzero(flat)[0]
+    basis[bad] = np.eye(9)  # their constraints are dropped (reported)
+    dims[bad] = 9
+    j0[bad] = 0.0
+    r = np.repeat(np.arange(T), 9)
+    c = np.tile(np.arange(9), T)
+    sel = c < dims[r]
+    off = np.concatenate([[0], np.cumsum(dims)])
+    col = off[r[sel]] + c[sel]
+    vals = basis[r[sel], :, c[sel]]  # (n, 9): column c of tet r's basis
+    rows_ = 9 * r[sel][:, None] + np.arange(9)[None, :]
+    GZ = sp.csr_matrix((vals.reshape(-1), (rows_.reshape(-1), np.repeat(col, 9))), shape=(9 * T, int(off[-1])))
+    GZ.eliminate_zeros()
+    counts = {"constrained_tets": int((dims < 9).sum()), "constraints": int((9 - dims).sum()),
+              "conflicts": int(bad.size)}
+    return CoframeSpace(basis=basis, dims=dims, j0=j0, GZ=GZ, conflicts=bad.astype(np.int64), counts=counts)
 
 
 # ----------------------------------------------------------------------------- the solve
@@ -570,16 +514,21 @@ def integrable_frames(mesh, charts: TetCharts, prob, *, schedule=SCHEDULE, max_i
     t_start = time.perf_counter()
     h = float(prob.edge_length)
     cc = corner_complex(mesh, charts, h)
-    space = coframe_space(mesh, charts, prob)
+    space = coframe_space(prob)
     K = torsion_matrix(cc)
     S = smoothness_matrix(cc)
     T = cc.n_tets
-    jac = TetJacobians(GZ=space.GZ, j0=np.zeros(9 * T), vol=cc.tet_weight)
-    # the penalties in the unknowns y: |K GZ y|^2 / 3T and |S GZ y|^2_W
+    jac = TetJacobians(GZ=space.GZ, j0=space.j0.reshape(-1), vol=cc.tet_weight)
+    # the penalties in the unknowns y: |K (GZ y + j0)|^2 / 3T and |S (GZ y + j0)|^2_W, as
+    # y^T P y - 2 q^T y (+ constants)
     KZ = (K @ space.GZ).tocsr()
     SZ = (S @ space.GZ).tocsr()
+    Wf = sp.diags(np.repeat(cc.face_weight, 9))
+    j0 = space.j0.reshape(-1)
     Pt = (KZ.T @ KZ).tocsr() / (3.0 * T)
-    Ps = (SZ.T @ sp.diags(np.repeat(cc.face_weight, 9)) @ SZ).tocsr()
+    qt = -(KZ.T @ (K @ j0)) / (3.0 * T)
+    Ps = (SZ.T @ Wf @ SZ).tocsr()
+    qs = -(SZ.T @ (Wf @ (S @ j0)))
     eye = np.broadcast_to(np.eye(3), (T, 3, 3))
     y = space.project(eye)
     start = _figures(cc, K, S, np.broadcast_to(np.eye(3), (T, 3, 3)).copy())
@@ -593,7 +542,7 @@ def integrable_frames(mesh, charts: TetCharts, prob, *, schedule=SCHEDULE, max_i
         history = []
         P = (ws * Ps + wi * Pt).tocsr()
         y, it, conv = _newton(jac, y, _CoframeBarrier(eps), free, max_iter=max_iter, tol=tol, backend=backend,
-                              history=history, rnd=("integrable", k), quad=(P, np.zeros(y.size)))
+                              history=history, rnd=("integrable", k), quad=(P, ws * qs + wi * qt))
         det = np.linalg.det(jac(y))
         eps = _shifts(det, PENALTY_ROUND)  # a tet that became positive loses its shift for good
         fig = _figures(cc, K, S, jac(y))
