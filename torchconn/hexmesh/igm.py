@@ -8,11 +8,14 @@ judged before the next (:class:`~.validity.Gate`):
    :meth:`.seamless.SeamlessProblem.flat_tets`), the charts and the cut (:mod:`.cut`), the
    constraints eliminated (:mod:`.seamless`). Passes when the singular graph meets LMFF's local
    conditions (:mod:`.meshability`) and no tet is flat.
-2. **seamless map** — the frame-fitting least squares with every integer relaxed; where it folds,
+2. **frames** (with ``integrable=True``) — integrable coframes near the field's, by a continuation
+   on the torsion of the coframes under the matched connection (:mod:`.integrable`); the seamless
+   map then fits them. Passes when no coframe is inverted and the alignment does not conflict.
+3. **seamless map** — the frame-fitting least squares with every integer relaxed; where it folds,
    the foldover-free solve (:mod:`.injective`: per-tet barrier, PSD-projected Newton). Snapped to
    the grid and checked exactly (:func:`~.validity.check_seamless`): no inverted or flat tet,
    seams, singular edges on parametric lines, boundary faces on parametric planes.
-3. **quantization** — from a seamless map with no inverted tet, every integer rounded by
+4. **quantization** — from a seamless map with no inverted tet, every integer rounded by
    injective moves (:func:`~.quantize.round_injective`: no tet ever folds; the tets the
    constraints flatten, which no map opens, are left out and stay flat); from one that folds,
    greedy rounding with the least-squares re-solves and stiffening (:func:`~.quantize.round_greedy`,
@@ -135,7 +138,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
                      straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
                      injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
-                     batch_error: float = 0.5, stiffening_iters: int = 10, stiffening_factor: float = 4.0,
+                     integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
+                     stiffening_factor: float = 4.0,
                      grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
     """The integer-grid map of a frame field, in gated stages (module docstring).
 
@@ -166,6 +170,11 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             singularities and features twice as far apart in integer units), at most
             ``refine_limit`` times; ``result.edge_length`` is then the edge length used
             (``stats["quantization"]["refined"]``: the factor).
+        integrable: stage 2, the integrable frames (:mod:`.integrable`): the seamless map fits
+            coframes made integrable by the torsion continuation instead of the rotation field
+            (``stats["integrable"]``: the torsion and the coframes' inverted tets per round;
+            ``gates["frames"]``); the map's ``energy*`` figures are then those of the coframe fit,
+            ``|grad u B^-1 - I|^2``.
         batch_error, stiffening_iters, stiffening_factor: of the greedy rounding and the
             stiffening (:mod:`.quantize`), used when the seamless map is not valid.
         grid_bits: the snapping grid (module docstring).
@@ -261,6 +270,19 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     timings["meshability_s"] = time.perf_counter() - t0
     gates = {"structure": structure_gate(mesh, mesh_report, flat, collapsed)}
 
+    # ------------------------------------------------------------------ 2. frames
+    targets = None
+    if integrable:
+        from .integrable import integrable_frames
+
+        t0 = time.perf_counter()
+        intf = integrable_frames(mesh, charts, prob, backend=backend)
+        targets = intf.targets()
+        prob = prob.with_targets(targets)
+        stats["integrable"] = intf.summary()
+        gates["frames"] = intf.gate()
+        timings["integrable_s"] = time.perf_counter() - t0
+
     # ------------------------------------------------------------------ 3. seamless map
     t0 = time.perf_counter()
     from .injective import DET_SAFE, TetJacobians, minimize_barrier
@@ -324,7 +346,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
                 # scaled by 2 (the constraints are homogeneous), whose entities are twice as far apart
                 refine *= 2
                 h_q = h / refine
-                prob = build_problem(mesh, charts, h_q, features=features, feature_max_deg=feature_max_deg)
+                prob = build_problem(mesh, charts, h_q, features=features, feature_max_deg=feature_max_deg,
+                                     targets=targets)
                 jac = TetJacobians.of_problem(prob)
                 A, b, c = prob.energy_matrices()
                 y_start = y_s * refine

@@ -28,12 +28,15 @@ Constraints (rows of :class:`~.elimination.ConstraintRows`, eliminated exactly)
 Objective: ``E(u) = sum_t vol_t || grad u_t (h F_t) - I ||_F^2`` with ``F_t`` the combed tet frame
 and ``h`` the hex edge length (``grad u_t`` is exact for the linear map on tet ``t``); after the
 elimination ``u = Z y + z0`` it is a quadratic in the free unknowns ``y`` whose normal equations
-``A y = b`` are solved by one sparse Cholesky factorization (:mod:`.solver`).
+``A y = b`` are solved by one sparse Cholesky factorization (:mod:`.solver`). With per-tet target
+coframes ``B_t`` (the integrable frames of :mod:`.integrable`; ``targets=`` or
+:meth:`SeamlessProblem.with_targets`) the rows are ``grad u_t B_t^-1 - I`` instead: ``B_t = F_t^T / h``
+is the default. The constraints (and their axes) stay those of the frames.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -90,6 +93,10 @@ class SeamlessProblem:
             close enough to a parameter axis to be constrained; ``corner_vertices (C,)``.
         pinned_vertex: the pinned vertex.
         counts: sizes, for reports.
+        tet_grad: ``(T, 3, 3)`` the gradients of the barycentric differences (``grad u_t = U_t^T D_t``
+            with ``U_t`` the corner differences ``u_m - u_0``): what :meth:`with_targets` rebuilds ``G`` from.
+        targets: ``(T, 3, 3)`` the target coframes ``B_t`` of the objective, ``None`` for the frames'
+            ``F_t^T / h``.
     """
 
     charts: TetCharts
@@ -110,6 +117,8 @@ class SeamlessProblem:
     corner_vertices: np.ndarray
     pinned_vertex: int
     counts: dict = field(default_factory=dict)
+    tet_grad: np.ndarray | None = field(default=None, repr=False)
+    targets: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def free_is_int(self) -> np.ndarray:
@@ -130,6 +139,21 @@ class SeamlessProblem:
         b = -(GZ.T @ (W @ r0))
         c = float(r0 @ (W @ r0))
         return A, b, c
+
+    def with_targets(self, targets) -> "SeamlessProblem":
+        """The same problem (unknowns, constraints, elimination) fitting target coframes ``targets
+        (T, 3, 3)`` (rows: parameter gradients in world space, in each tet's chart; e.g.
+        :attr:`.integrable.IntegrableFrames.coframes`): objective rows ``grad u_t B_t^-1 - I``.
+
+        Raises:
+            ValueError: a shape other than ``(T, 3, 3)``, non-finite entries, or a coframe whose
+            determinant is not positive (naming the first tets).
+        """
+        if self.tet_grad is None:
+            raise ValueError("this SeamlessProblem was built without tet_grad; rebuild it with build_problem")
+        B = _check_targets(targets, self.tet_grad.shape[0])
+        G = _objective_rows(self.tet_grad @ np.linalg.inv(B))
+        return replace(self, G=G, targets=B)
 
     def _corner_rows(self) -> np.ndarray:
         return self.corner_var.reshape(-1)
@@ -181,8 +205,36 @@ class SeamlessProblem:
         return idx, collapsed, lf
 
 # ----------------------------------------------------------------------------- building
+def _check_targets(targets, T: int) -> np.ndarray:
+    B = np.asarray(targets.detach().cpu() if isinstance(targets, torch.Tensor) else targets, np.float64)
+    if B.shape != (T, 3, 3):
+        raise ValueError(f"targets must have shape (T, 3, 3) = ({T}, 3, 3), got {B.shape}")
+    bad = np.nonzero(~np.isfinite(B).all((1, 2)))[0]
+    if bad.size:
+        raise ValueError(f"targets have non-finite entries (tets {bad[:5].tolist()})")
+    bad = np.nonzero(~(np.linalg.det(B) > 0))[0]
+    if bad.size:
+        raise ValueError(f"targets must have positive determinants; {bad.size} do not (tets {bad[:5].tolist()})")
+    return B
+
+
+def _objective_rows(M: np.ndarray) -> sp.csr_matrix:
+    """``G (9T, 12T)``: row ``9t + 3i + k`` of ``grad u_t M_t`` (``M (T, 3, 3)``, rows ``m`` for corner
+    ``m + 1``) over the corner unknowns ``12 t + 3 k' + i``."""
+    T = M.shape[0]
+    coef = np.concatenate([-M.sum(1, keepdims=True), M], 1)  # (T, 4, 3): corner k', axis k
+    t_idx = np.arange(T)[:, None, None, None]
+    i_idx = np.arange(3)[None, :, None, None]
+    k_idx = np.arange(3)[None, None, :, None]
+    kp = np.arange(4)[None, None, None, :]
+    rr = np.broadcast_to(9 * t_idx + 3 * i_idx + k_idx, (T, 3, 3, 4))
+    cc = np.broadcast_to(12 * t_idx + 3 * kp + i_idx, (T, 3, 3, 4))
+    vv = np.broadcast_to(np.transpose(coef, (0, 2, 1))[:, None, :, :], (T, 3, 3, 4))
+    return sp.csr_matrix((vv.reshape(-1), (rr.reshape(-1), cc.reshape(-1))), shape=(9 * T, 12 * T))
+
+
 def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool = True,
-                  feature_max_deg: float = 30.0) -> SeamlessProblem:
+                  feature_max_deg: float = 30.0, targets=None) -> SeamlessProblem:
     """Unknowns, constraints (eliminated) and objective of the seamless map (module docstring).
 
     Args:
@@ -193,6 +245,8 @@ def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool
         feature_max_deg: feature edges whose parametric direction is farther than this from
             every axis are left free (the field does not follow them; forcing them would fold
             the map); their number is in ``counts``.
+        targets: ``(T, 3, 3)`` target coframes ``B_t`` (:meth:`SeamlessProblem.with_targets`);
+            ``None``: the frames' ``F_t^T / h``.
     """
     if not (isinstance(edge_length, (int, float)) and math.isfinite(edge_length) and edge_length > 0):
         raise ValueError(f"edge_length must be a positive finite number, got {edge_length!r}")
@@ -337,18 +391,14 @@ def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool
     Xt = X[tets]  # (T, 4, 3)
     Em = np.transpose(Xt[:, 1:] - Xt[:, :1], (0, 2, 1))  # (T, 3, 3) columns x_m - x_0
     D = np.linalg.inv(Em)  # (T, 3, 3): grad of the barycentric-difference coordinates
-    M = D @ frames * h  # (T, 3, 3), rows m (corner m+1), columns k (frame axis)
-    coef = np.concatenate([-M.sum(1, keepdims=True), M], 1)  # (T, 4, 3): corner k', axis k
+    if targets is None:
+        M = D @ frames * h  # (T, 3, 3), rows m (corner m+1), columns k (frame axis)
+    else:
+        targets = _check_targets(targets, T)
+        M = D @ np.linalg.inv(targets)
     vol = np.abs(np.linalg.det(Em)) / 6.0
     # row 9t + 3i + k, column 12t + 3k' + i (corner-major unknowns of corner_var's order)
-    t_idx = np.arange(T)[:, None, None, None]
-    i_idx = np.arange(3)[None, :, None, None]
-    k_idx = np.arange(3)[None, None, :, None]
-    kp = np.arange(4)[None, None, None, :]
-    rr = np.broadcast_to(9 * t_idx + 3 * i_idx + k_idx, (T, 3, 3, 4))
-    cc = np.broadcast_to(12 * t_idx + 3 * kp + i_idx, (T, 3, 3, 4))
-    vv = np.broadcast_to(np.transpose(coef, (0, 2, 1))[:, None, :, :], (T, 3, 3, 4))
-    G = sp.csr_matrix((vv.reshape(-1), (rr.reshape(-1), cc.reshape(-1))), shape=(9 * T, 12 * T))
+    G = _objective_rows(M)
     g = np.broadcast_to(np.eye(3).reshape(1, 9), (T, 9)).reshape(-1).copy()
 
     counts = {
@@ -363,4 +413,5 @@ def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool
     return SeamlessProblem(charts=charts, edge_length=h, corner_copy=corner_copy, n_copies=int(n_copies), n_vars=n,
                            var_kind=var_kind, elim=elim, G=G, g=g, vol=vol, corner_var=corner_var,
                            boundary_axis=baxis, boundary_tet=bt, feature_edges=fedges, feature_constrained=fcon,
-                           corner_vertices=corners, pinned_vertex=pinned_vertex, counts=counts)
+                           corner_vertices=corners, pinned_vertex=pinned_vertex, counts=counts, tet_grad=D,
+                           targets=targets)

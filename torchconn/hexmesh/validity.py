@@ -51,7 +51,7 @@ STRUCTURE_CHECKS = ("complex_edges", "zipper_nodes", "invalid_nodes", "surface_v
 """The structure gate: LMFF's local conditions (:mod:`.meshability`) and the tets the constraints
 flatten (:meth:`.seamless.SeamlessProblem.flat_tets`: ``collapsed_tets`` have two corners sent to
 one point, ``flat_tets`` the others, left after the splits)."""
-STAGES = ("structure", "seamless", "quantization", "extraction")
+STAGES = ("structure", "frames", "seamless", "quantization", "extraction")
 """The gated stages of the hex pipeline, in order."""
 _WHERE = 10  # elements listed per failing check
 
