@@ -285,17 +285,27 @@ def test_group_helpers_are_consistent():
     assert _TYP[0] == 0 and (_TYP[1:] > 0).all() and G.shape == (24, 3, 3)
 
 
-def test_benchmark_gives_the_map_its_matchings_and_restores_the_search():
-    from benchmarks.structures import given_matchings, summarize
-    from torchconn.hexmesh import hex_mesh, straighten
+def test_map_stage_follows_given_matchings_and_repairs_its_own():
+    from benchmarks.structures import summarize
+    from torchconn.hexmesh import hex_mesh
 
     mesh, F, (p, q, v) = hairpin()
     fm, _ = zip_zipper(mesh, F, None, v)
-    orig = straighten.straighten_singular_edges
-    with given_matchings(fm):
-        r = hex_mesh(mesh, F, extract=False, quality=False)
-    assert straighten.straighten_singular_edges is orig
+    r = hex_mesh(mesh, F, face_match=fm, extract=False, quality=False)
     assert r.map.stats["straighten"]["given"] and r.meshability.meshable  # the zipper is gone in the map's graph
+    assert "repair" not in r.map.stats  # given matchings are followed as they are
+    # the map stage's own repair removes the same zipper (the search alone leaves it)
+    off = hex_mesh(mesh, F, straighten=False, repair=False, extract=False, quality=False)
+    on = hex_mesh(mesh, F, straighten=False, repair=True, extract=False, quality=False)
+    assert off.meshability.counts()["zipper_nodes"] == 1 and not off.gates["structure"].passed
+    rep = on.map.stats["repair"]
+    assert rep["before"]["zipper_nodes"] == 1 and rep["after"]["zipper_nodes"] == 0 and on.meshability.meshable
+    assert on.gates["structure"].counts["repair_moves"] == sum(rep["moves"].values()) >= 1
+    assert on.metrics()["map"]["repair"]["after"]["zipper_nodes"] == 0  # hex_metrics.json says what was repaired
+    with pytest.raises(ValueError, match="face_match must have shape"):
+        hex_mesh(mesh, F, face_match=fm[:-1], extract=False)
+    with pytest.raises(ValueError, match="24 elements"):
+        hex_mesh(mesh, F, face_match=np.full_like(fm, 30), extract=False)
     rec = {"kind": "s", "before": {"meshable": False, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 1,
                                    "invalid_nodes": 0, "surface_valence2_edges": 0},
            "after": {"meshable": True, "touching_edges": 0, "complex_edges": 0, "zipper_nodes": 0,

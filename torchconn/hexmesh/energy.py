@@ -207,7 +207,7 @@ class MapEnergy:
         mesh, edge_length, problem (:class:`~.seamless.SeamlessProblem`), charts
         (:class:`~.cut.TetCharts`), solver (:class:`~.sparse.SPDSolve` of ``A``), volume (the
         total), edge_matchings (``(E,)`` when built by :meth:`from_vertex_frames`, else ``None``),
-        timings (construction, seconds).
+        timings (the construction's steps, in s).
 
     Raises:
         ValueError: frames of the wrong shape, dtype, device or not rotations; a non-positive

@@ -3,8 +3,10 @@
 :func:`integer_grid_map` runs HEXMESH.md steps 1-6 on a ``TetMesh`` and per-tet frames, each stage
 judged before the next (:class:`~.validity.Gate`):
 
-1. **structure** — the face matchings straightened (:mod:`.straighten`), edges split so that no
-   tet is flattened by the constraints (:mod:`.split`; the flat tets are found exactly,
+1. **structure** (:func:`~.structure.map_structure`) — the face matchings straightened
+   (:mod:`.straighten`) and, with ``repair=True``, repaired until LMFF's conditions are gone
+   (:mod:`.repair`), or given (``face_match=``); edges split so that no tet is flattened by the
+   constraints (:mod:`.split`; the flat tets are found exactly,
    :meth:`.seamless.SeamlessProblem.flat_tets`), the charts and the cut (:mod:`.cut`), the
    constraints eliminated (:mod:`.seamless`). Passes when the singular graph meets LMFF's local
    conditions (:mod:`.meshability`) and no tet is flat.
@@ -36,13 +38,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
-from .cut import TetCharts, group_matrices, tet_charts
+from .cut import TetCharts, group_matrices
 from .inputs import tet_frames_of
 from .quantize import param_volumes, round_greedy, round_injective, solve_fixed, stiffen
 from .seamless import SeamlessProblem, build_problem, default_edge_length
-from .validity import Gate, MapValidity, check_map, check_seamless, structure_gate
+from .structure import map_structure
+from .validity import Gate, MapValidity, check_map, check_seamless
 
 __all__ = ["IntegerGridMap", "integer_grid_map", "GRID_BITS"]
 
@@ -119,23 +121,9 @@ class IntegerGridMap:
         return first_failed(self.gates)
 
 
-def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np.ndarray, np.ndarray]:
-    """``(keep, line_keep)`` ``(E,)`` bool: edges whose midpoint would be constrained (boundary,
-    singular, feature edges), and those whose midpoint would stay on their ends' line (singular
-    and feature edges)."""
-    line_keep = charts.singular_edge.copy()
-    fe = prob.feature_edges
-    if fe.shape[0]:
-        eid, _ = mesh.edge_index(torch.as_tensor(fe[:, 0]), torch.as_tensor(fe[:, 1]))
-        line_keep[eid.cpu().numpy()] = True
-    keep = line_keep.copy()
-    bfe = mesh.face_edges.cpu().numpy()[mesh.boundary_face_index.cpu().numpy()].reshape(-1)
-    keep[bfe] = True
-    return keep, line_keep
-
-
-def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straighten: bool = True,
-                     straighten_boundary: bool = True, touch_rounds: int = 0, split: bool = True,
+def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_match=None, straighten: bool = True,
+                     straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = False,
+                     repair_rounds: int = 30, split: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
                      injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
@@ -149,11 +137,17 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
             ``(T, 3, 3)`` per tet or ``(V, 3, 3)`` per vertex (:func:`~.inputs.tet_frames_of`).
         edge_length: the hex edge length ``h`` (default :func:`~.seamless.default_edge_length`:
             half the mean edge length of ``mesh``).
+        face_match: ``(F,)`` face matchings (indices into the 24 elements of O) to follow as
+            they are: no search, no repair (e.g. a field's matchings repaired beforehand).
         straighten: repair the face matchings so that singular edges run along their turn axis
             (:func:`~.straighten.straighten_singular_edges`).
         straighten_boundary: the search may also change faces with a boundary edge.
         touch_rounds: rounds of "split the singular edges that touch the boundary about a
             tangent axis, straighten again" (0: none).
+        repair: after the search, repair the singular graph until LMFF's conditions are gone
+            (:func:`~.repair.repair_singular_graph`, at most ``repair_rounds`` rounds; its edge
+            splits refine the mesh); its :class:`~.repair.RepairReport` is in
+            ``stats["repair"]`` and the structure gate says what it left.
         split: split the edges that would collapse or flatten (:func:`~.split.split_for_map`);
             the map is then of the refined mesh (``result.mesh``).
         features: constrain feature curves and CAD corners (:func:`~.seamless.build_problem`).
@@ -204,71 +198,16 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
     stats = {}
 
     # ------------------------------------------------------------------ 1. structure
-    t0 = time.perf_counter()
     Fr = tet_frames_of(mesh, frames)
     h = default_edge_length(mesh) if edge_length is None else float(edge_length)
-    parent = np.arange(mesh.n_tets)
-    splits, sinfo = {}, {}
-    face_match = None
-    if straighten:
-        from .split import split_pairs
-        from .straighten import straighten_singular_edges, touching_edges
-
-        face_match, sinfo = straighten_singular_edges(mesh, Fr, boundary_moves=straighten_boundary)
-        sinfo["touch_splits"] = 0
-        for _ in range(touch_rounds):
-            bad = touching_edges(mesh, Fr, face_match)
-            if not bad.size:
-                break
-            # split them: the midpoints open routes for the curve off the boundary vertex
-            mesh, Fr, par, face_match = split_pairs(mesh, Fr, mesh.edges[bad].cpu().numpy(), face_match)
-            parent = parent[par]
-            sinfo["touch_splits"] += int(bad.size)
-            face_match, again = straighten_singular_edges(mesh, Fr, face_match, boundary_moves=straighten_boundary)
-            sinfo["moves"] += again["moves"]
-            for key in ("edge_cost_after", "singular_after", "across_after", "complex_after"):
-                sinfo[key] = again[key]
-        sinfo["touching_after"] = int(touching_edges(mesh, Fr, face_match).size)
-    timings["straighten_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    if split:
-        from .split import split_for_map
-
-        sr = split_for_map(mesh, Fr, face_match)
-        mesh, Fr, splits, face_match = sr.mesh, sr.tet_frames, dict(sr.splits), sr.face_match
-        parent = parent[sr.parent_tet]
-    timings["split_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    splits["flat"] = 0
-    sub = {"charts": 0.0, "problem": 0.0, "flat": 0.0}
-    for rnd in range(flat_rounds + 1):
-        t1 = time.perf_counter()
-        charts = tet_charts(mesh, Fr, face_match)
-        t2 = time.perf_counter()
-        prob = build_problem(mesh, charts, h, features=features, feature_max_deg=feature_max_deg)
-        t3 = time.perf_counter()
-        flat, collapsed, line_face = prob.flat_tets()
-        sub["charts"] += t2 - t1
-        sub["problem"] += t3 - t2
-        sub["flat"] += time.perf_counter() - t3
-        if rnd == flat_rounds or not (~collapsed).any() or not split:
-            break
-        from .split import open_flat_tets
-
-        keep, line_keep = _flat_keep_edges(mesh, charts, prob)
-        mesh, Fr, par, face_match, n = open_flat_tets(mesh, Fr, flat[~collapsed], line_face[~collapsed], face_match,
-                                                      keep, line_keep)
-        parent = parent[par]
-        splits["flat"] += n["edge"]
-        splits["flat_centroid"] = splits.get("flat_centroid", 0) + n["centroid"]
-    timings["charts_and_constraints_s"] = time.perf_counter() - t0
-    timings.update({f"charts_and_constraints.{k}_s": v for k, v in sub.items()})
-    from .meshability import meshability_report
-
-    t0 = time.perf_counter()
-    mesh_report = meshability_report(mesh, charts.frames, charts=charts)
-    timings["meshability_s"] = time.perf_counter() - t0
-    gates = {"structure": structure_gate(mesh, mesh_report, flat, collapsed)}
+    st = map_structure(mesh, Fr, h, face_match=face_match, straighten=straighten,
+                       straighten_boundary=straighten_boundary, touch_rounds=touch_rounds, repair=repair,
+                       repair_rounds=repair_rounds, split=split, features=features, feature_max_deg=feature_max_deg,
+                       flat_rounds=flat_rounds, progress=progress)
+    mesh, parent, charts, prob = st.mesh, st.parent_tet, st.charts, st.problem
+    flat, mesh_report = st.flat, st.meshability
+    timings.update(st.timings)
+    gates = {"structure": st.gate}
 
     # ------------------------------------------------------------------ 2. frames
     targets = None
@@ -402,8 +341,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, straight
         gates["quantization"].counts["refined"] = qstats["refined"]
     timings["validity_s"] = time.perf_counter() - t0
     stats.update(prob.counts)
-    stats["splits"] = splits
-    stats["straighten"] = sinfo
+    stats.update(st.stats)
     stats["quantization"] = qstats
     stats["solver"] = backend
     stats["timings"] = timings
