@@ -274,9 +274,10 @@ def test_two_close_singular_lines_greedy_rounding_folds_the_injective_one_keeps_
 
 
 @pytest.mark.slow  # a HexMe model through the map stage: ~15-40 s
-def test_a_hexme_field_whose_least_squares_map_folds_gets_a_valid_seamless_map_and_igm():
-    """s03c (the pentagon) with the SH field: its least-squares map folds; the foldover-free solve
-    untangles it and the injective rounding keeps it valid."""
+def test_a_hexme_model_gets_a_valid_seamless_map_and_an_injectively_rounded_igm():
+    """s03c (the pentagon) with the SH field: a valid seamless map (untangled by the foldover-free
+    solve where the least squares fold: with the matching search's boundary moves they no longer
+    do on this model) and the injective rounding keeps it valid."""
     from pathlib import Path
 
     pytest.importorskip("gmsh", reason="CAD input needs gmsh (pip install 'torchconn[cad]')")
@@ -290,8 +291,9 @@ def test_a_hexme_field_whose_least_squares_map_folds_gets_a_valid_seamless_map_a
     mesh = load_hexme(p, dtype=torch.float64)
     frames = design(mesh, "sh_baseline").vertex_frames
     m = integer_grid_map(mesh, frames)
-    assert m.stats["seamless"]["inverted_least_squares"] > 0  # the least-squares map folds
-    assert m.stats["seamless"]["injective"]["inverted_after"] == 0
+    inj = m.stats["seamless"]["injective"]
+    assert (inj is None) == (m.stats["seamless"]["inverted_least_squares"] == 0)
+    assert inj is None or inj["inverted_after"] == 0
     assert m.gates["seamless"].passed and m.validity.valid, m.validity.reasons
     assert m.stats["quantization"]["method"] == "injective"
 
