@@ -218,7 +218,7 @@ def test_connection_candidates_repair(cyl):
 
 def test_repair_removes_complex_faces_on_a_hexme_model():
     """HexMe s06c (dodecahedron): the SH field's 10 complex faces survive every quality path from the
-    SH and MBO fields (docs/results/hexme.md); the repaired candidates have almost none, and one of them
+    SH and MBO fields (2026-11-25: docs/results/hexme.md at commit f4941d1); the repaired candidates have almost none, and one of them
     is the proxies' choice."""
     if not (DATA_DIR / "hexme" / "meta" / "s06c_dodecahedron.yaml").is_file():
         pytest.skip(f"HexMe parameter files not found in {DATA_DIR / 'hexme'} (the shared data is missing)")

@@ -39,7 +39,8 @@ Constraints (:class:`~torchconn.frames.constraints.BoundaryConstraint`), two pat
 frames' own: the frames follow a singular structure chosen elsewhere (the repair of
 :mod:`torchconn.frames.structure`).
 
-Measured on the 35 HexMe ``c`` meshes (``docs/results/hexme.md``, ``studies/frame_quality.py``): the
+Measured on the 35 HexMe ``c`` meshes (2026-11-25: ``docs/results/hexme.md`` at commit f4941d1 in git history,
+``studies/frame_quality.py``): the
 soft path gives the lowest energies but lets the tangent drift where a singular curve meets a
 feature curve; the tangent path holds the curves; the checkpoints of both are candidates of
 :func:`~torchconn.frames.polish.connection_candidates`.

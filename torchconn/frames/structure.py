@@ -27,7 +27,8 @@ The frames then follow the prescribed matchings by :func:`~torchconn.frames.refi
 result a candidate (kind ``"repaired"``) and runs the quality paths from it, scored like every
 other candidate.
 
-Measurements: docs/results/hexme.md.
+Measurements (2026-11-25, of a default since superseded): ``docs/results/hexme.md`` at commit f4941d1
+(git history).
 """
 from __future__ import annotations
 
