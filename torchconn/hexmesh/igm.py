@@ -123,7 +123,7 @@ class IntegerGridMap:
 
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_match=None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = False,
-                     repair_rounds: int = 30, split: bool = True,
+                     repair_rounds: int = 30, split: bool = True, collapse: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
                      injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
@@ -150,6 +150,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
             ``stats["repair"]`` and the structure gate says what it left.
         split: split the edges that would collapse or flatten (:func:`~.split.split_for_map`);
             the map is then of the refined mesh (``result.mesh``).
+        collapse: collapse the tet edges that the constraints send to one point (collapsed tets,
+            :func:`~.collapse.collapse_edges`): the map's mesh then has fewer vertices.
         features: constrain feature curves and CAD corners (:func:`~.seamless.build_problem`).
         feature_max_deg: see :func:`~.seamless.build_problem`.
         flat_rounds: rounds of "split an edge of every tet the constraints flatten (but do not
@@ -202,7 +204,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     h = default_edge_length(mesh) if edge_length is None else float(edge_length)
     st = map_structure(mesh, Fr, h, face_match=face_match, straighten=straighten,
                        straighten_boundary=straighten_boundary, touch_rounds=touch_rounds, repair=repair,
-                       repair_rounds=repair_rounds, split=split, features=features, feature_max_deg=feature_max_deg,
+                       repair_rounds=repair_rounds, split=split, collapse=collapse, features=features,
+                       feature_max_deg=feature_max_deg,
                        flat_rounds=flat_rounds, progress=progress)
     mesh, parent, charts, prob = st.mesh, st.parent_tet, st.charts, st.problem
     flat, mesh_report = st.flat, st.meshability

@@ -98,7 +98,7 @@ def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np
 
 def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, straighten: bool = True,
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
-                  repair_rounds: int = 30, split: bool = True, features: bool = True, feature_max_deg: float = 30.0,
+                  repair_rounds: int = 30, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = 30.0,
                   flat_rounds: int = 8, progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 
@@ -110,6 +110,9 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         repair: after the search, repair LMFF's conditions (:func:`~.repair.repair_singular_graph`)
             with ``repair_rounds`` rounds at most.
         split, features, feature_max_deg, flat_rounds: as :func:`~.igm.integer_grid_map`.
+        collapse: in the flat-tet rounds, collapse the tet edges that the constraints send to one
+            point (:func:`~.collapse.collapse_edges`; refused where it would invert a tet or move
+            a pinned vertex), before splitting the other flat tets.
         progress: a progress bar over the repair's rounds.
 
     Returns:
@@ -178,7 +181,22 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         sub["charts"] += t2 - t1
         sub["problem"] += t3 - t2
         sub["flat"] += time.perf_counter() - t3
-        if rnd == flat_rounds or not (~collapsed).any() or not split:
+        if rnd == flat_rounds or not split:
+            break
+        if collapse and collapsed.any():
+            from .collapse import collapse_edges
+            from .cut import face_matchings
+
+            if face_match is None:
+                face_match = face_matchings(mesh, Fr)
+            pairs = _collapsed_pairs(mesh, prob, flat[collapsed])
+            mesh, Fr, par, face_match, n = collapse_edges(mesh, Fr, pairs, face_match)
+            parent = parent[par]
+            splits["collapsed"] = splits.get("collapsed", 0) + n["collapsed"]
+            splits["collapse_refused"] = splits.get("collapse_refused", 0) + n["refused"]
+            if n["collapsed"]:
+                continue  # the charts and the problem of the new mesh
+        if not (~collapsed).any():
             break
         from .split import open_flat_tets
 
@@ -206,6 +224,22 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
     return Structure(mesh=mesh, tet_frames=Fr, parent_tet=parent, face_match=face_match, charts=charts, problem=prob,
                      flat=flat, collapsed=collapsed, line_face=line_face, meshability=report, gate=gate, repair=rep,
                      stats=stats, timings=timings)
+
+
+def _collapsed_pairs(mesh, prob: SeamlessProblem, tets: np.ndarray, seed: int = 0) -> np.ndarray:
+    """``(k, 2)`` the vertex pairs of the collapsed tets ``tets`` that the constraints send to one
+    point (equal corner parameters at random integer unknowns, as
+    :meth:`~.seamless.SeamlessProblem.flat_tets` decides; two samples)."""
+    rng = np.random.default_rng(seed)
+    T = mesh.tets.cpu().numpy()[tets]
+    pa, pb = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
+    same = np.ones((tets.size, 6), bool)
+    for _ in range(2):
+        uvw = prob.corner_params(rng.integers(-1024, 1025, size=prob.elim.free.size).astype(np.float64))[tets]
+        same &= (uvw[:, pa] == uvw[:, pb]).all(-1)
+    t, k = np.nonzero(same)
+    pairs = np.sort(np.stack([T[t, pa[k]], T[t, pb[k]]], 1), axis=1)
+    return np.unique(pairs, axis=0)
 
 
 def _repair_sentence(rep) -> str:
