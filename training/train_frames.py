@@ -168,7 +168,7 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
 def design_options(cfg) -> dict:
     """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values); the
     connection method's ``weights`` gain ``map`` = ``cfg.map_weight`` (the hex stage's term that
-    :func:`torchconn.hexmesh.field.design_for_hex` injects)."""
+    :func:`torchconn.hexmesh.choose.design_for_hex` injects)."""
     out = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
            for k in method_options(cfg.method)}
     if "weights" in out and "map_weight" in cfg:
@@ -221,7 +221,7 @@ def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
         io_utils.save_checkpoint(ckpt_path, {**state, "fingerprint": fp, "config": config})
 
     connection = cfg.method == "connection"
-    from torchconn.hexmesh.field import design_for_hex
+    from torchconn.hexmesh.choose import design_for_hex
 
     result = design_for_hex(mesh, cfg.method, select=str(cfg.select), select_candidates=int(cfg.select_candidates),
                             progress=bool(cfg.progress), seed=int(cfg.seed), state=ckpt if connection else None,

@@ -17,7 +17,7 @@ design() -> writers``); nothing is written to disk. Methods:
   Every candidate descends from a connection optimization; the SH field is the yardstick of the
   proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
   field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
-  hex meshes the candidates make, :func:`torchconn.hexmesh.field.hex_chooser`);
+  hex meshes the candidates make, :func:`torchconn.hexmesh.choose.hex_chooser`);
   ``metrics["chosen"]`` says which and why, and lists every candidate;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
@@ -357,7 +357,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
             :class:`~torchconn.frames.polish.Candidate` s (default
             :func:`~torchconn.frames.polish.choose_by_proxies`); e.g.
-            :func:`torchconn.hexmesh.field.hex_chooser` chooses by the hex meshes they make.
+            :func:`torchconn.hexmesh.choose.hex_chooser` chooses by the hex meshes they make.
         extra_terms: ``{name: factory}`` extra loss terms: ``factory(mesh, start_frames)`` returns
             ``term(edge_rot, frames) -> 0-dim tensor``, weighted by ``weights[name]`` (e.g.
             :class:`torchconn.hexmesh.energy.MapEnergy`, the seamless map's fitting energy).

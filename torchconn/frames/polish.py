@@ -13,7 +13,7 @@ proxy score (:func:`quality_score` against a reference field's metrics, the SH f
 of mean angle, Dirichlet energy and complex-type singular faces). :func:`choose_by_proxies` is
 the default choice among them (those within the feature-curve bound first, then the lowest
 score); the jobs choose by the hex meshes the candidates make
-(:func:`torchconn.hexmesh.field.hex_chooser`).
+(:func:`torchconn.hexmesh.choose.hex_chooser`).
 """
 from __future__ import annotations
 
