@@ -15,7 +15,7 @@ Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
    + feature`` with the config's weights, on the mesh's
    :class:`~torchconn.frames.constraints.BoundaryConstraint`; Adam or L-BFGS with a cosine
    schedule (:func:`~torchconn.frames.solver.optimize`).
-4. Candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized fields, the
+4. Candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized fields, the
    L-BFGS quality paths from them and the singular-structure repair; the returned one is chosen by
    the proxies (``select=proxies``) or by the hex meshes they make (``select=hex``).
 5. Metrics (:mod:`~torchconn.frames.metrics`) and invariants: Bianchi residuals of the connection

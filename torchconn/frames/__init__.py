@@ -4,8 +4,8 @@ Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-h
 Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
 :mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
 parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
-:mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.structure`
-(the singular-structure search over edge matchings), :mod:`.polish` (the candidates of the connection
+:mod:`.solver` (schedule, optimizer, loop), :mod:`.quality_paths` (the L-BFGS quality paths), :mod:`.matching_search`
+(the singular-structure search over edge matchings), :mod:`.candidates` (the candidates of the connection
 method and their proxy choice), :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.export` (VTU files:
 :func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces and curves),
 :mod:`.formats` (``.fra``, mouette's ``.frame``), :mod:`.design` (the whole method in one call:

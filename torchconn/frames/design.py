@@ -11,9 +11,9 @@ design() -> writers``); nothing is written to disk. Methods:
   (smoothness, tie, symmetric flatness, √R torsion through the matchings, the averaged covariant
   exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
   energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`;
-  then the candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized
-  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.refine`)
-  and the singular-structure repair (:mod:`~torchconn.frames.structure`) of the best of them.
+  then the candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized
+  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.quality_paths`)
+  and the singular-structure repair (:mod:`~torchconn.frames.matching_search`) of the best of them.
   Every candidate descends from a connection optimization; the SH field is the yardstick of the
   proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
   field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
@@ -61,7 +61,7 @@ from .loss import ALIGN_KINDS, FrameFieldLoss
 from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
-from .polish import choose_by_proxies, connection_candidates
+from .candidates import choose_by_proxies, connection_candidates
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
@@ -355,8 +355,8 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
             "step", "model", "optimizer", "scheduler", "rng", "history", "init_frames",
             "init_metrics"}`` (live ``state_dict`` objects: serialize them before the next step).
         choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
-            :class:`~torchconn.frames.polish.Candidate` s (default
-            :func:`~torchconn.frames.polish.choose_by_proxies`); e.g.
+            :class:`~torchconn.frames.candidates.Candidate` s (default
+            :func:`~torchconn.frames.candidates.choose_by_proxies`); e.g.
             :func:`torchconn.hexmesh.choose.hex_chooser` chooses by the hex meshes they make.
         extra_terms: ``{name: factory}`` extra loss terms: ``factory(mesh, start_frames)`` returns
             ``term(edge_rot, frames) -> 0-dim tensor``, weighted by ``weights[name]`` (e.g.
