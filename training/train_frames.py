@@ -61,7 +61,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import io as tio
 from torchconn.dec import bianchi
-from torchconn.frames import export, formats
+from torchconn.frames import field_files
 from torchconn.frames.design import FrameFieldResult, design, method_options
 from torchconn.frames.metrics import METRIC_KEYS
 from torchconn.frames.solver import NonFiniteLossError
@@ -156,10 +156,10 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
                           frames=frames.detach().cpu().double().numpy(),
                           singular_faces=sing_faces.cpu().numpy().astype(np.int64).reshape(-1, 3))
     io_utils.atomic_write_json(out / "metrics.json", metrics)
-    export.write_frames_vtu(out / "frames.vtu", mesh, frames, result.tet_frames)
-    formats.write_fra(out / "frames.fra", result.tet_frames, mesh)
-    export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
-    export.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
+    field_files.write_frames_vtu(out / "frames.vtu", mesh, frames, result.tet_frames)
+    field_files.write_fra(out / "frames.fra", result.tet_frames, mesh)
+    field_files.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
+    field_files.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
     frame_plots.plot_loss(out / "loss.png", result.history, result.histories, result.metrics.get("chosen"))
     frame_plots.plot_singularities(out / "singularities.png", mesh, result.singular_graph)
 
