@@ -10,7 +10,7 @@ Methods (``--methods``; default ``sh,mbo,connection`` plus ``mouette`` when it i
 * ``sh``: the SH baseline of Ray, Sokolov & Lévy 2016 (``design(mesh, "sh")``, its defaults);
 * ``mbo``: :func:`torchconn.frames.mbo.mbo_frames` (Palmer, Bommes & Solomon 2020), its defaults;
 * ``connection``: the connection method as the jobs run it,
-  :func:`torchconn.hexmesh.field.design_for_hex` (``select=hex`` over 8 candidates, the map-energy
+  :func:`torchconn.hexmesh.choose.design_for_hex` (``select=hex`` over 8 candidates, the map-energy
   term with weight :data:`CONNECTION_MAP_WEIGHT`; ``--opt connection.select=proxies``,
   ``--opt connection.weights.map=0`` etc. change them);
 * ``mouette``: mouette's ``VolumeFrameField(mesh, "vertices")`` on the same tet mesh (optional;
@@ -187,7 +187,7 @@ def run_method(method: str, mesh, options: dict | None = None):
 
         return design(mesh, method, **options).vertex_frames
     if method == "connection":  # the jobs' default: the hex chooser and the map-energy term
-        from torchconn.hexmesh.field import design_for_hex
+        from torchconn.hexmesh.choose import design_for_hex
 
         weights = {"map": CONNECTION_MAP_WEIGHT, **(options.pop("weights", None) or {})}
         select = options.pop("select", "hex")

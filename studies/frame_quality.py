@@ -57,7 +57,7 @@ VARIANTS: dict[str, dict] = {
     "no_flat": {"weights": {"flat": 0.0}},
     "no_torsion": {"weights": {"torsion": 0.0}},
     "no_dnabla": {"weights": {"dnabla": 0.0}},
-    # the singular-structure repair (torchconn.frames.structure; default: one round, the repair
+    # the singular-structure repair (torchconn.frames.matching_search; default: one round, the repair
     # paths with the Dirichlet weights 8, 2, 0.5): off (the default until 2026-11-25 evening), the
     # repair paths with every Dirichlet weight, two rounds
     "no_repair": {"quality": {"repair_rounds": 0}},

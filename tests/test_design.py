@@ -15,7 +15,8 @@ from omegaconf import OmegaConf
 import torchconn.frames
 from torchconn import io as tio
 from torchconn.frames import FrameFieldResult, design, octahedral
-from torchconn.frames.design import DEFAULTS, OPTIONS, tet_frames
+from torchconn.frames.design import DEFAULTS, OPTIONS
+from torchconn.frames.octahedral import tet_frames
 from torchconn.frames.sh import sh_frame_field
 from torchconn.lie import so3
 

@@ -8,7 +8,7 @@ import torch
 
 from torchconn import io, so3
 from torchconn.frames.constraints import BoundaryConstraint, boundary_face_normals, feature_edges
-from torchconn.frames.formats import read_fra, read_mouette_frame, write_fra, write_mouette_frame
+from torchconn.frames.field_files import read_fra, read_mouette_frame, write_fra, write_mouette_frame
 from torchconn.mesh.cad import cad_tags_from_elements, load_tagged_msh
 from torchconn.mesh.convert import from_meshio, to_meshio
 

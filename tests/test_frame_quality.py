@@ -1,5 +1,5 @@
-"""Frame-field quality against the baseline (issue 13): the quality paths (torchconn.frames.refine), the
-candidates of the connection method and their proxy choice (torchconn.frames.polish), the matched
+"""Frame-field quality against the baseline (issue 13): the quality paths (torchconn.frames.quality_paths), the
+candidates of the connection method and their proxy choice (torchconn.frames.candidates), the matched
 Dirichlet term, and design()'s use of them."""
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from torchconn.frames import frame_metrics, octahedral, sh
 from torchconn.frames.design import design
 from torchconn.frames.loss import FrameFieldLoss, matched_dirichlet_loss
 from torchconn.frames.model import matched_connection
-from torchconn.frames.polish import Candidate, choose_by_proxies, connection_candidates, quality_score
+from torchconn.frames.candidates import Candidate, choose_by_proxies, connection_candidates, quality_score
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +95,7 @@ def test_loss_dirichlet_term(cyl):
 
 def test_snap_axes_puts_the_closest_axis_on_the_direction():
     from torchconn.frames.metrics import axis_alignment_angle
-    from torchconn.frames.refine import snap_axes
+    from torchconn.frames.quality_paths import snap_axes
 
     gen = torch.Generator().manual_seed(3)
     F = so3.random_rotation(50, generator=gen, dtype=torch.float64)
@@ -111,7 +111,7 @@ def test_snap_axes_puts_the_closest_axis_on_the_direction():
 def test_quality_path_constraints(cyl):
     from torchconn.frames.constraints import BoundaryConstraint
     from torchconn.frames.metrics import axis_alignment_angle
-    from torchconn.frames.refine import quality_path
+    from torchconn.frames.quality_paths import quality_path
 
     m, F0 = cyl
     ref = frame_metrics(F0, m)

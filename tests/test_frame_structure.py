@@ -1,5 +1,5 @@
-"""Singular-structure search (torchconn.frames.structure) and the fixed-matching relaxation
-(torchconn.frames.refine.relax_to_matchings): against a slow per-edge reference, its invariants, and
+"""Singular-structure search (torchconn.frames.matching_search) and the fixed-matching relaxation
+(torchconn.frames.quality_paths.relax_to_matchings): against a slow per-edge reference, its invariants, and
 its use as the repair candidate of connection_candidates (issue 13)."""
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from conftest import DATA_DIR
 
 from torchconn import io, so3
 from torchconn.frames import frame_metrics, octahedral, sh
-from torchconn.frames.polish import choose_by_proxies, connection_candidates
-from torchconn.frames.refine import relax_to_matchings
+from torchconn.frames.candidates import choose_by_proxies, connection_candidates
+from torchconn.frames.quality_paths import relax_to_matchings
 from torchconn.frames.singular import classify_holonomy, face_holonomy_from_matchings
-from torchconn.frames.structure import (FACE_COSTS, complex_face_count, edge_face_incidence, repair_matchings,
+from torchconn.frames.matching_search import (FACE_COSTS, complex_face_count, edge_face_incidence, repair_matchings,
                                         repair_structure)
 
 

@@ -312,7 +312,7 @@ def test_the_readme_example_gives_the_jobs_field():
     sig = inspect.signature(integer_grid_map).parameters
     hex_opts = OmegaConf.to_container(cfg.hex)
     assert hex_opts == {k: sig[k].default for k in hex_opts}
-    sig = inspect.signature(__import__("torchconn.hexmesh.field", fromlist=["x"]).design_for_hex).parameters
+    sig = inspect.signature(__import__("torchconn.hexmesh.choose", fromlist=["x"]).design_for_hex).parameters
     assert (cfg.method, cfg.select, cfg.select_candidates, cfg.seed) == (
         sig["method"].default, sig["select"].default, sig["select_candidates"].default, 0)
     readme = (ROOT / "README.md").read_text()

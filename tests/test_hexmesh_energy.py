@@ -25,7 +25,8 @@ import torch
 
 from torchconn import io, so3
 from torchconn.frames import octahedral
-from torchconn.frames.design import design, tet_frames
+from torchconn.frames.design import design
+from torchconn.frames.octahedral import tet_frames
 from torchconn.hexmesh import integer_grid_map, tet_charts
 from torchconn.hexmesh.cut import face_matchings
 from torchconn.hexmesh.energy import MapEnergy, smooth_tet_frames

@@ -22,7 +22,7 @@ from torchconn.frames import octahedral
 from torchconn.hexmesh import check_map, hex_mesh, integer_grid_map, tet_charts
 from torchconn.hexmesh.cut import GROUP_INV, GROUP_MUL, face_corner_pairs, group_matrices
 from torchconn.hexmesh.elimination import ConstraintRows, eliminate
-from torchconn.hexmesh.quantize import param_volumes, round_greedy
+from torchconn.hexmesh.quantize import param_volumes, round_greedy, snap
 from torchconn.hexmesh.seamless import build_problem
 from torchconn.mesh import TetMesh
 
@@ -201,6 +201,25 @@ def test_rounding_is_exact_and_conditional():
     free = ~mask
     r = (A @ y - b)[free]
     assert np.abs(r).max() < 1e-12
+
+
+def test_snap_puts_unknowns_on_the_dyadic_grid_and_integers_on_integers():
+    class Prob:  # corner parameters = short sums of the unknowns, coefficients +-1, +-1/2, 2 (T = 1)
+        M = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, -1, 0], [0.5, 0.5, 0], [0, 0, 2],
+                      [1, 1, 1], [-1, 0, 0.5], [0, 0, 0], [0, 1, 1], [0.5, 0, -0.5], [2, 0, 0]])
+
+        def corner_params(self, y):
+            return (self.M @ y).reshape(1, 4, 3)
+
+    y = np.array([0.1234567891, 2.71828, -1.4142135])
+    mask = np.array([False, True, False])
+    ys, uvw = snap(Prob(), y, mask, 10, 0.5)
+    assert (ys * 2**10 == np.round(ys * 2**10)).all() and ys[1] == 3.0 and np.abs(ys - y)[~mask].max() <= 2**-11
+    assert (uvw.ravel() == Prob.M @ ys).all() and (uvw * 2**11 == np.round(uvw * 2**11)).all()
+    ys0, _ = snap(Prob(), y, None, 10, 0.5)  # no integers: every unknown on the grid, none rounded to 1
+    assert ys0[1] == np.round(y[1] * 2**10) / 2**10 != 3.0
+    with pytest.raises(ValueError, match="edge_length 1e-12 is too small"):
+        snap(Prob(), np.array([2.0**30, 0, 0]), None, 10, 1e-12)
 
 
 # ----------------------------------------------------------------------------- validity

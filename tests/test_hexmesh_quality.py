@@ -405,7 +405,7 @@ def test_untangle_moves_only_interior_vertices_and_raises_the_worst_jacobian():
     """A 3x3x3 grid whose centre vertex is pushed through a neighbour's face: the interior
     optimization restores positive scaled Jacobians; boundary vertices do not move."""
     from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
-    from torchconn.hexmesh.smooth import untangle
+    from torchconn.hexmesh.hex_untangle import untangle
 
     n = 3
     g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
@@ -434,7 +434,7 @@ def test_untangle_moves_only_interior_vertices_and_raises_the_worst_jacobian():
 
 def test_untangle_slides_boundary_vertices_on_the_surface_and_keeps_sharp_ones():
     from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
-    from torchconn.hexmesh.smooth import untangle
+    from torchconn.hexmesh.hex_untangle import untangle
 
     n = 3
     g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)

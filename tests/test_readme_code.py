@@ -84,7 +84,7 @@ def _resolve(name: str):
 
 
 def test_every_torchconn_name_in_the_readme_imports():
-    """``torchconn.frames.polish.connection_candidates``, ``torchconn.ops.compiled(False)``, ... resolve as
+    """``torchconn.frames.candidates.connection_candidates``, ``torchconn.ops.compiled(False)``, ... resolve as
     written (``torch.ops.torchconn.<op>`` names ops, not modules; ``torchconn.training`` and
     ``torchconn.configs`` exist once installed and are ``training/`` and ``configs/`` in a checkout)."""
     names = set()

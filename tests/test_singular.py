@@ -17,7 +17,7 @@ from conftest import data_path
 
 from torchconn import io, so3
 from torchconn.frames import octahedral
-from torchconn.frames.export import read_singular_curves_vtk, write_singular_curves_vtk
+from torchconn.frames.field_files import read_singular_curves_vtk, write_singular_curves_vtk
 from torchconn.frames.metrics import METRIC_KEYS, face_closure, frame_metrics
 from torchconn.frames.singular import (
     CURVE_TYPES,

@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchconn.frames.loss import ALIGN_KINDS
 from torchconn.frames.model import FORMULATIONS
 from torchconn.frames.design import STARTS
-from torchconn.frames.refine import PATH_KINDS
+from torchconn.frames.quality_paths import PATH_KINDS
 from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS
 
 __all__ = ["DEMO", "TRAIN_FRAMES", "ConfigError", "Spec", "check_config", "check_device", "resolve_num_threads"]

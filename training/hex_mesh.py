@@ -180,7 +180,7 @@ def _field(cfg, mesh, out: Path):
         F = mbo_frames(mesh)
         summary = {"method": "mbo"}
     else:
-        from torchconn.hexmesh.field import design_for_hex
+        from torchconn.hexmesh.choose import design_for_hex
 
         res = design_for_hex(mesh, cfg.method, select=str(cfg.select), select_candidates=int(cfg.select_candidates),
                              hex_options=OmegaConf.to_container(cfg.hex, resolve=True), progress=bool(cfg.progress),

@@ -15,7 +15,7 @@ Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
    + feature`` with the config's weights, on the mesh's
    :class:`~torchconn.frames.constraints.BoundaryConstraint`; Adam or L-BFGS with a cosine
    schedule (:func:`~torchconn.frames.solver.optimize`).
-4. Candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized fields, the
+4. Candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized fields, the
    L-BFGS quality paths from them and the singular-structure repair; the returned one is chosen by
    the proxies (``select=proxies``) or by the hex meshes they make (``select=hex``).
 5. Metrics (:mod:`~torchconn.frames.metrics`) and invariants: Bianchi residuals of the connection
@@ -61,7 +61,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchconn import io as tio
 from torchconn.dec import bianchi
-from torchconn.frames import export, formats
+from torchconn.frames import field_files
 from torchconn.frames.design import FrameFieldResult, design, method_options
 from torchconn.frames.metrics import METRIC_KEYS
 from torchconn.frames.solver import NonFiniteLossError
@@ -156,10 +156,10 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
                           frames=frames.detach().cpu().double().numpy(),
                           singular_faces=sing_faces.cpu().numpy().astype(np.int64).reshape(-1, 3))
     io_utils.atomic_write_json(out / "metrics.json", metrics)
-    export.write_frames_vtu(out / "frames.vtu", mesh, frames, result.tet_frames)
-    formats.write_fra(out / "frames.fra", result.tet_frames, mesh)
-    export.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
-    export.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
+    field_files.write_frames_vtu(out / "frames.vtu", mesh, frames, result.tet_frames)
+    field_files.write_fra(out / "frames.fra", result.tet_frames, mesh)
+    field_files.write_singular_faces_vtu(out / "singular_faces.vtu", mesh, sing_faces)
+    field_files.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
     frame_plots.plot_loss(out / "loss.png", result.history, result.histories, result.metrics.get("chosen"))
     frame_plots.plot_singularities(out / "singularities.png", mesh, result.singular_graph)
 
@@ -168,7 +168,7 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
 def design_options(cfg) -> dict:
     """The :func:`torchconn.frames.design` options of ``cfg``'s method (plain Python values); the
     connection method's ``weights`` gain ``map`` = ``cfg.map_weight`` (the hex stage's term that
-    :func:`torchconn.hexmesh.field.design_for_hex` injects)."""
+    :func:`torchconn.hexmesh.choose.design_for_hex` injects)."""
     out = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
            for k in method_options(cfg.method)}
     if "weights" in out and "map_weight" in cfg:
@@ -221,7 +221,7 @@ def _train(cfg: DictConfig, out: Path, t_start: float) -> dict:
         io_utils.save_checkpoint(ckpt_path, {**state, "fingerprint": fp, "config": config})
 
     connection = cfg.method == "connection"
-    from torchconn.hexmesh.field import design_for_hex
+    from torchconn.hexmesh.choose import design_for_hex
 
     result = design_for_hex(mesh, cfg.method, select=str(cfg.select), select_candidates=int(cfg.select_candidates),
                             progress=bool(cfg.progress), seed=int(cfg.seed), state=ckpt if connection else None,

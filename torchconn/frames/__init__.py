@@ -1,15 +1,19 @@
 """Octahedral frame fields on tet meshes: the application of the connection library.
 
-Modules: :mod:`.octahedral` (the group O, matching), :mod:`.sh` (the spherical-harmonic baseline of
-Ray et al. 2016), :mod:`.constraints` (boundary and feature constraints, built once per mesh),
-:mod:`.param` (normal-constrained frame rotations), :mod:`.propagate` (spanning tree, combing,
-parallel propagation), :mod:`.model` (matched connection, trainable model), :mod:`.loss`,
-:mod:`.solver` (schedule, optimizer, loop), :mod:`.refine` (the L-BFGS quality paths), :mod:`.structure`
-(the singular-structure search over edge matchings), :mod:`.polish` (the candidates of the connection
-method and their proxy choice), :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.export` (VTU files:
-:func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces and curves),
-:mod:`.formats` (``.fra``, mouette's ``.frame``), :mod:`.design` (the whole method in one call:
-:func:`design` -> :class:`FrameFieldResult`).
+Modules, in the order of the method: :mod:`.octahedral` (the group O, matching, per-tet frames),
+:mod:`.constraints` (boundary and feature constraints, built once per mesh), :mod:`.param`
+(normal-constrained frame rotations); the start fields :mod:`.sh` (the spherical-harmonic baseline
+of Ray et al. 2016) and :mod:`.mbo` (Palmer, Bommes & Solomon 2020); :mod:`.propagate` (spanning
+tree, combing, parallel propagation), :mod:`.model` (matched connection, trainable model),
+:mod:`.loss` and :mod:`.terms`, :mod:`.solver` (schedule, optimizer, loop); then
+:mod:`.quality_paths` (the L-BFGS quality paths), :mod:`.matching_search` (the singular-structure
+search over edge matchings), :mod:`.candidates` (the candidates of the connection method and
+their proxy choice); :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.field_files`
+(VTU files: :func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces
+and curves; ``.fra``, mouette's ``.frame``); :mod:`.design` (the whole method in one call:
+:func:`design` -> :class:`FrameFieldResult`). Beside the method: :mod:`.kernels` (the frame-field
+custom ops behind the loss and the quality paths), :mod:`.fixed_holonomy` (a tet field
+re-optimized with its face matchings fixed).
 
 >>> from torchconn import io
 >>> from torchconn.frames import sh_frame_field, frame_metrics
@@ -31,15 +35,18 @@ from . import propagate
 from .constraints import BoundaryConstraint, feature_edges, feature_vertices
 from .design import FrameFieldResult, design
 from .metrics import METRIC_KEYS, axis_alignment_angle, face_closure, frame_metrics
-from .export import (
+from .field_files import (
     FramesVTU,
+    read_fra,
     read_frames_vtu,
+    read_mouette_frame,
     read_singular_curves_vtk,
+    write_fra,
     write_frames_vtu,
+    write_mouette_frame,
     write_singular_curves_vtk,
     write_singular_faces_vtu,
 )
-from .formats import read_fra, read_mouette_frame, write_fra, write_mouette_frame
 from .sh import (
     boundary_constraint,
     frame_to_sh,

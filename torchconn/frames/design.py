@@ -11,13 +11,13 @@ design() -> writers``); nothing is written to disk. Methods:
   (smoothness, tie, symmetric flatness, √R torsion through the matchings, the averaged covariant
   exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
   energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`;
-  then the candidates (:func:`~torchconn.frames.polish.connection_candidates`): the optimized
-  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.refine`)
-  and the singular-structure repair (:mod:`~torchconn.frames.structure`) of the best of them.
+  then the candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized
+  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.quality_paths`)
+  and the singular-structure repair (:mod:`~torchconn.frames.matching_search`) of the best of them.
   Every candidate descends from a connection optimization; the SH field is the yardstick of the
   proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
   field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
-  hex meshes the candidates make, :func:`torchconn.hexmesh.field.hex_chooser`);
+  hex meshes the candidates make, :func:`torchconn.hexmesh.choose.hex_chooser`);
   ``metrics["chosen"]`` says which and why, and lists every candidate;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
@@ -31,12 +31,7 @@ axis ``k`` at vertex ``i``; ``edge_rot[e] = R_ij`` for the canonical edge ``(i, 
 coordinates at ``v_j`` to coordinates at ``v_i`` with ``F_i R_ij = F_j h_ij``, ``h_ij in O``;
 ``matchings[e]`` indexes :func:`~torchconn.frames.octahedral.group`, ``F_i g*_ij ~ F_j``.
 
-Per-tet frames (the rule of :func:`tet_frames`): tet ``t`` with lowest-index vertex ``a`` takes
-the chordal mean of its four vertex frames relabeled into the frame of ``a`` along the tet's
-edges, ``M = (1/4) sum_v F_v g*_av^T`` (``g*_aa = I``), projected to SO(3):
-``tet_frames[t] = F_a polar(F_a^T M)`` (``= polar(M)``; written about ``F_a`` so that a tet whose
-relabeled frames agree returns exactly ``F_a``). So ``tet_frames[t]`` carries the axis labels of
-``F_a``, and ``tet_frames[t] g*_av ~ F_v`` for the tet's other vertices.
+Per-tet frames: :func:`~torchconn.frames.octahedral.tet_frames` (the result's ``tet_frames``).
 """
 from __future__ import annotations
 
@@ -56,17 +51,18 @@ from ..lie import so3
 from ..mesh import MeshError, load_mesh
 from ..tolerances import get_eps
 from . import octahedral
+from .octahedral import tet_frames
 from .constraints import BoundaryConstraint
 from .loss import ALIGN_KINDS, FrameFieldLoss
 from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FORMULATIONS, FrameFieldModel, matched_connection
-from .polish import choose_by_proxies, connection_candidates
+from .candidates import choose_by_proxies, connection_candidates
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
 
-__all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options", "tet_frames"]
+__all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options"]
 
 #: Start fields of the connection optimization (option ``starts``).
 STARTS = ("sh", "mbo")
@@ -120,7 +116,7 @@ class FrameFieldResult:
     Attributes:
         mesh: the ``TetMesh`` the field lives on (after the ``device``/``dtype`` move).
         vertex_frames: ``(V, 3, 3)`` rotations; ``vertex_frames[i][:, k]`` is axis ``k`` at vertex ``i``.
-        tet_frames: ``(T, 3, 3)`` rotations by the rule of :func:`tet_frames`.
+        tet_frames: ``(T, 3, 3)`` rotations by the rule of :func:`~torchconn.frames.octahedral.tet_frames`.
         edge_rot: ``(E, 3, 3)`` the connection ``R_ij`` on ``mesh.edges``, ``F_i R_ij = F_j h_ij``,
             ``h_ij in O`` (the optimized one for an ``"optimized"`` candidate; the matched
             connection of ``vertex_frames`` for the other candidates and for ``method="sh"``).
@@ -163,37 +159,6 @@ class FrameFieldResult:
                 f"smoothness_mean_deg={f.get('smoothness_mean_deg', float('nan')):.3f}, "
                 f"n_singular_faces={int(self.singular_faces.sum())}, "
                 f"steps={self.timings.get('iterations', 0)}, wall_s={self.timings.get('wall_s', 0.0):.2f})")
-
-
-# ----------------------------------------------------------------------------- per-tet frames
-def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
-    """Per-tet frames ``(T, 3, 3)`` from per-vertex ``frames (V, 3, 3)`` (rule: module docstring).
-
-    Args:
-        frames: ``(V, 3, 3)`` rotations, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
-        mesh: ``TetMesh`` (``tets``, ``edges``, ``edge_index``).
-        matchings: ``(E,)`` indices of :func:`~torchconn.frames.octahedral.match_edges` on
-            ``mesh.edges`` (computed when ``None``).
-
-    Returns:
-        ``(T, 3, 3)`` rotations; ``tet_frames[t]`` has the axis labels of the frame of the tet's
-        lowest-index vertex ``a``, and equals ``frames[a]`` exactly where the four relabeled frames do.
-    """
-    if matchings is None:
-        matchings = octahedral.match_edges(frames, mesh.edges)[0]
-    tets = mesh.tets
-    a = tets.min(dim=1).values  # (T,)
-    others = tets.sort(dim=1).values[:, 1:]  # (T, 3), all > a
-    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)  # (T, 3), edges (a, v) with a < v
-    g = octahedral.group(frames.dtype, frames.device)[matchings[eid]]  # (T, 3, 3, 3): F_a g ~ F_v
-    Fa = frames[a]
-    relabeled = frames[others] @ g.transpose(-1, -2)  # F_v g^T ~ F_a
-    # mean of the deviations from F_a; where they all vanish the tet takes F_a itself (no SVD round-off)
-    dev = (relabeled - Fa[:, None]).sum(1) / 4.0
-    exact = (dev == 0).flatten(-2).all(-1)
-    eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
-    P = so3.project_to_rotation(torch.where(exact[:, None, None], eye, Fa.transpose(-1, -2) @ (Fa + dev)))
-    return torch.where(exact[:, None, None], Fa, Fa @ P)
 
 
 # ----------------------------------------------------------------------------- options
@@ -355,9 +320,9 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
             "step", "model", "optimizer", "scheduler", "rng", "history", "init_frames",
             "init_metrics"}`` (live ``state_dict`` objects: serialize them before the next step).
         choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
-            :class:`~torchconn.frames.polish.Candidate` s (default
-            :func:`~torchconn.frames.polish.choose_by_proxies`); e.g.
-            :func:`torchconn.hexmesh.field.hex_chooser` chooses by the hex meshes they make.
+            :class:`~torchconn.frames.candidates.Candidate` s (default
+            :func:`~torchconn.frames.candidates.choose_by_proxies`); e.g.
+            :func:`torchconn.hexmesh.choose.hex_chooser` chooses by the hex meshes they make.
         extra_terms: ``{name: factory}`` extra loss terms: ``factory(mesh, start_frames)`` returns
             ``term(edge_rot, frames) -> 0-dim tensor``, weighted by ``weights[name]`` (e.g.
             :class:`torchconn.hexmesh.energy.MapEnergy`, the seamless map's fitting energy).

@@ -13,12 +13,20 @@ Conventions
   regular face and a non-trivial element of O around a singular curve (e.g. Nieser et al. 2011,
   Ray et al. 2016). Since it is an exact group element it is compared with the identity
   exactly (entries differ by 1 or 2), no tolerance is involved.
+* Per-tet frames (:func:`tet_frames`): tet ``t`` with lowest-index vertex ``a`` takes
+  the chordal mean of its four vertex frames relabeled into the frame of ``a`` along the tet's
+  edges, ``M = (1/4) sum_v F_v g*_av^T`` (``g*_aa = I``), projected to SO(3):
+  ``tet_frames[t] = F_a polar(F_a^T M)`` (``= polar(M)``; written about ``F_a`` so that a tet whose
+  relabeled frames agree returns exactly ``F_a``). So ``tet_frames[t]`` carries the axis labels of
+  ``F_a``, and ``tet_frames[t] g*_av ~ F_v`` for the tet's other vertices.
 """
 from __future__ import annotations
 
 import itertools
 
 import torch
+
+from ..lie import so3
 
 __all__ = [
     "group",
@@ -30,6 +38,7 @@ __all__ = [
     "face_matched_holonomy",
     "singular_faces",
     "tets_with_one_singular_face",
+    "tet_frames",
 ]
 
 
@@ -250,3 +259,33 @@ def tets_with_one_singular_face(mask: torch.Tensor, mesh) -> torch.Tensor:
     if tet_faces.numel() and int(tet_faces.max()) >= mask.shape[0]:
         raise IndexError(f"tet_faces refers to face {int(tet_faces.max())} but mask has {mask.shape[0]} faces")
     return mask[tet_faces].sum(-1) == 1
+
+
+# ----------------------------------------------------------------------------- per-tet frames
+def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-tet frames ``(T, 3, 3)`` from per-vertex ``frames (V, 3, 3)`` (rule: module docstring).
+
+    Args:
+        frames: ``(V, 3, 3)`` rotations, ``frames[i][:, k]`` axis ``k`` at vertex ``i``.
+        mesh: ``TetMesh`` (``tets``, ``edges``, ``edge_index``).
+        matchings: ``(E,)`` indices of :func:`match_edges` on ``mesh.edges`` (computed when ``None``).
+
+    Returns:
+        ``(T, 3, 3)`` rotations; ``tet_frames[t]`` has the axis labels of the frame of the tet's
+        lowest-index vertex ``a``, and equals ``frames[a]`` exactly where the four relabeled frames do.
+    """
+    if matchings is None:
+        matchings = match_edges(frames, mesh.edges)[0]
+    tets = mesh.tets
+    a = tets.min(dim=1).values  # (T,)
+    others = tets.sort(dim=1).values[:, 1:]  # (T, 3), all > a
+    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)  # (T, 3), edges (a, v) with a < v
+    g = group(frames.dtype, frames.device)[matchings[eid]]  # (T, 3, 3, 3): F_a g ~ F_v
+    Fa = frames[a]
+    relabeled = frames[others] @ g.transpose(-1, -2)  # F_v g^T ~ F_a
+    # mean of the deviations from F_a; where they all vanish the tet takes F_a itself (no SVD round-off)
+    dev = (relabeled - Fa[:, None]).sum(1) / 4.0
+    exact = (dev == 0).flatten(-2).all(-1)
+    eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
+    P = so3.project_to_rotation(torch.where(exact[:, None, None], eye, Fa.transpose(-1, -2) @ (Fa + dev)))
+    return torch.where(exact[:, None, None], Fa, Fa @ P)

@@ -14,14 +14,14 @@ matchings and the boundary/feature constraints) and is imported on first use.
 from .cut import TetCharts, tet_charts
 from .energy import MapEnergy, smooth_tet_frames
 from .extract import HexExtraction, extract_hexes
-from .field import design_for_hex, hex_chooser
+from .choose import design_for_hex, hex_chooser
 from .igm import IntegerGridMap, integer_grid_map
 from .io import plot_hex_mesh, read_hex_mesh, read_hexex, write_hex_mesh, write_hexex
 from .meshability import Meshability, meshability_report
 from .pipeline import MAP_OPTIONS, HexMeshResult, hex_mesh
 from .quality import HexQuality, hex_quality, scaled_jacobian
 from .seamless import default_edge_length
-from .smooth import untangle
+from .hex_untangle import untangle
 from .sparse import SPDSolve, sparse_spd_solve
 from .validity import MapValidity, check_map
 

@@ -126,10 +126,10 @@ def _polar(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tensor:
 def smooth_tet_frames(vertex_frames: torch.Tensor, mesh, matchings: torch.Tensor) -> torch.Tensor:
     """Per-tet frames ``(T, 3, 3)`` from per-vertex ``vertex_frames (V, 3, 3)``, differentiable everywhere.
 
-    The rule of :func:`torchconn.frames.design.tet_frames` (tet ``t`` with lowest vertex ``a``:
+    The rule of :func:`torchconn.frames.octahedral.tet_frames` (tet ``t`` with lowest vertex ``a``:
     ``F_a polar(F_a^T M)``, ``M`` the mean of its four vertex frames relabeled into ``F_a``'s labels
     through the edge ``matchings (E,)``), with the polar factor by a Newton iteration
-    (scaled, stopped at convergence) instead of an SVD. Same values to round-off; but ``design.tet_frames`` is
+    (scaled, stopped at convergence) instead of an SVD. Same values to round-off; but ``octahedral.tet_frames`` is
     not differentiable where a tet's four relabeled frames agree exactly (it returns ``F_a`` there,
     whose gradient ignores the other three vertices; e.g. a constant field), and its SVD's
     derivative loses accuracy as singular values meet, while this one is smooth there.
@@ -143,7 +143,7 @@ def smooth_tet_frames(vertex_frames: torch.Tensor, mesh, matchings: torch.Tensor
 
 def _relabel_tables(mesh, matchings: torch.Tensor, dtype: torch.dtype):
     """``(a (T,), others (T, 3), g (T, 3, 3, 3))``: each tet's lowest vertex, its other three and the
-    matchings ``F_a g ~ F_v`` of the edges ``(a, v)`` (as :func:`torchconn.frames.design.tet_frames`)."""
+    matchings ``F_a g ~ F_v`` of the edges ``(a, v)`` (as :func:`torchconn.frames.octahedral.tet_frames`)."""
     from ..frames import octahedral
 
     tets = mesh.tets

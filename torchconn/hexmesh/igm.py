@@ -25,12 +25,10 @@ judged before the next (:class:`~.validity.Gate`):
 
 The map of an invalid stage is still carried to the end (its report says where it fails).
 
-Snapping (HexEx's sanitization): the continuous free unknowns are rounded to multiples of
-``2**-grid_bits`` and the integer ones are exact integers; every corner parameter is a short
-sum of them with coefficients ``±1`` (or ``±1/2``, ``±2`` at half turns), so the corner
-parameters are dyadic rationals computed exactly in float64, and the transitions
-``u_t1 = R_f u_t0 + s_f`` hold *exactly* on every face: the validity check and the extraction
-decide topology with exact arithmetic.
+Snapping (HexEx's sanitization, :func:`~.quantize.snap`): the continuous free unknowns are rounded
+to multiples of ``2**-grid_bits`` and the integer ones are exact integers, so that the corner
+parameters are dyadic rationals and the transitions hold exactly on every face: the validity check
+and the extraction decide topology with exact arithmetic.
 """
 from __future__ import annotations
 
@@ -41,16 +39,12 @@ import numpy as np
 
 from .cut import TetCharts, group_matrices
 from .inputs import tet_frames_of
-from .quantize import param_volumes, round_greedy, round_injective, solve_fixed, stiffen
+from .quantize import GRID_BITS, param_volumes, round_greedy, round_injective, snap, solve_fixed, stiffen
 from .seamless import SeamlessProblem, build_problem, default_edge_length
 from .structure import map_structure
 from .validity import Gate, MapValidity, check_map, check_seamless
 
-__all__ = ["IntegerGridMap", "integer_grid_map", "GRID_BITS"]
-
-GRID_BITS = 20
-"""Parameters are snapped to multiples of ``2**-GRID_BITS`` (parameter magnitudes must stay below
-``2**30`` so that every sum of a few of them is exact in float64)."""
+__all__ = ["IntegerGridMap", "integer_grid_map"]
 
 
 @dataclass
@@ -247,9 +241,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
         budget = {} if gates["structure"].passed else {"untangle_rounds": 4, "rounds": 1, "max_iter": 20}
         inj = minimize_barrier(jac, y_ls, ignore=flat, w_fit=fit_weight, w_sd=sd_weight, backend=backend, **budget)
         y_s = inj.y
-    scale = float(2 ** grid_bits)
-    uvw_s = prob.corner_params(np.round(y_s * scale) / scale)
-    _check_magnitude(uvw_s, h)
+    _, uvw_s = snap(prob, y_s, None, grid_bits, h)
     seamless_validity = check_seamless(mesh, charts, uvw_s, prob)
     gates["seamless"] = Gate.of_validity("seamless", seamless_validity)
     e_seam = float(y_s @ (A @ y_s) - 2 * b @ y_s + c) / vol_total
@@ -326,11 +318,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     timings["quantization_s"] = time.perf_counter() - t0
 
     # snapping to the dyadic grid: exact corner parameters and transitions
-    ys = y.copy()
-    ys[~int_mask] = np.round(y[~int_mask] * scale) / scale
-    ys[int_mask] = np.round(y[int_mask])
-    uvw = prob.corner_params(ys)
-    _check_magnitude(uvw, h)
+    ys, uvw = snap(prob, y, int_mask, grid_bits, h)
     energy = float(ys @ (A @ ys) - 2 * b @ ys + c) / vol_total
     face_shift = _face_shifts(mesh, charts, uvw)
     out = IntegerGridMap(mesh=mesh, parent_tet=parent, uvw=uvw, seamless_uvw=uvw_s, face_rot=charts.face_rot.copy(),
@@ -349,12 +337,6 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     stats["solver"] = backend
     stats["timings"] = timings
     return out
-
-
-def _check_magnitude(uvw: np.ndarray, h: float) -> None:
-    if np.abs(uvw).max(initial=0.0) >= 2.0 ** 30:
-        raise ValueError(f"the parameters reach {np.abs(uvw).max():.3g} >= 2**30: edge_length {h:g} is too small "
-                         f"for this mesh")
 
 
 def _face_shifts(mesh, charts: TetCharts, uvw: np.ndarray) -> np.ndarray:

@@ -101,13 +101,13 @@ def tet_frames_of(mesh, frames) -> torch.Tensor:
     """Per-tet frames ``(T, 3, 3)`` float64 (CPU) from a ``FrameFieldResult`` on ``mesh``, per-tet
     ``(T, 3, 3)`` or per-vertex ``(V, 3, 3)`` frames (axes as columns), checked to be rotations
     (:func:`frames_defects`) before per-vertex frames become per-tet ones
-    (:func:`torchconn.frames.design.tet_frames`).
+    (:func:`torchconn.frames.octahedral.tet_frames`).
 
     Raises:
         ValueError: a field on another mesh, a wrong shape (expected and given), non-finite
             entries, frames that are not rotations (how many, and which kind).
     """
-    from ..frames.design import tet_frames
+    from ..frames.octahedral import tet_frames
 
     if hasattr(frames, "tet_frames") and hasattr(frames, "mesh"):
         res_mesh = frames.mesh

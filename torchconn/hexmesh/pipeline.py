@@ -141,7 +141,7 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
             ``(V, 3, 3)`` per vertex or ``(T, 3, 3)`` per tet (rotations: axes as columns).
         extract: extract the hexes (also from an invalid map, where it allows).
         untangle: move the interior hex vertices to raise the worst scaled Jacobian
-            (:func:`~.smooth.untangle`; boundary vertices fixed, kept only if it helps).
+            (:func:`~.hex_untangle.untangle`; boundary vertices fixed, kept only if it helps).
         quality: judge the hex mesh (:func:`~.quality.hex_quality`) against ``mesh``.
         progress: progress bars on the rounding and the extraction.
         **map_options: :data:`MAP_OPTIONS`, passed to :func:`~.igm.integer_grid_map`
@@ -185,7 +185,7 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
         # the hex vertices of a valid map are untangled; a partial mesh of an invalid one is shown as it is
         if untangle and ext.hexes.shape[0] and igm.validity.valid:
             from .quality import boundary_quads_of
-            from .smooth import untangle as _untangle
+            from .hex_untangle import untangle as _untangle
 
             t0 = time.perf_counter()
             bv = np.unique(boundary_quads_of(ext.hexes).reshape(-1))

@@ -1,4 +1,4 @@
-"""Quantization of the seamless map's integer unknowns: greedy multiple rounding, then stiffening.
+"""Quantization of the seamless map's integer unknowns: rounding (injective or greedy), stiffening, snapping.
 
 Greedy multiple rounding (Bommes, Zimmer, Kobbelt 2009; HEXMESH.md step 6): solve the
 continuous problem; sort the unfixed integer unknowns by their distance to the nearest integer;
@@ -20,6 +20,13 @@ every tet positive it is taken without the barrier's Newton steps.
 Stiffening: tets whose parametric volume is not positive get their weight multiplied by
 ``stiffening_factor`` and the continuous unknowns are solved again (integers kept), up to
 ``stiffening_iters`` times.
+
+Snapping (HexEx's sanitization; :func:`snap`): the continuous free unknowns are rounded to
+multiples of ``2**-grid_bits`` and the integer ones are exact integers; every corner parameter is
+a short sum of them with coefficients ``±1`` (or ``±1/2``, ``±2`` at half turns), so the corner
+parameters are dyadic rationals computed exactly in float64, and the transitions
+``u_t1 = R_f u_t0 + s_f`` hold *exactly* on every face: the validity check and the extraction
+decide topology with exact arithmetic.
 """
 from __future__ import annotations
 
@@ -28,7 +35,11 @@ import scipy.sparse as sp
 
 from .solver import factorize
 
-__all__ = ["round_greedy", "round_injective", "stiffen", "solve_fixed", "param_volumes"]
+__all__ = ["round_greedy", "round_injective", "stiffen", "snap", "GRID_BITS", "solve_fixed", "param_volumes"]
+
+GRID_BITS = 20
+"""Parameters are snapped to multiples of ``2**-GRID_BITS`` (parameter magnitudes must stay below
+``2**30`` so that every sum of a few of them is exact in float64)."""
 
 _RHS_BATCH = 256
 
@@ -371,3 +382,25 @@ def stiffen(prob, y: np.ndarray, int_mask: np.ndarray, *, iters: int = 10, facto
         uvw = prob.corner_params(y)
         done += 1
     return y, done
+
+
+def snap(prob, y: np.ndarray, int_mask: np.ndarray | None, grid_bits: int, edge_length: float):
+    """Snapping to the dyadic grid (module docstring): the free unknowns ``y (n,)`` rounded to
+    multiples of ``2**-grid_bits``, those of ``int_mask (n,) bool`` to integers (``None``: none).
+
+    Returns ``(y_snapped (n,), uvw (T, 4, 3))``, the corner parameters ``prob.corner_params`` of
+    the snapped unknowns (exact dyadic rationals).
+
+    Raises:
+        ValueError: a corner parameter reaches ``2**30`` (the sums stop being exact in float64):
+            ``edge_length`` is too small for the mesh.
+    """
+    scale = float(2 ** grid_bits)
+    ys = np.round(y * scale) / scale
+    if int_mask is not None:
+        ys[int_mask] = np.round(y[int_mask])
+    uvw = prob.corner_params(ys)
+    if np.abs(uvw).max(initial=0.0) >= 2.0 ** 30:
+        raise ValueError(f"the parameters reach {np.abs(uvw).max():.3g} >= 2**30: edge_length {edge_length:g} is too "
+                         f"small for this mesh")
+    return ys, uvw

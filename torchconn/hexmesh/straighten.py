@@ -10,7 +10,7 @@ the matching of one face ``f`` (its transition ``R_f <- g R_f``, ``g in O``) cha
 of exactly the three edges of ``f``: it moves a singular edge onto the other two edges of the
 face (a singular curve through ``a -> b`` then runs ``a -> c -> b``), or back.
 
-The search (as :mod:`torchconn.frames.structure` does for the vertex-based picture) descends a
+The search (as :mod:`torchconn.frames.matching_search` does for the vertex-based picture) descends a
 cost over interior edges: regular 0, a quarter or half turn about the parameter axis closest
 to the edge's direction in the field ``w_along``, a turn about another axis ``w_across``, a
 complex holonomy ``w_complex``, and ``w_tangent`` more for a turn at a boundary vertex about an

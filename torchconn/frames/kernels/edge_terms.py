@@ -11,7 +11,7 @@ given by their index ``match (E,)`` into the octahedral group ``group (24, 3, 3)
 ``d2`` is the matched Dirichlet energy of the edge (Ray et al. 2016, Palmer et al. 2020) and
 ``a`` the smoothed geodesic angle of the residual rotation ``(F_i g_e)^T F_j`` (for rotations
 ``||R - I||_F = 2 sqrt 2 sin(angle / 2)``); ``w (E,)`` optional edge weights (``None``: 1).
-:func:`torchconn.frames.refine.quality_path` minimizes ``L`` (with ``s_a = 1 / (E a_ref)``,
+:func:`torchconn.frames.quality_paths.quality_path` minimizes ``L`` (with ``s_a = 1 / (E a_ref)``,
 ``s_d = lambda / (E D_ref)``) by L-BFGS.
 
 Ops (``torch.ops.torchconn.*``):
@@ -34,7 +34,7 @@ intermediates, per-thread scatter buffers), else the generic code. Fake kernels 
 Measured (``python -m benchmarks.ops_kernels --rows edge_terms --dtype float64``, and on the
 1M-tet HexMe mesh ``i02c_m2@lmax=0.14``: 183,517 vertices, 1.22M edges, float64, 2 threads):
 forward + backward 0.052 s compiled against 0.70 s generic; the quality paths of that mesh from
-its SH field (:func:`torchconn.frames.refine.quality_path`, 24 L-BFGS rounds) 310 s -> 106 s.
+its SH field (:func:`torchconn.frames.quality_paths.quality_path`, 24 L-BFGS rounds) 310 s -> 106 s.
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@
  *
  * over the edges e = (i, j) with fixed matchings g_e (elements of the octahedral group, given
  * by their index into torchconn.frames.octahedral.group()), the objective of the quality paths
- * (torchconn/frames/refine.py). The CPU kernels of the custom ops torchconn::matched_edge_terms
+ * (torchconn/frames/quality_paths.py). The CPU kernels of the custom ops torchconn::matched_edge_terms
  * and torchconn::matched_edge_terms_backward (torchconn/frames/kernels/edge_terms.py, which holds the
  * generic torch formulas these loops must equal).
  *

@@ -37,13 +37,13 @@ Constraints (:class:`~torchconn.frames.constraints.BoundaryConstraint`), two pat
 
 :func:`relax_to_matchings` is one ``"soft"`` round with *prescribed* matchings instead of the
 frames' own: the frames follow a singular structure chosen elsewhere (the repair of
-:mod:`torchconn.frames.structure`).
+:mod:`torchconn.frames.matching_search`).
 
 Measured on the 35 HexMe ``c`` meshes (2026-11-25: ``docs/results/hexme.md`` at commit f4941d1 in git history,
 ``studies/frame_quality.py``): the
 soft path gives the lowest energies but lets the tangent drift where a singular curve meets a
 feature curve; the tangent path holds the curves; the checkpoints of both are candidates of
-:func:`~torchconn.frames.polish.connection_candidates`.
+:func:`~torchconn.frames.candidates.connection_candidates`.
 """
 from __future__ import annotations
 
@@ -217,8 +217,8 @@ def relax_to_matchings(mesh, frames: torch.Tensor, matchings: torch.Tensor, *, a
     instead of re-matched, by ``iters`` L-BFGS iterations from ``frames``; aligned boundary
     vertices rotate about their normal only. The singular structure of the result's own
     (re-computed) matchings is the prescribed one where the frames moved far enough; it is the
-    start of the repair paths of :func:`~torchconn.frames.polish.connection_candidates`
-    (:mod:`torchconn.frames.structure`).
+    start of the repair paths of :func:`~torchconn.frames.candidates.connection_candidates`
+    (:mod:`torchconn.frames.matching_search`).
 
     Args:
         mesh: ``TetMesh``.

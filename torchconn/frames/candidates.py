@@ -2,18 +2,18 @@
 
 :func:`connection_candidates` makes the fields the connection method may return, every one
 descended from a connection optimization: each optimized field itself; the checkpoints of the
-quality paths of :mod:`torchconn.frames.refine` started at it (L-BFGS on the frames, the mean
+quality paths of :mod:`torchconn.frames.quality_paths` started at it (L-BFGS on the frames, the mean
 angle and the matched Dirichlet energy ``mean_e ||F_i g_ij - F_j||^2`` of Ray et al. 2016 /
 Palmer et al. 2020 traded along an annealed weight, with the feature curves soft or held); and,
 where the best candidate by the proxies has complex-type singular faces, the singular-structure
-repair of :mod:`torchconn.frames.structure` (a field with fewer of them) and the paths from it.
+repair of :mod:`torchconn.frames.matching_search` (a field with fewer of them) and the paths from it.
 
 Each :class:`Candidate` carries its :func:`~torchconn.frames.metrics.frame_metrics` and its
 proxy score (:func:`quality_score` against a reference field's metrics, the SH field: log ratios
 of mean angle, Dirichlet energy and complex-type singular faces). :func:`choose_by_proxies` is
 the default choice among them (those within the feature-curve bound first, then the lowest
 score); the jobs choose by the hex meshes the candidates make
-(:func:`torchconn.hexmesh.field.hex_chooser`).
+(:func:`torchconn.hexmesh.choose.hex_chooser`).
 """
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import torch
 
 from .metrics import frame_metrics
-from .refine import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
-from .structure import repair_structure
+from .quality_paths import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
+from .matching_search import repair_structure
 
 __all__ = ["Candidate", "connection_candidates", "choose_by_proxies", "quality_score"]
 
@@ -53,7 +53,7 @@ class Candidate:
     Attributes:
         frames: ``(V, 3, 3)``.
         kind: ``"optimized"`` (the connection optimization's own field), a path kind of
-            :data:`~torchconn.frames.refine.PATH_KINDS` (a checkpoint of a quality path from an
+            :data:`~torchconn.frames.quality_paths.PATH_KINDS` (a checkpoint of a quality path from an
             optimized field) or ``"repaired"`` (the singular-structure repair of a candidate).
         start: the start field the connection optimization began from (``"sh"``, ``"mbo"``,
             ``"init"``): every candidate descends from that optimization.
@@ -97,11 +97,11 @@ def connection_candidates(mesh, optimized: dict, reference: dict, *, paths: Sequ
 
     Every candidate descends from a connection optimization (``optimized``: ``{start label:
     (frames (V, 3, 3), edge_rot (E, 3, 3))}``): the optimized field itself, the checkpoints of the
-    quality paths (:func:`~torchconn.frames.refine.quality_path`, ``paths`` x ``dirichlet_weights``)
+    quality paths (:func:`~torchconn.frames.quality_paths.quality_path`, ``paths`` x ``dirichlet_weights``)
     started at it, and, where the best candidate by the proxies (:func:`choose_by_proxies` on
     :func:`quality_score` against ``reference``, the SH field's :func:`frame_metrics`) has
     complex-type singular faces, the singular-structure repair of that candidate
-    (:func:`~torchconn.frames.structure.repair_structure`) and the paths from it (``repair_rounds``
+    (:func:`~torchconn.frames.matching_search.repair_structure`) and the paths from it (``repair_rounds``
     rounds). There is no fallback to the reference: it is the yardstick of the scores only.
 
     Returns:

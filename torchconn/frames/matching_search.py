@@ -22,8 +22,8 @@ move of every edge of a complex face is scored once, in one batched evaluation (
 of O at once), and after each move only the edges of the faces around the moved edge are
 rescored (the only ones whose moves changed); the loop runs over moves, not mesh elements.
 
-The frames then follow the prescribed matchings by :func:`~torchconn.frames.refine.relax_to_matchings`
-(L-BFGS with the matchings held), and :func:`~torchconn.frames.polish.connection_candidates` makes the
+The frames then follow the prescribed matchings by :func:`~torchconn.frames.quality_paths.relax_to_matchings`
+(L-BFGS with the matchings held), and :func:`~torchconn.frames.candidates.connection_candidates` makes the
 result a candidate (kind ``"repaired"``) and runs the quality paths from it, scored like every
 other candidate.
 
@@ -38,7 +38,7 @@ from collections.abc import Sequence
 import torch
 
 from . import octahedral
-from .refine import relax_to_matchings
+from .quality_paths import relax_to_matchings
 from .singular import classify_holonomy
 
 __all__ = ["FACE_COSTS", "MOVED_EDGE_WEIGHTS", "complex_face_count", "edge_face_incidence", "repair_matchings",
@@ -194,7 +194,7 @@ def repair_structure(frames: torch.Tensor, mesh, *, a_ref: float, d_ref: float, 
     """A field with fewer complex-type singular faces: matchings searched, frames relaxed onto them.
 
     Each pass runs :func:`repair_matchings` on the current field, then
-    :func:`~torchconn.frames.refine.relax_to_matchings` once per weight of ``moved_edge_weights``
+    :func:`~torchconn.frames.quality_paths.relax_to_matchings` once per weight of ``moved_edge_weights``
     (the weight of the re-matched edges in the edge terms, the others weigh 1; a heavier weight makes
     the frames follow the new matchings, at the price of the edges around them) and keeps the
     relaxed field whose *own* matchings have the fewest complex faces (the first on a tie). A pass
@@ -203,7 +203,7 @@ def repair_structure(frames: torch.Tensor, mesh, *, a_ref: float, d_ref: float, 
     Args:
         frames: ``(V, 3, 3)`` start field.
         mesh: ``TetMesh``.
-        a_ref, d_ref: normalizations of the relaxation (:func:`~torchconn.frames.refine.relax_to_matchings`).
+        a_ref, d_ref: normalizations of the relaxation (:func:`~torchconn.frames.quality_paths.relax_to_matchings`).
         passes: the most search-and-relax passes.
         residual_weight, face_costs: of :func:`repair_matchings`.
         moved_edge_weights: weights tried in each pass (each a relaxation: their number is the

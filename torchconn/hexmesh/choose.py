@@ -2,11 +2,11 @@
 
 :func:`hex_chooser` returns a ``choose(mesh, candidates)`` for
 :func:`torchconn.frames.design` (its ``choose=`` hook): the candidates (every one a descendant of a
-connection optimization, :class:`torchconn.frames.polish.Candidate`) are meshed by
+connection optimization, :class:`torchconn.frames.candidates.Candidate`) are meshed by
 :func:`~.pipeline.hex_mesh` and ranked by the end metric: a valid map with a good hex mesh first,
 then a valid map, then fewer inverted and flat tets in the map, fewer cubes dropped, a larger
 minimum scaled Jacobian, fewer irregular interior edges; the proxies' score
-(:func:`~torchconn.frames.polish.quality_score`) breaks ties. Only the most promising candidates are
+(:func:`~torchconn.frames.candidates.quality_score`) breaks ties. Only the most promising candidates are
 meshed (the cost is one hex stage each): each start's optimized field, then the best checkpoint
 by the proxies of each (start, path kind), then the best repaired field, up to ``max_candidates``.
 
