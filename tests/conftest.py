@@ -60,3 +60,49 @@ DEVICES = _device_params()
 def device(request) -> torch.device:
     """Every device present: ``cpu``, and ``cuda`` when available (skipped with a reason otherwise)."""
     return torch.device(request.param)
+
+
+# The default suite's budget is ~5 min on 2 cores (DEVELOPERS.md). These tests took 8-90 s each in
+# a full run on 2 loaded cores (2026-11-26, `pytest --durations=80`); each has a faster sibling that
+# stays in the default suite (another parametrization, or a test of the same path on a smaller case).
+# They run with `python -m pytest -m slow`.
+SLOW_IDS = frozenset({
+    "tests/test_train_frames.py::test_hydra_multirun",  # sibling: the single-run job tests of this file
+    "tests/test_train_frames.py::test_cli_end_to_end",  # sibling: test_cli_unknown_key_exits_nonzero, test_resume_equals_uninterrupted
+    "tests/test_train_frames.py::test_resume_is_bitwise_and_frames_equal_design",  # sibling: test_resume_equals_uninterrupted
+    "tests/test_ops_library_tet.py::test_gradcheck_and_gradgradcheck[generic]",  # sibling: [compiled]
+    "tests/test_ops_library_tet.py::test_gradgradcheck_through_skew_parameters[False-generic]",
+    "tests/test_ops_library_tet.py::test_gradgradcheck_through_skew_parameters[False-compiled]",
+    "tests/test_ops_library_tet.py::test_gradgradcheck_through_skew_parameters[True-generic]",  # sibling: [True-compiled]
+    "tests/test_ops_library_frame_loss.py::test_opcheck_backward_aot_dispatch[compiled-float64]",
+    "tests/test_ops_library_frame_loss.py::test_gradcheck_and_gradgradcheck[torch]",  # sibling: [compiled]
+    "tests/test_robust_job.py::test_resume_from_weights_only_checkpoint",
+    "tests/test_robust_job.py::test_finished_run_leaves_no_temporary_files",  # sibling: test_failing_writer_...
+    "tests/test_ops_library_so3.py::test_opcheck_full[log-dtype2-True]",
+    "tests/test_ops_library_so3.py::test_opcheck_full[exp-dtype2-True]",  # siblings: the other dtypes
+    "tests/test_second_order.py::test_functional_averaged_dd_solder_gradgradcheck[frames]",
+    "tests/test_second_order.py::test_functional_averaged_dd_solder_gradgradcheck[sqrt]",  # sibling: [half_exp]
+    "tests/test_design.py::test_resume_from_state_equals_uninterrupted",  # sibling: test_train_frames resume
+    "tests/test_design.py::test_design_equals_cli_frames_bitwise",
+    "tests/test_design.py::test_callback_sees_every_step_and_stops_early",
+    "tests/test_cad.py::test_connection_method_follows_the_cad_curves[notch]",  # sibling: [prism]
+    "tests/test_ops_library_curvature.py::test_curvature_opcheck_full[dtype2-True]",
+    "tests/test_sh_baseline.py::test_gear_runs_and_aligns",
+    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[off-False]",
+    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[FALSE-False]",
+    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[no-False]",
+    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[1-True]",
+})
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of :data:`SLOW_IDS` ``slow`` (before ``-m 'not slow'`` deselects)."""
+    known = set()
+    for item in items:
+        if item.nodeid in SLOW_IDS:
+            item.add_marker(pytest.mark.slow)
+            known.add(item.nodeid)
+    stale = SLOW_IDS - known
+    if stale and len(items) > 2000:  # a full collection: every listed id must still exist
+        raise pytest.UsageError(f"tests/conftest.py SLOW_IDS names tests that no longer exist: {sorted(stale)}")

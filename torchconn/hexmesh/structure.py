@@ -189,7 +189,7 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
 
             if face_match is None:
                 face_match = face_matchings(mesh, Fr)
-            pairs = _collapsed_pairs(mesh, prob, flat[collapsed])
+            pairs = _collapsed_pairs(mesh, charts, prob, flat[collapsed])
             mesh, Fr, par, face_match, n = collapse_edges(mesh, Fr, pairs, face_match)
             parent = parent[par]
             splits["collapsed"] = splits.get("collapsed", 0) + n["collapsed"]
@@ -226,10 +226,13 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
                      stats=stats, timings=timings)
 
 
-def _collapsed_pairs(mesh, prob: SeamlessProblem, tets: np.ndarray, seed: int = 0) -> np.ndarray:
+def _collapsed_pairs(mesh, charts: TetCharts, prob: SeamlessProblem, tets: np.ndarray, seed: int = 0) -> np.ndarray:
     """``(k, 2)`` the vertex pairs of the collapsed tets ``tets`` that the constraints send to one
     point (equal corner parameters at random integer unknowns, as
-    :meth:`~.seamless.SeamlessProblem.flat_tets` decides; two samples)."""
+    :meth:`~.seamless.SeamlessProblem.flat_tets` decides; two samples). Pairs at a vertex of a
+    complex singular edge are left out: no collapse may hide an unmeshable singularity."""
+    from ..frames.singular import FACE_TYPES
+
     rng = np.random.default_rng(seed)
     T = mesh.tets.cpu().numpy()[tets]
     pa, pb = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
@@ -239,6 +242,9 @@ def _collapsed_pairs(mesh, prob: SeamlessProblem, tets: np.ndarray, seed: int = 
         same &= (uvw[:, pa] == uvw[:, pb]).all(-1)
     t, k = np.nonzero(same)
     pairs = np.sort(np.stack([T[t, pa[k]], T[t, pb[k]]], 1), axis=1)
+    cx = np.zeros(mesh.n_vertices, bool)
+    cx[mesh.edges.cpu().numpy()[charts.edge_type == FACE_TYPES.index("complex")].reshape(-1)] = True
+    pairs = pairs[~(cx[pairs[:, 0]] | cx[pairs[:, 1]])]
     return np.unique(pairs, axis=0)
 
 
