@@ -165,15 +165,17 @@ def read_frames_file(path, mesh) -> np.ndarray:
 
 
 def _field(cfg, mesh, out: Path):
-    """``(frames or FrameFieldResult, field summary, frames (V,3,3) to save or None)``."""
+    """``(frames, field summary, frames (V,3,3) to save or None, the chooser's HexMeshResult of
+    these frames or None)``."""
     if cfg.frames is not None:
         F = read_frames_file(cfg.frames, mesh)
-        return torch.as_tensor(F), {"source": str(cfg.frames)}, None
+        return torch.as_tensor(F), {"source": str(cfg.frames)}, None, None
     cached = out / "frames.npz"
     if cfg.resume and cached.is_file():
         F = read_frames_file(cached, mesh)
-        return torch.as_tensor(F), {"source": str(cached), "resumed": True}, None
+        return torch.as_tensor(F), {"source": str(cached), "resumed": True}, None, None
     t0 = time.perf_counter()
+    made = None
     if cfg.method == "mbo":
         from torchconn.frames.mbo import mbo_frames
 
@@ -186,10 +188,11 @@ def _field(cfg, mesh, out: Path):
                              hex_options=OmegaConf.to_container(cfg.hex, resolve=True), progress=bool(cfg.progress),
                              seed=int(cfg.seed), **design_options(cfg))
         F = res.vertex_frames
+        made = res.hex
         summary = {"method": cfg.method, "final": res.metrics.get("final"), "chosen": res.metrics.get("chosen")}
     summary["seconds"] = time.perf_counter() - t0
     F = F.detach().cpu().double()
-    return F, summary, F.numpy()
+    return F, summary, F.numpy(), made
 
 
 def run(cfg) -> dict:
@@ -202,11 +205,13 @@ def run(cfg) -> dict:
             torch.set_num_threads(threads)
         np.random.seed(int(cfg.seed))
         mesh = _load_mesh(cfg, torch.float64, torch.device("cpu"))
-        frames, field_summary, to_save = _field(cfg, mesh, out)
+        frames, field_summary, to_save, made = _field(cfg, mesh, out)
         from torchconn.hexmesh import hex_mesh
 
         opts = OmegaConf.to_container(cfg.hex, resolve=True)
-        result = hex_mesh(mesh, frames, progress=bool(cfg.progress), **opts)
+        # the chooser meshed the chosen field with these options already: not again
+        result = made if made is not None else hex_mesh(mesh, frames, progress=bool(cfg.progress), **opts)
+        field_summary["hex_mesh_from_chooser"] = made is not None
         metrics = result.metrics()
         metrics["field"] = field_summary
         metrics["mesh"] = {"source": str(cfg.mesh), "vertices": mesh.n_vertices, "tets": mesh.n_tets}

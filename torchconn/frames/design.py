@@ -138,6 +138,10 @@ class FrameFieldResult:
         timings: ``{"wall_s", "init_s", "optimize_s", "quality_s", "choose_s",
             "iterations", "total_steps", "s_per_iteration", "stopped_early"}`` (``iterations``:
             over every start).
+        hex: the hex mesh a hex chooser made of this very field while choosing it
+            (:func:`torchconn.hexmesh.choose.design_for_hex`, a
+            :class:`~torchconn.hexmesh.pipeline.HexMeshResult`), so that it is not meshed twice;
+            ``None`` otherwise.
     """
 
     mesh: Any
@@ -151,6 +155,7 @@ class FrameFieldResult:
     history: dict[str, list[float]] = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     histories: dict[str, dict] = field(default_factory=dict)
+    hex: Any = None
 
     def __repr__(self) -> str:  # shapes and headline numbers, not every tensor entry
         f = self.metrics.get("final", {})

@@ -19,6 +19,8 @@ from __future__ import annotations
 import math
 import time
 
+import torch
+
 __all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect", "map_energy_term"]
 
 
@@ -90,7 +92,8 @@ def hex_chooser(max_candidates: int = 8, **hex_options):
 
     The ``info`` lists, per meshed candidate, its label, the map's validity and first reasons,
     the hexes, the scaled Jacobian, the irregular fraction, the Hausdorff distance, ``good`` and
-    the seconds; ``"by": "hex"``.
+    the seconds; ``"by": "hex"``. After a call, ``choose.chosen`` is ``(frames, HexMeshResult)``
+    of the chosen candidate (:func:`design_for_hex` hands it on as ``FrameFieldResult.hex``).
     """
     if not (isinstance(max_candidates, int) and max_candidates >= 1):
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
@@ -99,7 +102,7 @@ def hex_chooser(max_candidates: int = 8, **hex_options):
         from .pipeline import hex_mesh
 
         idx = preselect(candidates, max_candidates)
-        rows, keys = [], []
+        rows, keys, results = [], [], []
         for i in idx:
             c = candidates[i]
             t0 = time.perf_counter()
@@ -111,9 +114,11 @@ def hex_chooser(max_candidates: int = 8, **hex_options):
                          "irregular": None if q is None else q.irregular_fraction,
                          "hausdorff": None if q is None else q.hausdorff_rel, "seconds": time.perf_counter() - t0})
             keys.append(hex_key(r, c.score))
+            results.append(r)
         best = min(range(len(keys)), key=keys.__getitem__)
         win = idx[best]
         row = rows[best]
+        choose.chosen = (candidates[win].frames, results[best])  # the winner's hex mesh, not made again
         reason = ("a valid map and a good hex mesh" if row["good"] else "a valid map" if row["valid"]
                   else "no candidate has a valid map: the fewest broken tets")
         return win, {"by": "hex", "reason": reason, "meshed": rows}
@@ -125,7 +130,9 @@ def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", sel
                    hex_options: dict | None = None, **options):
     """:func:`torchconn.frames.design` with the hex chooser (``select="hex"``; ``"proxies"``: the
     default choice) and, when ``weights["map"] > 0``, the seamless map's fitting energy as a loss
-    term (:class:`~.energy.MapEnergy`, built per start field, structure frozen there)."""
+    term (:class:`~.energy.MapEnergy`, built per start field, structure frozen there). With the
+    hex chooser, ``result.hex`` is the :class:`~.pipeline.HexMeshResult` of the returned field
+    (``hex_mesh(mesh, result.vertex_frames, **hex_options)``, made while choosing)."""
     from ..frames.design import design
 
     if select not in ("hex", "proxies"):
@@ -133,4 +140,8 @@ def design_for_hex(mesh, method: str = "connection", *, select: str = "hex", sel
     hex_options = dict(hex_options or {})
     extra = {"map": map_energy_term(edge_length=hex_options.get("edge_length"))} if method == "connection" else {}
     choose = hex_chooser(select_candidates, **hex_options) if select == "hex" and method == "connection" else None
-    return design(mesh, method, choose=choose, extra_terms=extra or None, **options)
+    res = design(mesh, method, choose=choose, extra_terms=extra or None, **options)
+    chosen = getattr(choose, "chosen", None)
+    if chosen is not None and torch.equal(chosen[0].detach().to(res.vertex_frames), res.vertex_frames):
+        res.hex = chosen[1]  # the hex mesh of exactly the returned field, with hex_options
+    return res
