@@ -249,19 +249,3 @@ def test_float32_box():
     assert _is_in_O(F, 1e-4)
 
 
-def test_mbo_refinement_box_exact_and_sphere_smoother():
-    # box: the diffusion-projection rounds keep the exact axis-aligned field
-    m = io.box(3)
-    assert _is_in_O(sh.sh_frame_field(m, n_smooth_iters=0, mbo_steps=3), 1e-6)
-    # sphere: aligned rotations, and much smoother than the linear step's projection alone
-    s = io.load_tet_mesh(data_path("sphere_r0.17.mesh"))
-    F_lin = sh.sh_frame_field(s, n_smooth_iters=0)
-    F = sh.sh_frame_field(s, n_smooth_iters=0, mbo_steps=8)
-    so3.check_rotation(F)
-    met, met_lin = frame_metrics(F, s), frame_metrics(F_lin, s)
-    assert met["alignment_max_deg"] < 1e-6
-    assert met["smoothness_mean_deg"] < 0.8 * met_lin["smoothness_mean_deg"]
-    with pytest.raises(ValueError, match="mbo"):
-        sh.sh_frame_field(m, mbo_steps=-1)
-    with pytest.raises(ValueError, match="mbo"):
-        sh.sh_frame_field(m, mbo_steps=2, mbo_tau=(1.0, 0.0))

@@ -90,8 +90,7 @@ DEFAULTS: dict[str, Any] = {
                 "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
                 "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
                 "repair_residual_weight": 0.5, "repair_relax_iters": 40, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
-    "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30, "mbo_steps": 0, "mbo_tau_start": 4.0,
-           "mbo_tau_end": 0.05},
+    "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30},
     "init_frames": None,
     "bianchi_atol": None,
 }
@@ -369,9 +368,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         else:
             s = opts["sh"]
             F_ref = sh_frame_field(mesh, boundary_weight=float(s["boundary_weight"]),
-                                   n_smooth_iters=int(s["n_smooth_iters"]), feature_angle_deg=angle,
-                                   mbo_steps=int(s["mbo_steps"]),
-                                   mbo_tau=(float(s["mbo_tau_start"]), float(s["mbo_tau_end"])))
+                                   n_smooth_iters=int(s["n_smooth_iters"]), feature_angle_deg=angle)
         init_metrics = frame_metrics(F_ref, mesh, angle)
         starts_F = {}
         if method == "connection":

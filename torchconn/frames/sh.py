@@ -368,32 +368,6 @@ def _project_frames(q, smooth_mask, vnorm, n_restarts: int) -> torch.Tensor:
     return F
 
 
-def _mbo(mesh, F, boundary_weight, ids, normals, weights, smooth_mask, vnorm, n_steps: int,
-         tau: tuple[float, float], n_restarts: int, cg_rtol: float = 1e-8, cg_maxiter: int = 5000) -> torch.Tensor:
-    """Diffusion-projection (MBO) refinement of Palmer, Bommes & Solomon 2020 (step 3b).
-
-    ``n_steps`` rounds with diffusion times ``tau`` geometric from ``tau[0]`` to ``tau[1]``
-    (units of the uniform graph Laplacian, i.e. squared edge lengths): one implicit gradient
-    step of the linear energy, ``(I + tau (K + Pen)) q = q_prev + tau b`` (the boundary
-    penalty stays in the flow), from the SH vectors of the current frames, then projection onto
-    the octahedral variety (:func:`_project_frames`, boundary snapped).
-    """
-    V = F.shape[0]
-    K, Pen, b = _system(mesh, boundary_weight, ids, normals, weights)
-    H = (K + Pen).tocsr()
-    eye = sp.identity(9 * V, format="csr")
-    taus = np.geomspace(float(tau[0]), float(tau[1]), n_steps) if n_steps > 1 else np.array([float(tau[0])])
-    for tk in taus:
-        q0 = frame_to_sh(F).detach().cpu().double().numpy().reshape(-1)
-        M = (eye + tk * H).tocsr()
-        x, info = spla.cg(M, q0 + tk * b, x0=q0, M=sp.diags(1.0 / M.diagonal()), rtol=cg_rtol, maxiter=cg_maxiter)
-        if info < 0 or not np.all(np.isfinite(x)):
-            raise RuntimeError(f"SH MBO diffusion step failed (cg info={info}, tau={tk})")
-        F = _project_frames(torch.as_tensor(x.reshape(V, 9), dtype=F.dtype, device=F.device), smooth_mask,
-                            vnorm, n_restarts)
-    return F
-
-
 def sh_frame_field(
     mesh,
     boundary_weight: float = 100.0,
@@ -401,8 +375,6 @@ def sh_frame_field(
     feature_angle_deg: float = 30.0,
     n_restarts: int = 8,
     return_sh: bool = False,
-    mbo_steps: int = 0,
-    mbo_tau: tuple[float, float] = (4.0, 0.05),
 ):
     """Boundary-aligned smooth octahedral frame field (Ray, Sokolov & Lévy 2016).
 
@@ -417,10 +389,6 @@ def sh_frame_field(
         (``scipy.sparse.linalg.cg``, relative residual ``1e-10``).
       - (3) Projection: each ``q_i`` normalized and projected to the nearest frame
         (:func:`sh_to_frame`); non-feature boundary frames snapped so an axis equals ``±n_i``.
-      - (3b) Optional (``mbo_steps > 0``; not part of Ray et al.): the diffusion-projection (MBO)
-        iteration of Palmer, Bommes & Solomon 2020 ("Algebraic representations for volumetric
-        frame fields"), alternating an implicit heat step of the SH vectors under the same
-        energy (boundary penalty kept) with the projection of step 3 (:func:`_mbo`).
       - (4) Nonlinear step (the paper's optimization in the frame domain): frames
         ``F_i = exp(hat(w_i)) F_i^0`` with ``w_i = phi_i n_i`` restricted to the normal at
         non-feature boundary vertices (alignment stays exact), minimizing the same energy with
@@ -435,8 +403,6 @@ def sh_frame_field(
         feature_angle_deg: sharp-edge threshold.
         n_restarts: restarts of the per-vertex projection.
         return_sh: also return the linear-step SH vectors ``(V, 9)``.
-        mbo_steps: rounds of step 3b (0: off, the Ray et al. baseline).
-        mbo_tau: ``(first, last)`` diffusion time of step 3b, geometric in between.
 
     Returns:
         ``frames (V, 3, 3)`` in the mesh dtype/device (``frames[i][:, k]`` = axis ``k`` at vertex
@@ -451,16 +417,11 @@ def sh_frame_field(
         raise ValueError(f"boundary_weight must be positive, got {boundary_weight}")
     dtype = mesh.vertices.dtype
     ids, normals, weights, smooth_mask = _penalty_rows(mesh, feature_angle_deg, dtype)
-    if mbo_steps < 0 or not all(float(t) > 0 for t in mbo_tau):
-        raise ValueError(f"mbo_steps must be >= 0 and mbo_tau positive, got {mbo_steps}, {mbo_tau}")
     q = _solve_linear(mesh, boundary_weight, ids, normals, weights)
 
     vnorm = BoundaryConstraint.from_mesh(mesh, feature_angle_deg).normals.to(dtype)
     sm = smooth_mask
     F0 = _project_frames(q, sm, vnorm, n_restarts)
-    if mbo_steps > 0:
-        F0 = _mbo(mesh, F0, boundary_weight, ids, normals, weights, sm, vnorm, int(mbo_steps), tuple(mbo_tau),
-                  n_restarts)
 
     if n_smooth_iters > 0:
         F0 = _nonlinear_smooth(mesh, F0, vnorm, sm, ids, normals, weights, boundary_weight, n_smooth_iters)
