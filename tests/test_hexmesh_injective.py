@@ -21,9 +21,9 @@ import torch
 from torchconn import io
 from torchconn.hexmesh.cut import tet_charts
 from torchconn.hexmesh.elimination import Elimination
-from torchconn.hexmesh.injective import (DET_SAFE, TetJacobians, barrier_terms, first_root, minimize_barrier,
-                                         move_fixed)
+from torchconn.hexmesh.injective import DET_SAFE, TetJacobians, minimize_barrier, move_fixed
 from torchconn.hexmesh.quantize import round_injective, solve_fixed
+from torchconn.hexmesh.tet_energies import barrier_terms, first_root
 from torchconn.hexmesh.seamless import SeamlessProblem, build_problem
 from torchconn.hexmesh.validity import check_seamless
 

@@ -278,7 +278,7 @@ def test_greedy_rounding_in_blocks_makes_no_dense_matrix_and_ends_exact():
 # ----------------------------------------------------------------------------- closed-form derivatives
 @pytest.mark.parametrize("energy", ["sd", "untangling"])
 def test_closed_form_derivatives_equal_autograd(energy):
-    from torchconn.hexmesh import injective as inj
+    from torchconn.hexmesh import tet_energies as inj
 
     g = torch.Generator().manual_seed(5)
     T = 300

@@ -46,7 +46,7 @@ field; ``det J_t > 0`` keeps the orientation), 9 per tet minus the alignment con
          + w_s sum_f ((vol_t0 + vol_t1) / 4V) |h (B_t1 - R_f B_t0)|_F^2  smoothness under the transitions
          + w_i sum_q (1 / 3T) |h Theta_q|^2 / |e_q|^2                   torsion (non-integrability)
 
-``SD(J) = |J|^2 + |J^-1|^2 - 6`` (:func:`~.injective.barrier_terms`: zero at a rotation, infinite
+``SD(J) = |J|^2 + |J^-1|^2 - 6`` (:func:`~.tet_energies.barrier_terms`: zero at a rotation, infinite
 at ``det J = 0``); ``h (B_t1 - R_f B_t0) = J_t1 F_t1^T - R_f J_t0 F_t0^T``; ``h Theta_q / |e_q|`` is the
 relative length mismatch of edge ``e_q`` seen from the two tets. The per-face weight ``1/3T`` of
 the torsion makes the sum over a face's three quads ``(1/2T) |D_f P_f|^2`` on an equilateral face
