@@ -53,24 +53,24 @@ def group(cls) -> Any:
 class Weights:
     """Loss weights (:class:`torchconn.frames.loss.FrameFieldLoss`; a weight of 0 skips the term)."""
 
-    #: mean rho(||R_ij - I||) (connection smoothness)
+    #: ``mean rho(||R_ij - I||)`` (connection smoothness)
     smooth: float = option(1.0, lo=0)
-    #: mean rho(min_h ||F_i R_ij - F_j h||), h in O (the connection transports the frames; with
+    #: ``mean rho(min_h ||F_i R_ij - F_j h||)``, ``h in O`` (the connection transports the frames; with
     #: smooth_power=1 and tie > smooth an exact penalty)
     tie: float = option(2.0, lo=0)
-    #: mean min_g ||hol_f - g||^2, g in O (symmetric flatness)
+    #: ``mean min_g ||hol_f - g||^2``, ``g in O`` (symmetric flatness)
     flat: float = option(0.1, lo=0)
-    #: solder-form torsion in the frames, |Theta_f|^2 / area_f, over every face (relabeled faces
+    #: solder-form torsion in the frames, ``|Theta_f|^2 / area_f``, over every face (relabeled faces
     #: through the matchings): the non-integrability of the field
     torsion: float = option(0.01, lo=0)
     #: averaged covariant exterior derivative (Def. 5.2, torchconn.AveragedCovariantD): mean over
-    #: regular tets of |d^nabla Alt d^nabla Alt theta|^2 / vol^(2/3) (the discrete Omega ^ theta)
+    #: regular tets of ``|d^nabla Alt d^nabla Alt theta|^2 / vol^(2/3)`` (the discrete ``Omega ^ theta``)
     dnabla: float = option(0.01, lo=0)
     #: boundary normal alignment (non-feature vertices), form: align_kind
     align: float = option(10.0, lo=0)
     #: the same against every face normal incident to a feature vertex
     feature: float = option(1.0, lo=0)
-    #: mean ||F_i g_ij - F_j||^2 of the frames (matched Dirichlet energy, the SH baseline's
+    #: ``mean ||F_i g_ij - F_j||^2`` of the frames (matched Dirichlet energy, the SH baseline's
     #: measure); off by default: the quality stage carries it (studies/frame_quality.py)
     dirichlet: float = option(0.0, lo=0)
 
@@ -167,7 +167,7 @@ class FrameOptions:
     smooth_power: float = option(1.0, lo=0.5, hi=2)
     smooth_eps: float = option(1e-3, lo=0, lo_open=True)
     #: form of the align/feature terms: angle = smoothed angle to the closest axis (what the
-    #: alignment metrics average; L1-like, best mean at feature vertices) | quartic = 1 - sum_k (F_k . n)^4
+    #: alignment metrics average; L1-like, best mean at feature vertices); quartic = ``1 - sum_k (F_k . n)^4``
     align_kind: str = option("angle", choices=ALIGN_KINDS)
     #: smoothing of the angle form (radians)
     align_eps: float = option(1e-3, lo=0, lo_open=True)
@@ -175,14 +175,14 @@ class FrameOptions:
     #: optimizer steps (L-BFGS: outer steps of lbfgs.max_iter iterations each)
     steps: int = option(150, lo=0)
     lr: float = option(0.02, lo=0, lo_open=True)
-    #: cosine (to 0 at `steps`) | constant
+    #: cosine (to 0 at ``steps``) or constant
     lr_schedule: str = option("cosine", choices=LR_SCHEDULES)
     lbfgs: LBFGS = group(LBFGS)
     quality: Quality = group(Quality)
     sh: SH = group(SH)
     #: initialization from a file instead of the SH field (a frames.npz of an earlier run, key
-    #: `frames`, or a .npy of shape (V, 3, 3) for this mesh); None: the SH baseline (the method's
-    #: definition). For studies only (e.g. `python -m studies.frame_studies constint --mesh M --out f.npy`).
+    #: ``frames``, or a .npy of shape (V, 3, 3) for this mesh); None: the SH baseline (the method's
+    #: definition). For studies only (e.g. ``python -m studies.frame_studies constint --mesh M --out f.npy``).
     init_frames: str | None = option(None)
     #: relative tolerance of the Bianchi check (None: tolerances.get_eps("identity"))
     bianchi_atol: float | None = option(None, lo=0, lo_open=True)
