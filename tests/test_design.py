@@ -58,15 +58,23 @@ def test_design_equals_cli_frames_bitwise(tmp_path, mesh):
     assert set(design_options(_validate({**cfg, "method": "sh_baseline"}))) == set(OPTIONS["sh"])
 
 
-def test_defaults_match_the_config_file():
-    """DEFAULTS are the values of configs/train_frames.yaml; every config key is an option or a CLI key."""
-    cfg = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / "train_frames.yaml"))
-    cli_only = {"mesh", "edge_length", "method", "device", "num_threads", "dtype", "seed", "output_dir", "resume",
-                "checkpoint_every", "progress", "hydra", "defaults", "select", "select_candidates", "map_weight"}
+def test_defaults_are_the_schema_and_the_job_composes_them():
+    """DEFAULTS is the schema's (torchconn.frames.options.FrameOptions, the one place a default is
+    written); the frame job's composed config holds exactly those values for the method's keys, and
+    its other keys are the job's own."""
+    import dataclasses
+
+    from torchconn.frames.options import FrameOptions
+    from training.train_frames import load_config
+
+    assert DEFAULTS == dataclasses.asdict(FrameOptions())
+    assert tuple(DEFAULTS) == OPTIONS["connection"]
+    cfg = OmegaConf.to_container(load_config(["output_dir=x"]))
     for k, v in DEFAULTS.items():
-        assert cfg[k] == v, f"DEFAULTS[{k!r}] = {v!r} but configs/train_frames.yaml has {cfg[k]!r}"
-    extra = set(cfg) - set(DEFAULTS) - cli_only
-    assert not extra, f"config keys {sorted(extra)}: add them to torchconn.frames.design.DEFAULTS or to cli_only"
+        assert cfg[k] == v, f"the job's {k!r} = {cfg[k]!r}, design()'s default {v!r}"
+    cli_only = {"mesh", "edge_length", "method", "device", "num_threads", "dtype", "seed", "output_dir", "resume",
+                "checkpoint_every", "progress", "select", "select_candidates", "map_weight"}
+    assert set(cfg) - set(DEFAULTS) == cli_only
 
 
 # ----------------------------------------------------------------------------- library behaviour

@@ -165,6 +165,8 @@ def test_every_job_override_in_the_readme_composes():
     pytest.importorskip("hydra", reason="hydra-core is not installed (pip install -e '.[train]')")
     from hydra import compose, initialize_config_dir
 
+    import training.schema  # noqa: F401 - stores the jobs' schemas in Hydra's ConfigStore, as the jobs do
+
     text = README.read_text()
     commands = text.split("## Commands", 1)[1].split("\n## ", 1)[0]
     jobs = {"torchconn-frames": "train_frames", "torchconn-hex": "hex_mesh",

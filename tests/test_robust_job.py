@@ -3,6 +3,7 @@ one run per output directory, no partial output. Each test asserts the error cla
 that name the problem; runs are tiny (the built-in box, one step)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -19,7 +20,8 @@ import yaml
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError
 
-from training import config_check, frame_plots, io_utils
+from torchconn.frames.options import option
+from training import config_check, frame_plots, io_utils, schema
 from training.config_check import ConfigError, check_config
 from training.train_frames import CONFIG_DIR, _validate, load_config, train
 
@@ -141,7 +143,7 @@ def test_ints_are_accepted_for_floats():
 def test_unknown_keys_keep_raising():
     with pytest.raises(ConfigKeyError, match="stesp"):
         _validate({"stesp": 3, "output_dir": "x"})
-    with pytest.raises(ConfigError, match=r"'lbfgs.max_itr' is not a key of cfg.yaml"):
+    with pytest.raises(ConfigError, match=r"'lbfgs.max_itr' is not a key of cfg.yaml; did you mean 'lbfgs.max_iter'"):
         check_config({"lbfgs": {"max_itr": 1}}, config_check.TRAIN_FRAMES, "cfg.yaml")
 
 
@@ -151,21 +153,85 @@ def test_unresolved_output_dir_is_named():
         _validate({})
 
 
-def test_schema_lists_exactly_the_keys_of_the_config_files():
-    def keys(path):
-        raw = yaml.safe_load(Path(path).read_text())
-        raw.pop("hydra", None)
-        raw.pop("defaults", None)
-        return set(config_check._flatten(raw))
-
-    assert keys(CONFIG_DIR / "train_frames.yaml") == set(config_check.TRAIN_FRAMES)
-    assert keys(CONFIG_DIR / "demo.yaml") == set(config_check.DEMO)
-    # the shipped defaults pass their own schema
-    demo = OmegaConf.load(CONFIG_DIR / "demo.yaml")
-    demo.pop("hydra")
-    demo.pop("defaults")
+def test_the_config_files_hold_no_option_and_compose_the_schema():
+    """configs/train_frames.yaml and demo.yaml add Hydra's settings to their ConfigStore schema (the
+    one place a default is written) and no key; the composed keys are the checked keys, and the
+    shipped defaults pass their own checks."""
+    for name in ("train_frames", "demo"):
+        raw = yaml.safe_load((CONFIG_DIR / f"{name}.yaml").read_text())
+        assert set(raw) == {"defaults", "hydra"} and raw["defaults"][0] == f"{name}_schema", name
+    cfg = load_config(["output_dir=x"])
+    assert set(config_check._flatten(OmegaConf.to_container(cfg))) == set(config_check.TRAIN_FRAMES)
+    _validate(cfg)
+    demo = OmegaConf.create(schema.defaults(schema.DemoConfig))
+    assert set(config_check._flatten(demo)) == set(config_check.DEMO)
     check_config(demo, config_check.DEMO, "configs/demo.yaml")
     _validate({"output_dir": "x"})
+
+
+@dataclasses.dataclass
+class _Group:
+    n: int = option(3, lo=1)
+
+
+@dataclasses.dataclass
+class _Toy:
+    """One field of every kind the generator knows."""
+    flag: bool = option(True)
+    count: int = option(2, lo=0, hi=9)
+    rate: float = option(0.5, lo=0, lo_open=True)
+    tol: float | None = option(None, lo=0)
+    name: str = option("a")
+    kind: str = option("x", choices=("x", "y"))
+    kinds: list[str] = option(["x"], choices=("x", "y"))
+    ws: list[float] | None = option([1.0], lo=0)
+    device: str = option("cpu", kind="device")
+    threads: int | str | None = option("auto", kind="threads")
+    group: _Group = dataclasses.field(default_factory=_Group)
+
+
+def test_checks_are_generated_from_the_schema_fields():
+    """Type -> kind, ``X | None`` -> nullable, metadata -> range/choices/kind, groups -> dotted keys."""
+    S = config_check.Spec
+    assert config_check.specs_of(_Toy) == {
+        "flag": S("bool"),
+        "count": S("int", lo=0, hi=9),
+        "rate": S("float", lo=0, lo_open=True),
+        "tol": S("float", lo=0, nullable=True),
+        "name": S("str"),
+        "kind": S("choice", choices=("x", "y")),
+        "kinds": S("list", item=S("choice", choices=("x", "y"))),
+        "ws": S("list", item=S("float", lo=0), nullable=True),
+        "device": S("device"),
+        "threads": S("threads", nullable=True),
+        "group.n": S("int", lo=1),
+    }
+    specs = config_check.specs_of(_Toy)
+    check_config(schema.defaults(_Toy), specs, "toy.yaml")  # the defaults pass
+    with pytest.raises(ConfigError, match=r"'group.n' = 0 \(int\) in toy.yaml is out of range; allowed: an integer >= 1"):
+        check_config({"group": {"n": 0}}, specs, "toy.yaml")
+    with pytest.raises(ConfigError, match=r"'kinds' = \['z'\].*element 0 \('z'\).*one of \['x', 'y'\]"):
+        check_config({"kinds": ["z"]}, specs, "toy.yaml")
+
+    @dataclasses.dataclass
+    class Bad:
+        x: dict = option({})
+
+    with pytest.raises(TypeError, match="Bad.x"):
+        config_check.specs_of(Bad)
+
+
+def test_the_jobs_checks_keep_their_ranges():
+    """A few checks of the frame and hex jobs as the hand-written tables had them."""
+    tf, hx = config_check.TRAIN_FRAMES, config_check.HEX_MESH
+    assert tf["smooth_power"].describe() == "a finite number >= 0.5 and <= 2"
+    assert tf["seed"].describe() == "an integer >= 0 and <= 4.29497e+09"
+    assert tf["starts"].describe() == "a non-empty list, each element one of ['sh', 'mbo']"
+    assert tf["quality.repair_dirichlet_weights"].describe() == "a non-empty list, each element a finite number >= 0 or null"
+    assert tf["method"].choices == ("connection", "sh_baseline") and "mbo" in hx["method"].choices
+    assert hx["hex.feature_max_deg"].describe() == "a finite number >= 0 and <= 90"
+    assert hx["hex.backend"].describe() == "one of ['auto', 'cholmod', 'superlu']"
+    assert set(hx) - set(tf) == {"frames", "debug"} | {k for k in hx if k.startswith("hex.")}
 
 
 def test_demo_config_is_checked():

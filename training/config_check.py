@@ -1,4 +1,5 @@
-"""Typed, range-checked configs of the training commands: one table ``key -> Spec`` per command.
+"""Typed, range-checked configs of the training commands: one table ``key -> Spec`` per command,
+generated from its schema dataclass (:mod:`training.schema`, :func:`specs_of`).
 
 Hydra's struct mode already rejects unknown keys, but not values: ``steps=abc`` used to fail deep in
 ``int()`` without the key, ``steps=1.5`` silently ran one step, ``resume=no`` resumed (a non-empty
@@ -19,8 +20,11 @@ arguments and checks them itself; keys, overrides and config files are the comma
 """
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import math
 import os
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -28,13 +32,10 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchconn.frames.loss import ALIGN_KINDS
-from torchconn.frames.model import FORMULATIONS
-from torchconn.frames.design import STARTS
-from torchconn.frames.quality_paths import PATH_KINDS
-from torchconn.frames.solver import LR_SCHEDULES, OPTIMIZERS
+from . import schema
 
-__all__ = ["DEMO", "TRAIN_FRAMES", "ConfigError", "Spec", "check_config", "check_device", "resolve_num_threads"]
+__all__ = ["DEMO", "HEX_MESH", "TRAIN_FRAMES", "ConfigError", "Spec", "check_config", "check_device", "resolve_num_threads",
+           "specs_of"]
 
 
 class ConfigError(ValueError):
@@ -85,114 +86,54 @@ class Spec:
         return s + (" or null" if self.nullable else "")
 
 
-def _bool() -> Spec:
-    return Spec("bool")
+def _spec_of_type(tp, meta: Mapping, where: str) -> Spec:
+    """The :class:`Spec` of one field of type ``tp`` (``X | None`` nullable) and ``metadata`` ``meta``."""
+    args = typing.get_args(tp)
+    nullable = type(None) in args
+    if nullable:
+        rest = tuple(a for a in args if a is not type(None))
+        tp = rest[0] if len(rest) == 1 else typing.Union[rest]
+    kind = meta.get("kind")
+    if kind is not None:
+        return Spec(kind, nullable=nullable)
+    if typing.get_origin(tp) is list:
+        (item,) = typing.get_args(tp)
+        return Spec("list", item=_spec_of_type(item, meta, where), nullable=nullable)
+    bounds = {"lo": meta.get("lo"), "hi": meta.get("hi"), "lo_open": bool(meta.get("lo_open", False))}
+    if tp is bool:
+        return Spec("bool", nullable=nullable)
+    if tp is int:
+        return Spec("int", nullable=nullable, **bounds)
+    if tp is float:
+        return Spec("float", nullable=nullable, **bounds)
+    if tp is str:
+        if "choices" in meta:
+            return Spec("choice", choices=tuple(meta["choices"]), nullable=nullable)
+        return Spec("str", nullable=nullable)
+    raise TypeError(f"schema field {where}: no check for type {tp!r} (give it metadata kind=...)")
 
 
-def _int(lo=None, hi=None, nullable=False) -> Spec:
-    return Spec("int", lo=lo, hi=hi, nullable=nullable)
+def specs_of(schema, prefix: str = "") -> dict[str, Spec]:
+    """``{"dotted.key": Spec}`` of a schema dataclass (:mod:`training.schema`), nested groups
+    flattened: the field's type says the kind and whether ``null`` is allowed, its ``metadata``
+    (:func:`torchconn.frames.options.option`) the range, the choices or a special ``kind``."""
+    hints = typing.get_type_hints(schema)
+    out: dict[str, Spec] = {}
+    for f in dataclasses.fields(schema):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            out.update(specs_of(tp, f"{prefix}{f.name}."))
+        else:
+            out[f"{prefix}{f.name}"] = _spec_of_type(tp, f.metadata, f"{schema.__name__}.{f.name}")
+    return out
 
 
-def _float(lo=None, hi=None, lo_open=False, nullable=False) -> Spec:
-    return Spec("float", lo=lo, hi=hi, lo_open=lo_open, nullable=nullable)
-
-
-def _str(nullable=False) -> Spec:
-    return Spec("str", nullable=nullable)
-
-
-def _choice(*values) -> Spec:
-    return Spec("choice", choices=tuple(values))
-
-
-def _list(item: Spec, nullable=False) -> Spec:
-    return Spec("list", item=item, nullable=nullable)
-
-
-def _positive() -> Spec:
-    return _float(0, lo_open=True)
-
-
-# The keys of configs/train_frames.yaml (tests/test_robust_job.py checks that both list the same keys).
-TRAIN_FRAMES: dict[str, Spec] = {
-    "mesh": _str(),
-    "edge_length": _float(0, lo_open=True, nullable=True),
-    "method": _choice("connection", "sh_baseline"),
-    "formulation": _choice(*FORMULATIONS),
-    **{f"weights.{k}": _float(0) for k in ("smooth", "tie", "flat", "torsion", "dnabla", "align", "feature",
-                                           "dirichlet")},
-    "starts": _list(_choice(*STARTS)),
-    "select": _choice("hex", "proxies"),
-    "select_candidates": _int(1),
-    "map_weight": _float(0),
-    "feature_angle_deg": _float(0, 180),
-    "smooth_power": _float(0.5, 2),  # FrameFieldLoss's range
-    "smooth_eps": _positive(),
-    "align_kind": _choice(*ALIGN_KINDS),
-    "align_eps": _positive(),
-    "optim": _choice(*OPTIMIZERS),
-    "steps": _int(0),
-    "lr": _positive(),
-    "lr_schedule": _choice(*LR_SCHEDULES),
-    "lbfgs.history_size": _int(1),
-    "lbfgs.max_iter": _int(1),
-    "quality.enabled": _bool(),
-    "quality.paths": _list(_choice(*PATH_KINDS)),
-    "quality.dirichlet_weights": _list(_float(0)),
-    "quality.rounds": _int(1),
-    "quality.iters": _int(1),
-    "quality.feature_weight": _float(0),
-    "quality.tangent_weight": _float(0),
-    "quality.complex_weight": _float(0),
-    "quality.score_dirichlet": _float(0),
-    "quality.score_complex": _float(0),
-    "quality.feature_curve_bound": _float(0),
-    "quality.repair_rounds": _int(0),
-    "quality.repair_residual_weight": _float(0),
-    "quality.repair_relax_iters": _int(1),
-    "quality.repair_dirichlet_weights": _list(_float(0), nullable=True),
-    "sh.boundary_weight": _positive(),
-    "sh.n_smooth_iters": _int(0),
-    "init_frames": _str(nullable=True),
-    "device": Spec("device"),
-    "num_threads": Spec("threads", nullable=True),
-    "dtype": _choice("float32", "float64"),
-    "seed": _int(0, 2**32 - 1),  # numpy's seed range
-    "output_dir": _str(),
-    "resume": _bool(),
-    "checkpoint_every": _int(1),
-    "progress": _bool(),
-    "bianchi_atol": _float(0, lo_open=True, nullable=True),
-}
-
-# The keys of configs/hex_mesh.yaml: the frame job's, with ``mbo`` as a method, and the hex stage's.
-HEX_MESH: dict[str, Spec] = {
-    **TRAIN_FRAMES,
-    "method": _choice("connection", "sh_baseline", "mbo"),
-    "frames": _str(nullable=True),
-    "hex.edge_length": _float(0, lo_open=True, nullable=True),
-    "hex.straighten": _bool(),
-    "hex.repair": _bool(),
-    "hex.split": _bool(),
-    "hex.collapse": _bool(),
-    "hex.features": _bool(),
-    "hex.feature_max_deg": _float(0, 90),
-    "hex.injective": _bool(),
-    "hex.batch_error": _float(0, lo_open=True),
-    "hex.stiffening_iters": _int(0),
-    "hex.stiffening_factor": _float(1),
-    "hex.backend": _choice("auto", "cholmod", "superlu"),
-}
-
-# The keys of configs/demo.yaml.
-DEMO: dict[str, Spec] = {
-    "mesh": _str(),
-    "edge_length": _positive(),
-    "seed": _int(0, 2**32 - 1),
-    "dtype": _choice("float32", "float64"),
-    "scale": _float(0, nullable=True),
-    "device": Spec("device"),
-}
+#: The keys of the frame job (:class:`training.schema.TrainFramesConfig`).
+TRAIN_FRAMES: dict[str, Spec] = specs_of(schema.TrainFramesConfig)
+#: The keys of the hex job (:class:`training.schema.HexMeshConfig`).
+HEX_MESH: dict[str, Spec] = specs_of(schema.HexMeshConfig)
+#: The keys of the demo (:class:`training.schema.DemoConfig`).
+DEMO: dict[str, Spec] = specs_of(schema.DemoConfig)
 
 
 def _flatten(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
@@ -256,7 +197,7 @@ def _check_value(key: str, v, spec: Spec, source: str) -> str | None:
         if v == "auto":
             return None
         kind = "int"
-        spec = _int(1)
+        spec = Spec("int", lo=1)
     if kind == "int":
         if not _is_int(v):
             return "not an integer" + (" (a fraction is never rounded)" if isinstance(v, float) else "")
@@ -287,7 +228,7 @@ def check_config(cfg, schema: Mapping[str, Spec], source: str) -> None:
     Args:
         cfg: a ``DictConfig`` or nested dict (keys missing from ``cfg`` are not checked: the
             caller merges the defaults first).
-        schema: ``{"dotted.key": Spec}``, e.g. :data:`TRAIN_FRAMES`.
+        schema: ``{"dotted.key": Spec}``, e.g. :data:`TRAIN_FRAMES` (:func:`specs_of` a schema dataclass).
         source: the config file, named in messages (e.g. ``"configs/train_frames.yaml"``).
 
     Raises:
@@ -310,7 +251,9 @@ def check_config(cfg, schema: Mapping[str, Spec], source: str) -> None:
         values = _flatten(cfg)
     for key, v in values.items():
         if key not in schema:
-            raise ConfigError(f"config key {key!r} is not a key of {source}; allowed keys: {sorted(schema)}")
+            close = difflib.get_close_matches(key, list(schema), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(f"config key {key!r} is not a key of {source}; {hint}allowed keys: {sorted(schema)}")
         reason = _check_value(key, v, schema[key], source)
         if reason is not None:
             raise ConfigError(f"config key {key!r} = {v!r} ({_type_name(v)}) in {source} is {reason}; allowed: "
@@ -324,7 +267,13 @@ def resolve_num_threads(value) -> int | None:
     (the 1-minute load average, rounded), at least 1 and at most torch's default. A loaded machine
     thus gets fewer threads: threads that wait for a descheduled sibling made the default job 5 to
     11 times slower with 2 threads than with 1 on a loaded 2-core machine (measurements: the
-    ``num_threads`` comment of configs/train_frames.yaml).
+    ``num_threads`` measurements below).
+
+    Seconds of the default frame job on a 2-core machine shared with other jobs (metrics.json
+    ``timings.wall_s``; ``python -m training.train_frames num_threads=N``): load ~4.5: cylinder 1 thread
+    8.2, 2 threads 40.3, auto (-> 1) 4.5; sphere_r0.17.mesh 1 thread 4.7, 2 threads 13.5, auto (-> 1) 2.9;
+    load ~8 (+ a busy loop): cylinder 1 thread 26.4, 2 threads 287.5; load ~1.5 (no busy loop):
+    cylinder 1 thread 6.0, 2 threads 5.9 (whole process, imports included).
     """
     if value is None:
         return None

@@ -58,15 +58,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from . import config_check, io_utils
+from . import config_check, io_utils, schema
 from .train_frames import _load_mesh, design_options
 
 __all__ = ["run", "main", "load_config", "read_frames_file", "summary_line", "FramesFileError", "CONFIG_DIR", "SCHEMA"]
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-#: The keys of ``configs/hex_mesh.yaml``: :data:`training.config_check.HEX_MESH` and this job's
-#: ``debug`` (kept here until config_check lists it).
-SCHEMA = {**config_check.HEX_MESH, "debug": config_check.Spec("bool")}
+#: The checks of this job's keys, generated from :class:`training.schema.HexMeshConfig`.
+SCHEMA = config_check.HEX_MESH
 
 
 class FramesFileError(ValueError):
@@ -74,14 +73,8 @@ class FramesFileError(ValueError):
 
 
 def _schema() -> DictConfig:
-    """The frame job's keys overlaid with this job's (the files themselves, without Hydra)."""
-    parts = []
-    for name in ("train_frames.yaml", "hex_mesh.yaml"):
-        c = OmegaConf.load(CONFIG_DIR / name)
-        c.pop("hydra", None)
-        c.pop("defaults", None)
-        parts.append(c)
-    return OmegaConf.merge(*parts)
+    """The job's defaults (:class:`training.schema.HexMeshConfig`) as a plain ``DictConfig``."""
+    return OmegaConf.create(schema.defaults(schema.HexMeshConfig))
 
 
 def load_config(overrides: list[str] | None = None) -> DictConfig:

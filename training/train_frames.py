@@ -33,8 +33,8 @@ continues from the checkpoint to the same result as an uninterrupted run; a chec
 configuration (mesh, method, optimizer, weights, ``steps``) is refused.
 
 Bad input fails before any optimization: unknown config keys (``ConfigKeyError``), a value of the
-wrong type or out of range (:class:`ConfigError`, from the one typed schema
-:data:`training.config_check.TRAIN_FRAMES`; ``resume=no`` is refused, not truthy), an unwritable
+wrong type or out of range (:class:`ConfigError`, checked against the one typed schema
+:class:`training.schema.TrainFramesConfig`; ``resume=no`` is refused, not truthy), an unwritable
 ``output_dir`` or one in use by another run (:class:`~training.io_utils.OutputDirLockedError`), a
 corrupted or foreign checkpoint (:class:`~training.io_utils.CheckpointError`; checkpoints load with
 ``weights_only=True``, so no code in the file runs), an unreadable or invalid mesh
@@ -67,7 +67,7 @@ from torchconn.frames.metrics import METRIC_KEYS
 from torchconn.frames.solver import NonFiniteLossError
 from torchconn.mesh import MeshError
 
-from . import config_check, frame_plots, io_utils
+from . import config_check, frame_plots, io_utils, schema
 
 __all__ = ["train", "main", "load_config", "NonFiniteLossError", "ConfigError", "CONFIG_DIR", "BUILTIN_MESHES"]
 
@@ -81,14 +81,13 @@ CHECKPOINT_KEYS = ("start", "done", "step", "model", "optimizer", "scheduler", "
 
 # ----------------------------------------------------------------------------- config
 def _schema() -> DictConfig:
-    base = OmegaConf.load(CONFIG_DIR / "train_frames.yaml")
-    base.pop("hydra", None)
-    base.pop("defaults", None)
-    return base
+    """The job's defaults (:class:`training.schema.TrainFramesConfig`) as a plain ``DictConfig``."""
+    return OmegaConf.create(schema.defaults(schema.TrainFramesConfig))
 
 
 def load_config(overrides: list[str] | None = None) -> DictConfig:
-    """Compose ``configs/train_frames.yaml`` with Hydra overrides (struct mode), without running.
+    """Compose ``configs/train_frames.yaml`` (the schema :class:`training.schema.TrainFramesConfig`
+    from Hydra's ConfigStore and Hydra's settings) with Hydra overrides (struct mode), without running.
 
     Unknown keys raise (Hydra's ``ConfigCompositionException``).
     """
@@ -100,7 +99,7 @@ def load_config(overrides: list[str] | None = None) -> DictConfig:
 
 def _validate(cfg) -> DictConfig:
     """Merge ``cfg`` onto the defaults in struct mode (unknown keys raise ``ConfigKeyError``), then
-    check every value's type and range (:data:`training.config_check.TRAIN_FRAMES`, :class:`ConfigError`)."""
+    check every value's type and range (:class:`training.schema.TrainFramesConfig`, :class:`ConfigError`)."""
     schema = _schema()
     OmegaConf.set_struct(schema, True)
     user = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
@@ -184,7 +183,7 @@ def train(cfg) -> dict:
     ``resume`` (``design(state=checkpoint)``).
 
     Args:
-        cfg: a ``DictConfig`` or dict with the keys of ``configs/train_frames.yaml`` (missing
+        cfg: a ``DictConfig`` or dict with the keys of :class:`training.schema.TrainFramesConfig` (missing
             keys take the defaults; unknown keys raise). ``output_dir`` must be set.
 
     Returns:

@@ -21,10 +21,10 @@ design() -> writers``); nothing is written to disk. Methods:
   ``metrics["chosen"]`` says which and why, and lists every candidate;
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
-Options are the keys of ``configs/train_frames.yaml`` that belong to the method (:data:`OPTIONS`,
-defaults :data:`DEFAULTS`); nested groups (``weights``, ``lbfgs``, ``quality``, ``sh``) are
-merged onto their defaults, so ``weights={"tie": 5.0}`` changes one weight. Unknown names raise
-``TypeError`` listing the known ones.
+Options are the fields of :class:`~torchconn.frames.options.FrameOptions` that belong to the method
+(:data:`OPTIONS`, defaults :data:`DEFAULTS`; types, ranges and meanings: :mod:`~torchconn.frames.options`);
+nested groups (``weights``, ``lbfgs``, ``quality``, ``sh``) are merged onto their defaults, so
+``weights={"tie": 5.0}`` changes one weight. Unknown names raise ``TypeError`` listing the known ones.
 
 Conventions (docs/conventions.md §1, :mod:`torchconn.frames.octahedral`): ``frames[i][:, k]`` is
 axis ``k`` at vertex ``i``; ``edge_rot[e] = R_ij`` for the canonical edge ``(i, j)``, ``i < j``, maps
@@ -35,6 +35,7 @@ Per-tet frames: :func:`~torchconn.frames.octahedral.tet_frames` (the result's ``
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -53,54 +54,34 @@ from ..tolerances import get_eps
 from . import octahedral
 from .octahedral import tet_frames
 from .constraints import BoundaryConstraint
-from .loss import ALIGN_KINDS, FrameFieldLoss
+from .loss import FrameFieldLoss
 from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
-from .model import FORMULATIONS, FrameFieldModel, matched_connection
+from .model import FrameFieldModel, matched_connection
+from .options import STARTS, FrameOptions
 from .candidates import choose_by_proxies, connection_candidates
 from .sh import sh_frame_field
 from .singular import singular_graph
-from .solver import LR_SCHEDULES, OPTIMIZERS, make_optimizer, new_history, optimize
+from .solver import make_optimizer, new_history, optimize
 
 __all__ = ["DEFAULTS", "METHODS", "OPTIONS", "FrameFieldResult", "design", "method_options"]
 
-#: Start fields of the connection optimization (option ``starts``).
-STARTS = ("sh", "mbo")
 #: Methods of :func:`design` (``"sh_baseline"`` is an alias of ``"sh"``).
 METHODS = ("connection", "sh")
 _ALIASES = {"sh_baseline": "sh"}
 
-#: Default value of every option; the same values as ``configs/train_frames.yaml`` (a test checks it).
-DEFAULTS: dict[str, Any] = {
-    "formulation": "vertex",
-    "weights": {"smooth": 1.0, "tie": 2.0, "flat": 0.1, "torsion": 0.01, "dnabla": 0.01, "align": 10.0,
-                "feature": 1.0, "dirichlet": 0.0},
-    "starts": ["sh", "mbo"],
-    "feature_angle_deg": 30.0,
-    "smooth_power": 1.0,
-    "smooth_eps": 1e-3,
-    "align_kind": "angle",
-    "align_eps": 1e-3,
-    "optim": "adam",
-    "steps": 150,
-    "lr": 0.02,
-    "lr_schedule": "cosine",
-    "lbfgs": {"history_size": 20, "max_iter": 5},
-    "quality": {"enabled": True, "paths": ["soft", "tangent"], "dirichlet_weights": [8.0, 4.0, 2.0, 1.0, 0.5, 0.25],
-                "rounds": 2, "iters": 20, "feature_weight": 1.0, "tangent_weight": 0.25, "complex_weight": 0.0,
-                "score_dirichlet": 1.0, "score_complex": 0.1, "feature_curve_bound": 2.0, "repair_rounds": 1,
-                "repair_residual_weight": 0.5, "repair_relax_iters": 40, "repair_dirichlet_weights": [8.0, 2.0, 0.5]},
-    "sh": {"boundary_weight": 100.0, "n_smooth_iters": 30},
-    "init_frames": None,
-    "bianchi_atol": None,
-}
+#: Default value of every option: ``dataclasses.asdict(FrameOptions())``, the schema of
+#: :mod:`torchconn.frames.options` (where each option's type, range and meaning are written).
+DEFAULTS: dict[str, Any] = dataclasses.asdict(FrameOptions())
 _COMMON = ("sh", "feature_angle_deg", "init_frames", "bianchi_atol")
 #: Option names of each method.
 OPTIONS: dict[str, tuple[str, ...]] = {
     "connection": tuple(DEFAULTS),
     "sh": _COMMON,
 }
-_CHOICES = {"formulation": FORMULATIONS, "optim": OPTIMIZERS, "lr_schedule": LR_SCHEDULES, "align_kind": ALIGN_KINDS}
+# the string options with a fixed set of values (lists of choices are checked where they are used)
+_CHOICES = {f.name: f.metadata["choices"] for f in dataclasses.fields(FrameOptions)
+            if "choices" in f.metadata and f.type == "str"}
 
 
 def method_options(method: str) -> tuple[str, ...]:
