@@ -4,8 +4,9 @@ The hexes of a valid map are the images of unit cubes under a piecewise-linear m
 straight edges through the images of the cube's corners can still fold where the map bends
 strongly inside one cube (a valid map gave hexes of scaled Jacobian -0.6 on HexMe s04). The
 remedy of the hex-meshing pipelines is a local optimization of the vertex positions. Here only
-the **interior** vertices move (boundary vertices, hence the boundary, the Hausdorff distance and
-the features meshed, are kept exactly): L-BFGS on::
+**interior** vertices move (boundary vertices, hence the boundary, the Hausdorff distance and
+the features meshed, are kept exactly), and only those of the hexes below the target and one ring
+of hexes around them (every other term is zero and stays so): L-BFGS on::
 
     E(x) = sum_{hexes, 9 samples} relu(target - J)^2 + reg * sum_interior |x - x0|^2 / h^2
 
@@ -92,17 +93,28 @@ def untangle(points: np.ndarray, hexes: np.ndarray, boundary_vertices: np.ndarra
         slides = bvs[worst[bvs] >= np.cos(np.radians(sharp_deg))]
         fixed[slides] = False
         normals = torch.as_tensor(nv)
-    used = np.zeros(P0.shape[0], bool)
-    used[np.asarray(hexes).reshape(-1)] = True
-    free = np.nonzero(~fixed & used)[0]
-    if not free.size or before >= target:
+    if before >= target:
         return np.asarray(points), info
+    # only the hexes below the target and a ring of vertices around them move: every other hex's
+    # term is zero and stays so while none of its vertices moves (the energy restricted to these
+    # unknowns is the full energy up to a constant)
+    hx = np.asarray(hexes, np.int64)
+    with torch.no_grad():
+        low = (corner_jacobians(P0, H) < target).any(1).numpy()
+    near = np.zeros(P0.shape[0], bool)
+    near[hx[low].reshape(-1)] = True
+    near[hx[near[hx].any(1)].reshape(-1)] = True  # one ring of hexes further
+    free = np.nonzero(~fixed & near)[0]
+    if not free.size:
+        return np.asarray(points), info
+    edges = torch.stack([H[:, [0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3]], H[:, [1, 2, 3, 0, 5, 6, 7, 4, 4, 5, 6, 7]]], -1)
+    h = float((P0[edges[..., 0]] - P0[edges[..., 1]]).norm(dim=-1).mean())
+    active = np.nonzero(np.isin(hx, free).any(1))[0]
+    H = H[torch.as_tensor(active)]
     free_t = torch.as_tensor(free)
     on_b = np.zeros(P0.shape[0], bool)
     on_b[bvs] = True
     bfree = torch.as_tensor(on_b[free])
-    edges = torch.stack([H[:, [0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3]], H[:, [1, 2, 3, 0, 5, 6, 7, 4, 4, 5, 6, 7]]], -1)
-    h = float((P0[edges[..., 0]] - P0[edges[..., 1]]).norm(dim=-1).mean())
     x = P0[free_t].clone().requires_grad_(True)
     opt = torch.optim.LBFGS([x], lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
 
