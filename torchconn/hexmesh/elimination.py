@@ -136,6 +136,22 @@ class Elimination:
         return out + (self.z0 if out.ndim == 1 else self.z0[:, None])
 
 
+def _integer_pivot(red: dict, c: float, relaxed: list) -> int:
+    """The pivot of an all-integer row ``sum_z red[z] y_z = c``: the largest unknown whose
+    expression keeps integer coefficients and constant, else the smallest coefficient (that
+    unknown is relaxed: appended to ``relaxed``)."""
+    def integral(z):
+        a = red[z]
+        return float(c / a).is_integer() and all(float(b / a).is_integer() for b in red.values())
+
+    good = [z for z in red if integral(z)]
+    if good:
+        return max(good)
+    p = min(red, key=lambda z: (abs(red[z]), -z))
+    relaxed.append(p)
+    return p
+
+
 def _sequential(row_iter, is_int: np.ndarray, opaque: np.ndarray | None = None):
     """The per-row elimination (module docstring) of the rows ``(r, vars, coefs, const)`` of
     ``row_iter``, in that order, with dictionaries.
@@ -214,20 +230,7 @@ def _sequential(row_iter, is_int: np.ndarray, opaque: np.ndarray | None = None):
             continue
         else:
             cont = [z for z in red if not is_int[z]]
-            if cont:
-                p = max(cont)
-            else:
-                # an integer pivot whose expression keeps integer coefficients and constant
-                def integral(z):
-                    a = red[z]
-                    return float(c / a).is_integer() and all(float(b / a).is_integer() for b in red.values())
-
-                good = [z for z in red if integral(z)]
-                if good:
-                    p = max(good)
-                else:
-                    p = min(red, key=lambda z: (abs(red[z]), -z))
-                    relaxed.append(p)
+            p = max(cont) if cont else _integer_pivot(red, c, relaxed)
         a_p = red.pop(p)
         expr[p] = ({z: -b / a_p for z, b in red.items()}, -c / a_p)
     return expr, resolve, redundant, conflicts, relaxed, emitted
@@ -356,16 +359,7 @@ def _integer_rule(items):
         if float(c).is_integer() and all(b == 1.0 or b == -1.0 for b in red.values()):
             p = max(red)
         else:
-            def integral(z):
-                a = red[z]
-                return float(c / a).is_integer() and all(float(b / a).is_integer() for b in red.values())
-
-            good = [z for z in red if integral(z)]
-            if good:
-                p = max(good)
-            else:
-                p = min(red, key=lambda z: (abs(red[z]), -z))
-                relaxed.append(p)
+            p = _integer_pivot(red, c, relaxed)
         a_p = red.pop(p)
         if len(red) == 1:
             (z, b), = red.items()

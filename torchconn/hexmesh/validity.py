@@ -280,16 +280,15 @@ def check_params(mesh, charts, uvw: np.ndarray, problem=None, *, integer: bool =
         record("feature_edges_off_integer_lines" if integer else "feature_edges_off_lines", fe[bad], X[fe[bad]].mean(1))
     else:
         counts["feature_edges_off_integer_lines" if integer else "feature_edges_off_lines"] = 0
-    if not integer:
-        pass  # a corner of the seamless map is any point: nothing to check before quantization
-    elif prob is not None and prob.corner_vertices.size:
+    # (a corner of the seamless map is any point: corners are checked on the integer map only)
+    if integer and prob is not None and prob.corner_vertices.size:
         cv = prob.corner_vertices
         first = np.full(X.shape[0], tets.size, np.int64)
         np.minimum.at(first, tets.reshape(-1), np.arange(tets.size))
         pc = uvw[first[cv] // 4, first[cv] % 4]
         bad = cv[~(pc == np.round(pc)).all(1)]
         record("corners_off_integer_points", bad, X[bad])
-    else:
+    elif integer:
         counts["corners_off_integer_points"] = 0
 
     reasons = []
