@@ -40,11 +40,11 @@ What :func:`hex_quality` measures (every threshold is a module constant below):
 * **Features** (when ``tet_mesh.cad`` holds CAD tags): the sharp CAD curves and their corners
   are those of the frame-field constraint (:class:`~torchconn.frames.constraints.BoundaryConstraint`
   with ``features="cad"``: CAD curves between different CAD surfaces, and the CAD points and
-  junctions on them). A corner is meshed when a hex vertex lies within :data:`FEATURE_TOL_REL`
+  junctions on them). A corner is meshed when a hex vertex lies within :data:`~.features_meshed.FEATURE_TOL_REL`
   of the diagonal from it. A hex edge lies on a curve when both its ends are within that
   tolerance of the curve and its midpoint within ``max(tol, FEATURE_CHORD_REL * length)`` of it
   (a hex edge is a chord of a curved curve); a curve is meshed when every sample of it
-  (:data:`FEATURE_CURVE_SAMPLES` interior points per tet feature edge, and the ends) is within
+  (:data:`~.features_meshed.FEATURE_CURVE_SAMPLES` interior points per tet feature edge, and the ends) is within
   that midpoint tolerance of a hex edge lying on it. Corners and curves are the tet mesh's own
   (its vertices and feature polylines): a hex mesh whose vertices were projected onto the exact
   CAD curves instead may lie farther than the tolerance from the polyline's chords.
@@ -63,11 +63,11 @@ import torch
 
 from .distance import _CHUNK, _hausdorff
 from .extract import HEX_FACES  # the 6 faces, outward: one home for the local hex tables
+from .features_meshed import _feature_metrics
 
 __all__ = [
     "HexQuality", "hex_quality", "scaled_jacobian", "hex_volumes", "HEX_EDGES",
-    "COINCIDENT_TOL_REL", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "GOOD_VOLUME_RATIO_TOL", "FEATURE_TOL_REL",
-    "FEATURE_CHORD_REL", "FEATURE_CURVE_SAMPLES",
+    "COINCIDENT_TOL_REL", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "GOOD_VOLUME_RATIO_TOL",
 ]
 
 # ----------------------------------------------------------------------------- thresholds
@@ -88,16 +88,6 @@ GOOD_HAUSDORFF_MAX_REL = 0.01
 #: the domain twice); the good meshes of the HexMe benchmark lie within 1% of 1 (0.9907 to
 #: 1.0004, docs/results/hexmesh_c.csv), the ball's 4-hex slab of issue 27 at 0.007.
 GOOD_VOLUME_RATIO_TOL = 0.10
-#: A hex vertex "on" a CAD corner or curve is within this fraction of the input's diagonal of
-#: it (a tenth of the ``good`` Hausdorff threshold; hex vertices from a map on the tet mesh lie
-#: on its feature edges up to round-off).
-FEATURE_TOL_REL = 1e-3
-#: The midpoint of a hex edge lying on a curved CAD curve is off it by the chord's sagitta
-#: ``L^2 / (8 r)``; up to this fraction of the edge length is accepted (a chord of up to 0.8
-#: radii of arc).
-FEATURE_CHORD_REL = 0.1
-#: Interior sample points per tet feature edge when checking that hex edges cover a curve.
-FEATURE_CURVE_SAMPLES = 4
 
 # ----------------------------------------------------------------------------- local tables (VTK order)
 #: The 12 edges of a hex, local vertex pairs: bottom ring, top ring, then the 4 verticals.
@@ -416,71 +406,6 @@ def _hanging_vertices(p: np.ndarray, used: np.ndarray, edges: np.ndarray, tol: f
     # strictly inside: farther than tol from both ends
     inside = (L2 > 0) & (t * L > tol) & ((1 - t) * L > tol) & (d <= tol)
     return np.unique(cand[inside])
-
-
-# ----------------------------------------------------------------------------- features
-def _feature_metrics(p: np.ndarray, used: np.ndarray, edges: np.ndarray, tet_mesh, diag: float) -> dict:
-    """Corners and sharp curves of ``tet_mesh.cad`` meshed by the hex mesh (module docstring)."""
-    import igl
-    from scipy.spatial import cKDTree
-
-    from ..frames.constraints import BoundaryConstraint
-
-    bc = BoundaryConstraint.from_mesh(tet_mesh, features="cad")
-    tv = tet_mesh.vertices.detach().cpu().double().numpy()
-    V = tv.shape[0]
-    tol = FEATURE_TOL_REL * diag
-    corners = bc.corner_vertices.cpu().numpy()
-    if corners.size and used.size:
-        dc, _ = cKDTree(p[used]).query(tv[corners])
-        corner_ok = dc <= tol
-    else:
-        corner_ok = np.zeros(corners.size, dtype=bool)
-
-    fe = bc.feature_edges.cpu().numpy().astype(np.int64)  # (K, 2), i < j
-    tags = tet_mesh.cad
-    tag_keys = (tags.feature_edges[:, 0] * V + tags.feature_edges[:, 1]).cpu().numpy()
-    tag_curve = tags.feature_edge_curve.cpu().numpy()
-    pos = np.searchsorted(tag_keys, fe[:, 0] * V + fe[:, 1])  # fe is a subset of the tagged edges
-    curve_of = tag_curve[pos] if fe.shape[0] else np.zeros(0, np.int64)
-    curves = np.unique(curve_of)
-    coverage = np.zeros(curves.size)
-    if curves.size and edges.shape[0]:
-        fe_v = np.ascontiguousarray(tv)
-        # hex edges lying on the feature set: ends within tol, midpoint within the chord tolerance
-        d_end = np.full(p.shape[0], np.inf)
-        d_end[used], _, _ = igl.point_mesh_squared_distance(p[used], fe_v, fe)
-        d_end = np.sqrt(np.maximum(d_end, 0.0))
-        on = (d_end[edges[:, 0]] <= tol) & (d_end[edges[:, 1]] <= tol)
-        he = edges[on]
-        mid = 0.5 * (p[he[:, 0]] + p[he[:, 1]])
-        length = np.linalg.norm(p[he[:, 1]] - p[he[:, 0]], axis=1)
-        radius = np.maximum(tol, FEATURE_CHORD_REL * length)
-        if he.shape[0]:
-            sq, idx, _ = igl.point_mesh_squared_distance(mid, fe_v, fe)
-            lies = np.sqrt(np.maximum(sq, 0.0)) <= radius
-            he_curve = curve_of[np.asarray(idx, dtype=np.int64).reshape(-1)]
-        else:
-            lies, he_curve = np.zeros(0, bool), np.zeros(0, np.int64)
-        t = np.linspace(0.0, 1.0, FEATURE_CURVE_SAMPLES + 2)
-        samples = tv[fe[:, 0]][:, None] + t[None, :, None] * (tv[fe[:, 1]] - tv[fe[:, 0]])[:, None]  # (K, S, 3)
-        for k, c in enumerate(curves):
-            mine = lies & (he_curve == c)
-            if not mine.any():
-                continue
-            q = samples[curve_of == c].reshape(-1, 3)
-            seg = he[mine]
-            sq, idx, _ = igl.point_mesh_squared_distance(q, p, np.ascontiguousarray(seg))
-            r = radius[mine][np.asarray(idx, dtype=np.int64).reshape(-1)]
-            coverage[k] = float(np.mean(np.sqrt(np.maximum(sq, 0.0)) <= r))
-    n_c, n_k = int(corners.size), int(curves.size)
-    return dict(
-        n_corners=n_c, n_corners_meshed=int(corner_ok.sum()),
-        corner_fraction=float(corner_ok.mean()) if n_c else float("nan"),
-        n_curves=n_k, n_curves_meshed=int((coverage >= 1.0).sum()),
-        curve_fraction=float((coverage >= 1.0).mean()) if n_k else float("nan"),
-        curve_coverage=coverage,
-    )
 
 
 # ----------------------------------------------------------------------------- the judgement
