@@ -613,12 +613,13 @@ def test_chunking_does_not_change_the_result(monkeypatch):
     """Lattice points and walks are processed in chunks (memory bounds): tiny chunks give the
     same extraction as one chunk, on a map with transitions."""
     import torchconn.hexmesh.extract as ex
+    import torchconn.hexmesh.lattice as lat
     mesh, uvw = jittered_box_map(3, 3.0, 0.5)
     new = _rechart(uvw, range(0, uvw.shape[0], 3), np.random.default_rng(7))
     F = fit_transitions(mesh, new)
     ref = extract_hexes(mesh, new, *F)
     monkeypatch.setattr(ex, "_CUBE_CHUNK", 5)
-    monkeypatch.setattr(ex, "_POINT_CHUNK", 7)
+    monkeypatch.setattr(lat, "_POINT_CHUNK", 7)
     res = extract_hexes(mesh, new, *F)
     for name in ("points", "hexes", "point_tet", "point_param", "hex_tet", "hex_param"):
         np.testing.assert_array_equal(getattr(res, name), getattr(ref, name))
