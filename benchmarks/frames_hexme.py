@@ -42,7 +42,8 @@ skips it): ``hex_valid`` (the map) and ``hex_reason`` (which checks fail, and wh
 (scaled Jacobian), ``hex_irregular`` (fraction of interior edges not in four hexes),
 ``hex_hausdorff`` (relative to the bounding-box diagonal), CAD corners and curves meshed,
 ``hex_good`` (a valid map and a good hex mesh: HEXMESH.md / issue 22), ``hex_s`` and
-``end_to_end_s`` (field + hex stage). A failing hex stage is the row's ``hex_error``. A job that raises, dies or
+``end_to_end_s`` (field + hex stage; the connection method's chooser already meshed the field it
+returned, ``hex_from_chooser``: that mesh is used, not made again). A failing hex stage is the row's ``hex_error``. A job that raises, dies or
 runs past ``--timeout`` is a row with its ``error``, never a stop. A job whose result file exists
 is skipped (resumption; ``--force`` reruns). The options of the run are in ``DIR/options.json``.
 
@@ -179,9 +180,14 @@ def _mouette_frames(mesh):
     return torch.as_tensor(R, dtype=mesh.vertices.dtype)
 
 
-def run_method(method: str, mesh, options: dict | None = None):
-    """Frames ``(V, 3, 3)`` of ``method`` on ``mesh`` with the method's ``options``."""
+def run_method(method: str, mesh, options: dict | None = None, hex_options: dict | None = None):
+    """Frames ``(V, 3, 3)`` of ``method`` on ``mesh`` with the method's ``options``.
+
+    For ``connection`` (the hex chooser), the chosen field's hex mesh, made while choosing with
+    ``hex_options``, is kept in :data:`LAST_HEX` (``None`` otherwise) for :func:`hex_stage`.
+    """
     options = dict(options or {})
+    LAST_HEX.clear()
     if method == "sh":
         from torchconn.frames.design import design
 
@@ -192,8 +198,11 @@ def run_method(method: str, mesh, options: dict | None = None):
         weights = {"map": CONNECTION_MAP_WEIGHT, **(options.pop("weights", None) or {})}
         select = options.pop("select", "hex")
         k = int(options.pop("select_candidates", 8))
-        return design_for_hex(mesh, "connection", select=select, select_candidates=k, weights=weights,
-                              **options).vertex_frames
+        res = design_for_hex(mesh, "connection", select=select, select_candidates=k, weights=weights,
+                             hex_options=hex_options, **options)
+        if res.hex is not None:
+            LAST_HEX["result"] = res.hex
+        return res.vertex_frames
     if method == "mbo":
         from torchconn.frames.mbo import mbo_frames
 
@@ -203,6 +212,10 @@ def run_method(method: str, mesh, options: dict | None = None):
             raise TypeError(f"method mouette takes no options, got {sorted(options)}")
         return _mouette_frames(mesh)
     raise ValueError(f"unknown method {method!r}; known: {list(METHODS)}")
+
+
+#: the hex mesh the connection method's chooser made of the field it returned (:func:`run_method`)
+LAST_HEX: dict = {}
 
 
 def job_name(set_name: str, case: str, method: str) -> str:
@@ -231,7 +244,7 @@ def evaluate(set_name: str, case: str, method: str, opts: dict) -> dict:
         if max_tets and mesh.n_tets > int(max_tets):
             raise RuntimeError(f"over max-tets: {mesh.n_tets} tets > {int(max_tets)}")
         t0 = time.perf_counter()
-        F = run_method(method, mesh, (opts.get("method_options") or {}).get(method))
+        F = run_method(method, mesh, (opts.get("method_options") or {}).get(method), opts.get("hex_options") or {})
         rec["method_s"] = time.perf_counter() - t0
         if not bool(torch.isfinite(F).all()):
             raise FloatingPointError(f"{method} returned non-finite frames")
@@ -244,22 +257,26 @@ def evaluate(set_name: str, case: str, method: str, opts: dict) -> dict:
         rec["traceback"] = traceback.format_exc()[-4000:]
         return rec
     if opts.get("hex", True):
-        rec.update(hex_stage(mesh, F, opts.get("hex_options") or {}))
+        rec.update(hex_stage(mesh, F, opts.get("hex_options") or {}, LAST_HEX.pop("result", None)))
         rec["end_to_end_s"] = rec["wall_s"] + rec.get("hex_s", 0.0)
     return rec
 
 
-def hex_stage(mesh, frames, options: dict) -> dict:
+def hex_stage(mesh, frames, options: dict, made=None) -> dict:
     """The hex stage (:func:`torchconn.hexmesh.hex_mesh`) of one field: the ``hex_*`` columns.
 
+    ``made``: that field's :class:`~torchconn.hexmesh.HexMeshResult` with these ``options``, when the
+    method already made it (the connection method's chooser): it is used, not made again
+    (``hex_from_chooser``; its meshing is then inside the method's seconds, and ``hex_s`` is
+    the reading of the columns only).
     A failure of the stage is a row's ``hex_error``, never a lost field row.
     """
-    out = {"hex_error": ""}
+    out = {"hex_error": "", "hex_from_chooser": made is not None}
     t0 = time.perf_counter()
     try:
         from torchconn.hexmesh import hex_mesh
 
-        r = hex_mesh(mesh, frames, **options)
+        r = made if made is not None else hex_mesh(mesh, frames, **options)
         v, q, ex = r.validity, r.quality, r.extraction
         out.update(hex_valid=bool(v.valid), hex_reason="; ".join(v.reasons)[:300],
                    hex_first_check=next((k for k in v.counts if v.counts[k] and k in _VALIDITY_ORDER), ""),

@@ -21,7 +21,7 @@ def _cands(mesh):
 
 
 def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it():
-    mesh = box(2)
+    mesh = box(1)
     cands = _cands(mesh)
     choose = hex_chooser(edge_length=0.25)
     idx, info = choose(mesh, cands)
@@ -33,3 +33,48 @@ def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it():
     again = hex_mesh(mesh, cands[1].frames, edge_length=0.25)
     assert torch.equal(torch.as_tensor(kept.hexes), torch.as_tensor(again.hexes))
     assert torch.equal(torch.as_tensor(kept.points), torch.as_tensor(again.points))
+
+
+def _stack(mesh, order, calls, **kw):
+    from torchconn.frames.candidates import CandidateStack
+    from torchconn.frames.metrics import frame_metrics
+
+    fields = {name: c.frames for name, c in zip(("noisy", "good"), _cands(mesh))}
+
+    def start(label):
+        def run():
+            calls.append(label)  # the optimization of this start, run when its stage is made
+            return fields[label], None
+        return run
+
+    ref = frame_metrics(fields["good"], mesh, 30.0, curl=False)
+    return CandidateStack(mesh, {label: start(label) for label in order}, ref, **kw)
+
+
+def test_the_chooser_makes_the_stages_only_until_a_good_hex_mesh():
+    mesh = box(1)
+    calls = []
+    stack = _stack(mesh, ("good", "noisy"), calls)
+    idx, info = hex_chooser(edge_length=0.25)(mesh, stack)
+    assert calls == ["good"] and stack.info["stages"] == ["optimized:good"]  # the second start never optimized
+    assert idx == 0 and info["stopped"] == "the first good hex mesh" and [r["good"] for r in info["meshed"]] == [True]
+    calls = []
+    stack = _stack(mesh, ("noisy", "good"), calls)
+    idx, info = hex_chooser(edge_length=0.25)(mesh, stack)
+    # the first start's field does not mesh well: the next stage is made, its field meshed, and the
+    # quality paths and the repair (stages 3 and 4) are never made
+    assert calls == ["noisy", "good"] and stack.info["stages"] == ["optimized:noisy", "optimized:good"]
+    assert stack[idx].start == "good" and [r["good"] for r in info["meshed"]] == [False, True]
+    assert not stack.done and stack.next_stage() is not None  # what is left can still be made
+
+
+def test_the_chooser_without_first_good_makes_and_meshes_everything():
+    mesh = box(1)
+    calls = []
+    stack = _stack(mesh, ("good", "noisy"), calls, paths=(), repair_rounds=0)
+    idx, info = hex_chooser(edge_length=0.25, first_good=False)(mesh, stack)
+    assert calls == ["good", "noisy"] and stack.done and stack.next_stage() is None
+    assert stack[idx].start == "good" and info["stopped"] == "every candidate meshed" and len(info["meshed"]) == 2
+    capped = hex_chooser(1, edge_length=0.25, first_good=False)(mesh, _stack(mesh, ("noisy", "good"), [], paths=(),
+                                                                               repair_rounds=0))[1]
+    assert capped["stopped"] == "max_candidates=1 meshed" and len(capped["meshed"]) == 1

@@ -47,9 +47,10 @@ class TrainFramesConfig(FrameOptions):
     #: How the returned field is chosen among the candidates (every one from a connection
     #: optimization): hex: by the hex meshes they make (torchconn.hexmesh.choose.hex_chooser: a valid
     #: integer-grid map and a good hex mesh first, then fewer broken tets, hex quality; the proxies
-    #: break ties), meshing the select_candidates most promising ones (each start's optimized field,
-    #: the best checkpoint per start and path kind, the best repaired field) with the hex stage's
-    #: defaults; proxies: the lowest proxy score (the quality stage's).
+    #: break ties), meshing with the hex stage's defaults at most select_candidates of them in the
+    #: order of their promise (each start's optimized field, the best checkpoint per start and path
+    #: kind, the best repaired field), made stage by stage and stopping at the first good hex mesh;
+    #: proxies: the lowest proxy score of every candidate (the quality stage's).
     select: str = option("hex", choices=("hex", "proxies"))
     select_candidates: int = option(8, lo=1)
     #: weight of the seamless map's fitting energy in the connection loss

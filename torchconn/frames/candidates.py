@@ -1,7 +1,8 @@
 """The candidates of the connection method and the proxy choice among them.
 
-:func:`connection_candidates` makes the fields the connection method may return, every one
-descended from a connection optimization: each optimized field itself; the checkpoints of the
+:class:`CandidateStack` makes the fields the connection method may return, stage by stage on
+demand (:func:`connection_candidates`: all of them), every one descended from a connection
+optimization: each optimized field itself; the checkpoints of the
 quality paths of :mod:`torchconn.frames.quality_paths` started at it (L-BFGS on the frames, the mean
 angle and the matched Dirichlet energy ``mean_e ||F_i g_ij - F_j||^2`` of Ray et al. 2016 /
 Palmer et al. 2020 traded along an annealed weight, with the feature curves soft or held); and,
@@ -28,7 +29,7 @@ from .metrics import frame_metrics
 from .quality_paths import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
 from .matching_search import repair_structure
 
-__all__ = ["Candidate", "connection_candidates", "choose_by_proxies", "quality_score"]
+__all__ = ["Candidate", "CandidateStack", "connection_candidates", "choose_by_proxies", "quality_score"]
 
 
 def quality_score(metrics: dict, reference: dict, dirichlet_weight: float = 1.0, complex_weight: float = 0.0) -> float:
@@ -86,81 +87,153 @@ class Candidate:
                 "feature_curve_alignment_mean_deg": m["feature_curve_alignment_mean_deg"]}
 
 
-def connection_candidates(mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = PATH_KINDS,
-                          dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
-                          feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
-                          score_dirichlet: float = 1.0, score_complex: float = 0.1, feature_curve_bound: float = 2.0,
-                          repair_rounds: int = 1, repair_residual_weight: float = 0.5, repair_relax_iters: int = 40,
-                          repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
-                          angle_deg: float = 30.0, align_eps: float = 1e-3) -> tuple[list[Candidate], dict]:
-    """The candidates of the connection method: its optimized fields, the quality paths and the structure repair.
+class CandidateStack:
+    """The candidates of the connection method, made stage by stage on demand.
 
     Every candidate descends from a connection optimization (``optimized``: ``{start label:
-    (frames (V, 3, 3), edge_rot (E, 3, 3))}``): the optimized field itself, the checkpoints of the
-    quality paths (:func:`~torchconn.frames.quality_paths.quality_path`, ``paths`` x ``dirichlet_weights``)
-    started at it, and, where the best candidate by the proxies (:func:`choose_by_proxies` on
-    :func:`quality_score` against ``reference``, the SH field's :func:`frame_metrics`) has
-    complex-type singular faces, the singular-structure repair of that candidate
-    (:func:`~torchconn.frames.matching_search.repair_structure`) and the paths from it (``repair_rounds``
-    rounds). There is no fallback to the reference: it is the yardstick of the scores only.
+    (frames (V, 3, 3), edge_rot (E, 3, 3))}``, or ``{start label: callable}`` returning that pair:
+    the optimization is then run when its stage is made). The stages, in order (:attr:`stages`):
+
+    1. ``"optimized:<start label>"``, one per start: the optimized field itself;
+    2. ``"paths"``: the checkpoints of the quality paths
+       (:func:`~torchconn.frames.quality_paths.quality_path`, ``paths`` x ``dirichlet_weights``)
+       started at each optimized field (all the optimized stages come first);
+    3. ``"repair"``: where the best candidate so far by the proxies (:func:`choose_by_proxies` on
+       :func:`quality_score` against ``reference``, the SH field's :func:`frame_metrics`) has
+       complex-type singular faces, the singular-structure repair of that candidate
+       (:func:`~torchconn.frames.matching_search.repair_structure`) and the paths from it
+       (``repair_rounds`` rounds).
+
+    A chooser that judges candidates by an expensive end metric (the hex chooser) takes the
+    stages one at a time (:meth:`next_stage`) and stops when it has what it needs: the later
+    stages are then never made. :meth:`complete` makes them all (the proxy choice needs all).
+    There is no fallback to the reference: it is the yardstick of the scores only.
+
+    Attributes:
+        candidates: the :class:`Candidate` s made so far, in the order they were made.
+        info: ``{"stages": [names made], "repairs": [...], "seconds": ...}``.
+    """
+
+    def __init__(self, mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = PATH_KINDS,
+                 dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
+                 feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
+                 score_dirichlet: float = 1.0, score_complex: float = 0.1, feature_curve_bound: float = 2.0,
+                 repair_rounds: int = 1, repair_residual_weight: float = 0.5, repair_relax_iters: int = 40,
+                 repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
+                 angle_deg: float = 30.0, align_eps: float = 1e-3):
+        bad_paths = [k for k in paths if k not in PATH_KINDS]
+        if bad_paths:
+            raise ValueError(f"connection_candidates: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
+        if not optimized:
+            raise ValueError("connection_candidates: no optimized field")
+        self.mesh, self.reference = mesh, reference
+        self._optimized = dict(optimized)  # label -> (F, R) or a callable returning it
+        self.stages = tuple(f"optimized:{label}" for label in self._optimized) + ("paths", "repair")
+        self.paths, self.dirichlet_weights = tuple(paths), tuple(dirichlet_weights)
+        self.repair_dirichlet_weights = (self.dirichlet_weights if repair_dirichlet_weights is None
+                                         else tuple(repair_dirichlet_weights))
+        self.path_options = dict(rounds=rounds, iters=iters, feature_weight=feature_weight,
+                                 tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
+                                 align_eps=align_eps, angle_deg=angle_deg,
+                                 a_ref=math.radians(reference["smoothness_mean_deg"]),
+                                 d_ref=reference["dirichlet_energy_mean"])
+        self.score_weights = (score_dirichlet, score_complex)
+        self.feature_curve_bound = feature_curve_bound
+        self.repair_options = dict(residual_weight=repair_residual_weight, relax_iters=repair_relax_iters,
+                                   feature_weight=feature_weight, eps=eps, align_eps=align_eps, angle_deg=angle_deg)
+        self.repair_rounds = int(repair_rounds)
+        self.candidates: list[Candidate] = []
+        self.info: dict = {"stages": [], "repairs": [], "seconds": 0.0}
+
+    # a read-only sequence of the candidates made so far
+    def __len__(self) -> int:
+        return len(self.candidates)
+
+    def __getitem__(self, i):
+        return self.candidates[i]
+
+    def __iter__(self):
+        return iter(self.candidates)
+
+    @property
+    def done(self) -> bool:
+        """Whether every stage has been made."""
+        return len(self.info["stages"]) == len(self.stages)
+
+    def next_stage(self) -> list[int] | None:
+        """Make the next stage; the indices of its new candidates (maybe none), ``None`` when all are made."""
+        if self.done:
+            return None
+        name = self.stages[len(self.info["stages"])]
+        t0 = time.perf_counter()
+        n0 = len(self.candidates)
+        if name.startswith("optimized:"):
+            self._stage_optimized(name.split(":", 1)[1])
+        else:
+            getattr(self, f"_stage_{name}")()
+        self.info["stages"].append(name)
+        self.info["seconds"] += time.perf_counter() - t0
+        return list(range(n0, len(self.candidates)))
+
+    def complete(self) -> list[Candidate]:
+        """Make every stage left; the list of all candidates."""
+        while self.next_stage() is not None:
+            pass
+        return self.candidates
+
+    def _consider(self, F, kind, start, lam, R=None) -> Candidate:
+        m = frame_metrics(F, self.mesh, self.path_options["angle_deg"], curl=False)
+        c = Candidate(F.detach(), kind, start, lam, m, quality_score(m, self.reference, *self.score_weights), R)
+        self.candidates.append(c)
+        return c
+
+    def _run_paths(self, F, start, weights) -> None:
+        for kind in dict.fromkeys(self.paths):
+            for cp in quality_path(self.mesh, F, kind=kind, dirichlet_weights=weights, **self.path_options):
+                self._consider(cp.frames, kind, start, cp.dirichlet_weight)
+
+    def _stage_optimized(self, start: str) -> None:
+        field = self._optimized[start]
+        F, R = field() if callable(field) else field
+        self._optimized[start] = (F, R)
+        self._consider(F.detach(), "optimized", start, None, R.detach() if R is not None else None)
+
+    def _stage_paths(self) -> None:
+        for start, (F, _) in self._optimized.items():
+            self._run_paths(F.detach(), start, self.dirichlet_weights)
+
+    def _stage_repair(self) -> None:
+        last = None
+        for r in range(self.repair_rounds):
+            cur = self.candidates[choose_by_proxies(self.mesh, self.candidates, self.feature_curve_bound)[0]]
+            if cur.metrics["n_singular_faces_complex"] == 0 or cur.frames is last:
+                break
+            last = cur.frames
+            t0 = time.perf_counter()
+            Fs, sinfo = repair_structure(cur.frames, self.mesh, a_ref=self.path_options["a_ref"],
+                                         d_ref=self.path_options["d_ref"],
+                                         dirichlet_weight=max(self.dirichlet_weights, default=8.0),
+                                         **self.repair_options)
+            entry = {"round": r, "from": cur.label, "complex_before": sinfo["complex_before"],
+                     "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
+            self.info["repairs"].append(entry)
+            if sinfo["complex_after"] < sinfo["complex_before"]:
+                self._consider(Fs, "repaired", cur.start, None)
+                entry["paths_run"] = bool(self.paths)
+                self._run_paths(Fs, cur.start, self.repair_dirichlet_weights)
+            entry["seconds"] = time.perf_counter() - t0
+
+
+def connection_candidates(mesh, optimized: dict, reference: dict, **options) -> tuple[list[Candidate], dict]:
+    """Every candidate of the connection method: :class:`CandidateStack` ``(mesh, optimized,
+    reference, **options)`` with all its stages made.
 
     Returns:
         ``(candidates, info)``: :class:`Candidate` list (optimized fields first, in the order of
-        ``optimized``) and ``{"repairs": [...], "seconds": ...}``.
+        ``optimized``) and ``{"stages": [...], "repairs": [...], "seconds": ...}``.
     """
-    t_start = time.perf_counter()
-    bad_paths = [k for k in paths if k not in PATH_KINDS]
-    if bad_paths:
-        raise ValueError(f"connection_candidates: unknown path kind(s) {bad_paths}; known: {list(PATH_KINDS)}")
-    if not optimized:
-        raise ValueError("connection_candidates: no optimized field")
-    a_ref = math.radians(reference["smoothness_mean_deg"])
-    d_ref = reference["dirichlet_energy_mean"]
-    cands: list[Candidate] = []
-
-    def consider(F, kind, start, lam, R=None):
-        m = frame_metrics(F, mesh, angle_deg, curl=False)
-        c = Candidate(F.detach(), kind, start, lam, m, quality_score(m, reference, score_dirichlet, score_complex), R)
-        cands.append(c)
-        return c
-
-    def run_paths(F, start, weights):
-        for kind in dict.fromkeys(paths):
-            for cp in quality_path(mesh, F, kind=kind, a_ref=a_ref, d_ref=d_ref, dirichlet_weights=weights,
-                                   rounds=rounds, iters=iters, feature_weight=feature_weight,
-                                   tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
-                                   align_eps=align_eps, angle_deg=angle_deg):
-                consider(cp.frames, kind, start, cp.dirichlet_weight)
-
-    for start, (F, R) in optimized.items():
-        consider(F.detach(), "optimized", start, None, R.detach() if R is not None else None)
-    for start, (F, _) in optimized.items():
-        run_paths(F.detach(), start, dirichlet_weights)
-
-    def best():
-        return cands[choose_by_proxies(mesh, cands, feature_curve_bound)[0]]
-
-    repairs = []
-    last = None
-    rep_weights = dirichlet_weights if repair_dirichlet_weights is None else repair_dirichlet_weights
-    for r in range(repair_rounds):
-        cur = best()
-        if cur.metrics["n_singular_faces_complex"] == 0 or cur.frames is last:
-            break
-        last = cur.frames
-        t0 = time.perf_counter()
-        Fs, sinfo = repair_structure(cur.frames, mesh, a_ref=a_ref, d_ref=d_ref, residual_weight=repair_residual_weight,
-                                     relax_iters=repair_relax_iters, dirichlet_weight=max(dirichlet_weights, default=8.0),
-                                     feature_weight=feature_weight, eps=eps, align_eps=align_eps, angle_deg=angle_deg)
-        entry = {"round": r, "from": cur.label, "complex_before": sinfo["complex_before"],
-                 "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
-        repairs.append(entry)
-        if sinfo["complex_after"] < sinfo["complex_before"]:
-            consider(Fs, "repaired", cur.start, None)
-            entry["paths_run"] = bool(paths)
-            run_paths(Fs, cur.start, rep_weights)
-        entry["seconds"] = time.perf_counter() - t0
-    return cands, {"repairs": repairs, "seconds": time.perf_counter() - t_start}
+    stack = CandidateStack(mesh, optimized, reference, **options)
+    return stack.complete(), stack.info
 
 
 def choose_by_proxies(mesh, candidates: Sequence[Candidate], feature_curve_bound: float = 2.0) -> tuple[int, dict]:

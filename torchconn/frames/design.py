@@ -11,14 +11,16 @@ design() -> writers``); nothing is written to disk. Methods:
   (smoothness, tie, symmetric flatness, √R torsion through the matchings, the averaged covariant
   exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
   energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`;
-  then the candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized
-  fields, the checkpoints of the L-BFGS quality paths from them (:mod:`~torchconn.frames.quality_paths`)
-  and the singular-structure repair (:mod:`~torchconn.frames.matching_search`) of the best of them.
+  then the candidates (:class:`~torchconn.frames.candidates.CandidateStack`, made stage by stage
+  as the choice asks for them): the optimized fields, the checkpoints of the L-BFGS quality paths
+  from them (:mod:`~torchconn.frames.quality_paths`) and the singular-structure repair
+  (:mod:`~torchconn.frames.matching_search`) of the best of them.
   Every candidate descends from a connection optimization; the SH field is the yardstick of the
   proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
   field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
   hex meshes the candidates make, :func:`torchconn.hexmesh.choose.hex_chooser`);
-  ``metrics["chosen"]`` says which and why, and lists every candidate;
+  ``metrics["chosen"]`` says which and why, and lists every candidate made (the hex chooser stops
+  at its first good hex mesh, and the stages after it are never made);
 * ``"sh"``: the spherical-harmonic field only (``"sh_baseline"`` is accepted as the config's name).
 
 Options are the fields of :class:`~torchconn.frames.options.FrameOptions` that belong to the method
@@ -59,7 +61,7 @@ from .mbo import mbo_frames
 from .metrics import edge_class_breakdown, frame_metrics
 from .model import FrameFieldModel, matched_connection
 from .options import STARTS, FrameOptions
-from .candidates import choose_by_proxies, connection_candidates
+from .candidates import CandidateStack, choose_by_proxies
 from .sh import sh_frame_field
 from .singular import singular_graph
 from .solver import make_optimizer, new_history, optimize
@@ -304,10 +306,13 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
             ``checkpoint_every`` steps and at its last step, with ``state = {"start", "done",
             "step", "model", "optimizer", "scheduler", "rng", "history", "init_frames",
             "init_metrics"}`` (live ``state_dict`` objects: serialize them before the next step).
-        choose: ``choose(mesh, candidates) -> (index, info)`` picks the returned field among the
-            :class:`~torchconn.frames.candidates.Candidate` s (default
-            :func:`~torchconn.frames.candidates.choose_by_proxies`); e.g.
-            :func:`torchconn.hexmesh.choose.hex_chooser` chooses by the hex meshes they make.
+        choose: ``choose(mesh, stack) -> (index, info)`` picks the returned field among the
+            :class:`~torchconn.frames.candidates.Candidate` s of a
+            :class:`~torchconn.frames.candidates.CandidateStack` (the candidates made so far; it
+            asks for more with ``stack.next_stage()`` or ``stack.complete()``; ``index`` into
+            ``stack.candidates``). Default: :func:`~torchconn.frames.candidates.choose_by_proxies`
+            of every candidate; :func:`torchconn.hexmesh.choose.hex_chooser` chooses by the hex
+            meshes they make.
         extra_terms: ``{name: factory}`` extra loss terms: ``factory(mesh, start_frames)`` returns
             ``term(edge_rot, frames) -> 0-dim tensor``, weighted by ``weights[name]`` (e.g.
             :class:`torchconn.hexmesh.energy.MapEnergy`, the seamless map's fitting energy).
@@ -377,84 +382,85 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         labels = list(starts_F)
         bar = _progress_bar(progress, steps * len(labels), 0)
         loss_fns = {}
-        t0 = time.perf_counter()
-        try:
-            for n_start, label in enumerate(labels):
-                # 2. model, loss, optimizer of this start
-                model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
-                # the extra terms are built on the model's own (combed) start frames: their labels
-                with torch.no_grad():
-                    F_model0 = model()[1].detach()
-                terms = {name: factory(mesh, F_model0) for name, factory in extra_terms.items()
-                         if float(opts["weights"].get(name, 0.0)) > 0}
-                loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
-                                         smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
-                                         align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]),
-                                         extra_terms=terms)
-                loss_fns[label] = loss_fn
-                if label in done:
-                    if bar is not None:
-                        bar.update(steps)
-                    continue
-                optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
-                                                      opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
-                hist = new_history(loss_fn.weights)
-                first = 0
-                if state is not None and state.get("start") == label and label not in done:
-                    model.load_state_dict(state["model"])
-                    optimizer.load_state_dict(state["optimizer"])
-                    scheduler.load_state_dict(state["scheduler"])
-                    if "rng" in state:
-                        _set_rng_state(state["rng"])
-                    first = int(state["step"])
-                    hist = {k: list(v) for k, v in state["history"].items()}
-                    if first > steps:
-                        raise ValueError(f"design(): the state is at step {first}, beyond steps={steps}")
-                    if bar is not None:
-                        bar.update(first)
+        tally = {"stopped": False, "iterations": 0, "seconds": 0.0}
 
-                def checkpoint(step: int, label=label, model=model, optimizer=optimizer, scheduler=scheduler,
-                               hist=hist) -> None:
-                    on_checkpoint({
-                        "start": label, "done": done, "step": step, "model": model.state_dict(),
-                        "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                        "rng": _rng_state(mesh.vertices.device), "history": hist,
-                        "init_frames": {k: v.detach().cpu() for k, v in starts_F.items()},
-                        "init_metrics": init_metrics,
-                    })
+        def run_start(n_start: int, label: str):
+            """2.-3. The connection optimization from the start field ``label``: its ``(frames, edge_rot)``."""
+            t0 = time.perf_counter()
+            # 2. model, loss, optimizer of this start
+            model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
+            # the extra terms are built on the model's own (combed) start frames: their labels
+            with torch.no_grad():
+                F_model0 = model()[1].detach()
+            terms = {name: factory(mesh, F_model0) for name, factory in extra_terms.items()
+                     if float(opts["weights"].get(name, 0.0)) > 0}
+            loss_fn = FrameFieldLoss(mesh, dict(opts["weights"]), feature_angle_deg=angle,
+                                     smooth_power=float(opts["smooth_power"]), smooth_eps=float(opts["smooth_eps"]),
+                                     align_kind=str(opts["align_kind"]), align_eps=float(opts["align_eps"]),
+                                     extra_terms=terms)
+            loss_fns[label] = loss_fn
+            if label in done:
+                if bar is not None:
+                    bar.update(steps)
+                return done[label]["frames"], done[label]["edge_rot"]
+            optimizer, scheduler = make_optimizer(model.parameters(), opts["optim"], float(opts["lr"]), steps,
+                                                  opts["lr_schedule"], int(lb["history_size"]), int(lb["max_iter"]))
+            hist = new_history(loss_fn.weights)
+            first = 0
+            if state is not None and state.get("start") == label and label not in done:
+                model.load_state_dict(state["model"])
+                optimizer.load_state_dict(state["optimizer"])
+                scheduler.load_state_dict(state["scheduler"])
+                if "rng" in state:
+                    _set_rng_state(state["rng"])
+                first = int(state["step"])
+                hist = {k: list(v) for k, v in state["history"].items()}
+                if first > steps:
+                    raise ValueError(f"design(): the state is at step {first}, beyond steps={steps}")
+                if bar is not None:
+                    bar.update(first)
 
-                offset = n_start * steps
+            def checkpoint(step: int, label=label, model=model, optimizer=optimizer, scheduler=scheduler,
+                           hist=hist) -> None:
+                on_checkpoint({
+                    "start": label, "done": done, "step": step, "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                    "rng": _rng_state(mesh.vertices.device), "history": hist,
+                    "init_frames": {k: v.detach().cpu() for k, v in starts_F.items()},
+                    "init_metrics": init_metrics,
+                })
 
-                def on_step(step: int, record: dict, checkpoint=checkpoint, offset=offset) -> bool:
-                    if on_checkpoint is not None and (step % checkpoint_every == 0 or step == steps):
-                        checkpoint(step)
-                    if bar is not None:
-                        bar.update(1)
-                        bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
-                    return callback is not None and callback(offset + step, record) is True
+            offset = n_start * steps
 
-                # 3. the connection optimization from this start
-                if first == 0 and steps > 0 and on_checkpoint is not None:
-                    checkpoint(0)
-                optimize(model, loss_fn, optimizer, scheduler, steps, start=first, history=hist, on_step=on_step)
-                stopped = stopped or len(hist["total"]) < steps
-                iterations += len(hist["total"]) - first
-                with torch.no_grad():
-                    R_s, F_s = model()
-                done[label] = {"frames": F_s.detach(), "edge_rot": R_s.detach(), "history": hist}
-                if on_checkpoint is not None:
-                    checkpoint(len(hist["total"]))
-        finally:
-            if bar is not None:
-                bar.close()
-        t_opt = time.perf_counter() - t0
-        histories = {k: done[k]["history"] for k in labels}
-        optimized = {k: (done[k]["frames"], done[k]["edge_rot"]) for k in labels}
+            def on_step(step: int, record: dict, checkpoint=checkpoint, offset=offset) -> bool:
+                if on_checkpoint is not None and (step % checkpoint_every == 0 or step == steps):
+                    checkpoint(step)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in record.items()}, refresh=False)
+                return callback is not None and callback(offset + step, record) is True
+
+            # 3. the connection optimization from this start
+            if first == 0 and steps > 0 and on_checkpoint is not None:
+                checkpoint(0)
+            optimize(model, loss_fn, optimizer, scheduler, steps, start=first, history=hist, on_step=on_step)
+            tally["stopped"] = tally["stopped"] or len(hist["total"]) < steps
+            tally["iterations"] += len(hist["total"]) - first
+            with torch.no_grad():
+                R_s, F_s = model()
+            done[label] = {"frames": F_s.detach(), "edge_rot": R_s.detach(), "history": hist}
+            if on_checkpoint is not None:
+                checkpoint(len(hist["total"]))
+            tally["seconds"] += time.perf_counter() - t0
+            return done[label]["frames"], done[label]["edge_rot"]
+
+        # each start is optimized when the choice first asks for its field (the proxies: all of them;
+        # the hex chooser: the next one only when the fields so far did not mesh well)
+        optimized = {label: (lambda n=n, label=label: run_start(n, label)) for n, label in enumerate(labels)}
 
         # 4. the candidates: the optimized fields, the quality paths from them, the structure repair
         q = opts["quality"]
-        t0 = time.perf_counter()
-        cands, quality_info = connection_candidates(
+        stack = CandidateStack(
             mesh, optimized, init_metrics, paths=tuple(q["paths"]) if q["enabled"] else (),
             dirichlet_weights=tuple(float(x) for x in q["dirichlet_weights"]), rounds=int(q["rounds"]),
             iters=int(q["iters"]), feature_weight=float(q["feature_weight"]), tangent_weight=float(q["tangent_weight"]),
@@ -465,14 +471,24 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
             repair_dirichlet_weights=(None if q["repair_dirichlet_weights"] is None
                                       else tuple(float(x) for x in q["repair_dirichlet_weights"])),
             angle_deg=angle, align_eps=float(opts["align_eps"]))
-        t_quality = time.perf_counter() - t0
-        # 5. the choice (default: the proxies; a hex chooser: the hex meshes they make)
+        # 5. the choice (default: the proxies, of every candidate; a hex chooser: the hex meshes
+        # they make, taking the stages one at a time and stopping at its first good hex mesh)
         t0 = time.perf_counter()
-        if choose is None:
-            idx, cinfo = choose_by_proxies(mesh, cands, float(q["feature_curve_bound"]))
-        else:
-            idx, cinfo = choose(mesh, cands)
-        t_choose = time.perf_counter() - t0
+        try:
+            if choose is None:
+                idx, cinfo = choose_by_proxies(mesh, stack.complete(), float(q["feature_curve_bound"]))
+            else:
+                idx, cinfo = choose(mesh, stack)
+        finally:
+            if bar is not None:
+                bar.close()
+        t_opt = tally["seconds"]
+        t_quality = stack.info["seconds"] - t_opt  # the candidates' making, besides the optimizations
+        t_choose = time.perf_counter() - t0 - stack.info["seconds"]
+        stopped, iterations = tally["stopped"], tally["iterations"]
+        histories = {k: done[k]["history"] for k in labels if k in done}
+        quality_info = {**stack.info, "seconds": t_quality}
+        cands = stack.candidates
         win = cands[idx]
         F = win.frames
         R = win.edge_rot if win.edge_rot is not None else matched_connection(F, mesh.edges)
@@ -480,7 +496,6 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         choice = {"index": int(idx), "label": win.label, "kind": win.kind, "start": win.start,
                   "dirichlet_weight": win.dirichlet_weight, "score": win.score, **cinfo,
                   "candidates": [c.summary() for c in cands]}
-        quality_info["seconds"] = t_quality
         with torch.no_grad():
             final_terms = {k: float(v) for k, v in loss_fns[win.start](R, F).items()}
 

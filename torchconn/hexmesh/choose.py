@@ -83,45 +83,79 @@ def preselect(candidates, max_candidates: int) -> list[int]:
     return out[:max_candidates]
 
 
-def hex_chooser(max_candidates: int = 8, **hex_options):
+def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options):
     """A ``choose(mesh, candidates) -> (index, info)`` for :func:`torchconn.frames.design`.
 
     Args:
-        max_candidates: how many candidates are meshed (:func:`preselect`).
+        max_candidates: how many candidates are meshed at most (:func:`preselect`).
+        first_good: stop at the first candidate, in :func:`preselect`'s order, whose hex mesh is
+            good: the set of inputs that get a good hex mesh is the same as meshing them all (only
+            which good mesh is returned may differ), and with a
+            :class:`~torchconn.frames.candidates.CandidateStack` (what :func:`~torchconn.frames.design`
+            passes) the later stages of candidates are then never made. ``False``: make every
+            candidate, mesh the ``max_candidates`` first and return the best by :func:`hex_key`.
         **hex_options: options of :func:`~.pipeline.hex_mesh` (``edge_length``, ...).
 
+    ``candidates`` is a sequence of :class:`~torchconn.frames.candidates.Candidate` s or a
+    :class:`~torchconn.frames.candidates.CandidateStack`, whose stages are made one at a time: after
+    each, the candidates :func:`preselect` puts first among those made and not yet meshed are meshed.
     The ``info`` lists, per meshed candidate, its label, the map's validity and first reasons,
     the hexes, the scaled Jacobian, the irregular fraction, the Hausdorff distance, ``good`` and
-    the seconds; ``"by": "hex"``. After a call, ``choose.chosen`` is ``(frames, HexMeshResult)``
-    of the chosen candidate (:func:`design_for_hex` hands it on as ``FrameFieldResult.hex``).
+    the seconds; ``"by": "hex"``; ``"stopped"``: why meshing stopped. After a call,
+    ``choose.chosen`` is ``(frames, HexMeshResult)`` of the chosen candidate
+    (:func:`design_for_hex` hands it on as ``FrameFieldResult.hex``).
     """
     if not (isinstance(max_candidates, int) and max_candidates >= 1):
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
 
     def choose(mesh, candidates):
+        from ..frames.candidates import CandidateStack
         from .pipeline import hex_mesh
 
-        idx = preselect(candidates, max_candidates)
-        rows, keys, results = [], [], []
-        for i in idx:
-            c = candidates[i]
-            t0 = time.perf_counter()
-            r = hex_mesh(mesh, c.frames, **hex_options)
-            q = r.quality
-            rows.append({"label": c.label, "valid": bool(r.validity.valid), "good": bool(r.good),
-                         "reasons": list(r.validity.reasons)[:3], "hexes": int(r.hexes.shape[0]),
-                         "sj_min": None if q is None else q.sj_min,
-                         "irregular": None if q is None else q.irregular_fraction,
-                         "hausdorff": None if q is None else q.hausdorff_rel, "seconds": time.perf_counter() - t0})
-            keys.append(hex_key(r, c.score))
-            results.append(r)
+        lazy = isinstance(candidates, CandidateStack) and first_good
+        if isinstance(candidates, CandidateStack) and not first_good:
+            candidates.complete()
+        meshed, rows, keys, results = [], [], [], []
+        stopped = None
+
+        def mesh_next() -> str | None:
+            for i in preselect(candidates, len(candidates)):
+                if i in meshed:
+                    continue
+                if len(meshed) == max_candidates:
+                    return f"max_candidates={max_candidates} meshed"
+                c = candidates[i]
+                t0 = time.perf_counter()
+                r = hex_mesh(mesh, c.frames, **hex_options)
+                q = r.quality
+                rows.append({"label": c.label, "valid": bool(r.validity.valid), "good": bool(r.good),
+                             "reasons": list(r.validity.reasons)[:3], "hexes": int(r.hexes.shape[0]),
+                             "sj_min": None if q is None else q.sj_min,
+                             "irregular": None if q is None else q.irregular_fraction,
+                             "hausdorff": None if q is None else q.hausdorff_rel,
+                             "seconds": time.perf_counter() - t0})
+                meshed.append(i)
+                keys.append(hex_key(r, c.score))
+                results.append(r)
+                if first_good and r.good:
+                    return "the first good hex mesh"
+            return f"max_candidates={max_candidates} meshed" if len(meshed) == max_candidates else None
+
+        if lazy:
+            while stopped is None and candidates.next_stage() is not None:
+                stopped = mesh_next()
+        else:
+            stopped = mesh_next()
+        if not meshed:
+            raise ValueError("hex_chooser: no candidate")
         best = min(range(len(keys)), key=keys.__getitem__)
-        win = idx[best]
+        win = meshed[best]
         row = rows[best]
         choose.chosen = (candidates[win].frames, results[best])  # the winner's hex mesh, not made again
         reason = ("a valid map and a good hex mesh" if row["good"] else "a valid map" if row["valid"]
                   else "no candidate has a valid map: the fewest broken tets")
-        return win, {"by": "hex", "reason": reason, "meshed": rows}
+        return win, {"by": "hex", "reason": reason, "stopped": stopped or "every candidate meshed",
+                     "meshed": rows}
 
     return choose
 
