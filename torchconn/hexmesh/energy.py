@@ -92,7 +92,55 @@ def _check_rotations(frames: torch.Tensor, what: str, who: str) -> None:
                          f"||F^T F - I|| up to {float(err.max()):.2e}); project them with so3.project_to_rotation")
 
 
-def _polar(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tensor:
+def _polar(X: torch.Tensor) -> torch.Tensor:
+    """Orthogonal polar factor ``R`` of ``X (..., 3, 3)``, ``det X > 0``, differentiable to every order.
+
+    The value by :func:`_polar_newton` (no autograd graph through its iterations); the derivative in
+    closed form (:class:`_Polar`): with ``S = R^T X`` (symmetric positive definite),
+    ``dR = R [w]_x``, ``w = (tr(S) I - S)^{-1} v(R^T dX)``, ``v(A) = (A_32 - A_23, A_13 - A_31, A_21 - A_12)``
+    (the skew part of ``R^T dX = [w]_x S + dS`` is ``[(tr(S) I - S) w]_x / 2``); so the VJP of ``G`` is
+    ``R [(tr(S) I - S)^{-1} v(R^T G)]_x``, written in torch operations of ``X`` and the output ``R``,
+    so that its own derivative is exact.
+    """
+    return _Polar.apply(X)
+
+
+def _axial(A: torch.Tensor) -> torch.Tensor:
+    """``v(A) (..., 3)`` of ``A (..., 3, 3)``: ``(A_32 - A_23, A_13 - A_31, A_21 - A_12)``."""
+    return torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1)
+
+
+def _hat(w: torch.Tensor) -> torch.Tensor:
+    """``[w]_x (..., 3, 3)`` of ``w (..., 3)``."""
+    z = torch.zeros_like(w[..., 0])
+    w1, w2, w3 = w.unbind(-1)
+    return torch.stack([z, -w3, w2, w3, z, -w1, -w2, w1, z], -1).reshape(*w.shape[:-1], 3, 3)
+
+
+class _Polar(torch.autograd.Function):
+    """The polar factor with its closed-form derivative (:func:`_polar`)."""
+
+    @staticmethod
+    def forward(X):
+        return _polar_newton(X)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.save_for_backward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx, G):
+        X, R = ctx.saved_tensors
+        Rt = R.transpose(-1, -2)
+        S = Rt @ X
+        S = 0.5 * (S + S.transpose(-1, -2))
+        P = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=S.dtype,
+                                                                                       device=S.device) - S
+        w = torch.linalg.solve(P, _axial(Rt @ G).unsqueeze(-1)).squeeze(-1)
+        return R @ _hat(w)
+
+
+def _polar_newton(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tensor:
     """Orthogonal polar factor of ``X (..., 3, 3)`` with ``det X > 0`` by the scaled Newton iteration
     ``X <- (z X + (z X)^{-T}) / 2``, ``z = sqrt(|X^{-1}|_F / |X|_F)`` (Higham).
 
