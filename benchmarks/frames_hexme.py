@@ -184,7 +184,9 @@ def run_method(method: str, mesh, options: dict | None = None, hex_options: dict
     """Frames ``(V, 3, 3)`` of ``method`` on ``mesh`` with the method's ``options``.
 
     For ``connection`` (the hex chooser), the chosen field's hex mesh, made while choosing with
-    ``hex_options``, is kept in :data:`LAST_HEX` (``None`` otherwise) for :func:`hex_stage`.
+    ``hex_options``, is kept in :data:`LAST_HEX` for :func:`hex_stage`, and the choice (the
+    winner's label, why meshing stopped, the stages made, each meshed candidate's label / good /
+    valid, ``design()``'s timings) for the row's ``chosen`` column.
     """
     options = dict(options or {})
     LAST_HEX.clear()
@@ -202,6 +204,11 @@ def run_method(method: str, mesh, options: dict | None = None, hex_options: dict
                              hex_options=hex_options, **options)
         if res.hex is not None:
             LAST_HEX["result"] = res.hex
+        c = res.metrics.get("chosen") or {}
+        LAST_HEX["chosen"] = {"label": c.get("label"), "by": c.get("by"), "stopped": c.get("stopped"),
+                              "stages": (res.metrics.get("quality") or {}).get("stages"),
+                              "meshed": [(r["label"], r["good"], r["valid"]) for r in c.get("meshed", [])],
+                              "timings": {k: v for k, v in res.timings.items() if k.endswith("_s")}}
         return res.vertex_frames
     if method == "mbo":
         from torchconn.frames.mbo import mbo_frames
@@ -257,6 +264,8 @@ def evaluate(set_name: str, case: str, method: str, opts: dict) -> dict:
         rec["traceback"] = traceback.format_exc()[-4000:]
         return rec
     if opts.get("hex", True):
+        if "chosen" in LAST_HEX:
+            rec["chosen"] = LAST_HEX.pop("chosen")
         rec.update(hex_stage(mesh, F, opts.get("hex_options") or {}, LAST_HEX.pop("result", None)))
         rec["end_to_end_s"] = rec["wall_s"] + rec.get("hex_s", 0.0)
     return rec
