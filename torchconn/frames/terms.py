@@ -39,6 +39,8 @@ import torch
 from torch import nn
 
 from ..nn import AveragedCovariantD, Curvature, MeshBuffers, Torsion, edge_rotations
+from ..ops import can_use_compiled
+from ..ops.tet_sqnorm import tet_dd_frames_sqnorm
 from . import octahedral
 
 __all__ = [
@@ -289,6 +291,12 @@ class RegularCovariantD(nn.Module):
     design and ``Ω∧θ`` is large there; elsewhere it is the curvature of the connection weighted by
     the geometry, which ``flat`` (per face, without geometry) does not see. 0 when no tet is regular.
 
+    Where the compiled kernel serves (unbatched plain CPU tensors, float32/float64, the switch
+    :func:`torchconn.ops.compiled` on, no ``torch.compile`` trace) the term is
+    :func:`torchconn.ops.tet_sqnorm.tet_dd_frames_sqnorm` with ``w_t = [t regular] / (vol_t^{2/3} #regular)``:
+    the same value to round-off, its gradient computed in the forward sweep, irregular tets skipped;
+    elsewhere :class:`~torchconn.nn.AveragedCovariantD`'s ``(T, 3)`` output is reduced in torch.
+
     Args:
         mesh: ``TetMesh`` (or a shared :class:`~torchconn.nn.MeshBuffers`).
     """
@@ -319,8 +327,14 @@ class RegularCovariantD(nn.Module):
             face_regular = self.regular_faces(R)
         tf = self.dd.mesh.tet_faces.to(face_regular.device)
         regular = face_regular.index_select(-1, tf.reshape(-1)).reshape(*tf.shape).all(-1)  # (T,)
+        scale = self.tet_scale.to(device=R.device, dtype=R.dtype)
+        if (R.dim() == 3 and isinstance(frames, torch.Tensor) and frames.dim() == 3 and regular.dim() == 1
+                and not torch.compiler.is_compiling() and can_use_compiled("tet", R, frames)):
+            # the compiled kernel: the same sum without the (T, 3) tensor, its gradient in the same sweep
+            w = torch.where(regular, scale.reciprocal(), 0.0) / regular.sum().clamp_min(1)
+            return tet_dd_frames_sqnorm(R, frames, w, self.dd.mesh)
         dd = self.dd(R, frames)  # (T, 3)
-        per = (dd**2).sum(-1) / self.tet_scale.to(device=dd.device, dtype=dd.dtype)
+        per = (dd**2).sum(-1) / scale
         # no int(): a data-dependent branch breaks vmap and torch.compile(fullgraph=True); 0 when
         # no tet is regular (the sum is then 0, divided by 1)
         return torch.where(regular, per, 0.0).sum() / regular.sum().clamp_min(1)
