@@ -29,6 +29,7 @@ import torch
 from . import native as _native
 from ._cache import edge_index as _edge_index
 from ._cache import edge_vectors as _edge_vectors
+from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
 from .backend import can_use_compiled
 from .tet import _I64, _P, _tables, tet_kernel
@@ -133,6 +134,36 @@ _sqnorm_op.register_autograd(_backward, setup_context=_setup)
 _sqnorm_op.register_vmap(leading_vmap(_sqnorm_op, "tet_dd_frames_sqnorm", batched=(0, 1, 4), n_out=3))
 
 
+class _Fn(torch.autograd.Function):
+    """The op for eager calls and the ``torch.func`` transforms (the autograd that ``register_autograd``
+    generates has no ``setup_context``, which ``torch.func.grad`` refuses, and no forward mode): the
+    same forward and backward; ``jvp`` differentiates the generic formula; vmap generated (it
+    reaches the op's vmap rule)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(*args):
+        return _sqnorm_op(*args)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        _setup(ctx, inputs, output)
+        ctx.save_for_forward(*inputs[:7])
+
+    @staticmethod
+    def backward(ctx, g_value, g_rot, g_fr):
+        return _backward(ctx, g_value, g_rot, g_fr)
+
+    @staticmethod
+    def jvp(ctx, t_rot, t_fr, t_vec, _t_edges, t_w, *_):
+        R, Fr, vec, edges, w, ri, ti = ctx.saved_tensors[:7]
+        tangents = tuple(torch.zeros_like(x) if t is None else t for x, t in ((R, t_rot), (Fr, t_fr), (vec, t_vec),
+                                                                              (w, t_w)))
+        t = _library_jvp(lambda a, b, c, d: _generic_value(a, b, c, edges, d, ri, ti)[0], (R, Fr, vec, w), tangents)
+        return t, None, None
+
+
 def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor, weight: torch.Tensor, mesh) -> torch.Tensor:
     """``Σ_t w_t |dd_t|²`` per batch item: ``(*B,)``, with ``dd (*B, T, 3)`` the averaged ``d∇d∇θ`` of
     ``edge_rot`` with the solder form in ``frames`` (:func:`torchconn.dec.dnabla.averaged_dd_solder`
@@ -159,6 +190,6 @@ def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor, weight: t
     dev, dt = edge_rot.device, edge_rot.dtype
     w = weight.to(device=dev, dtype=dt).expand(*batch, T)
     with_grad = torch.is_grad_enabled() and (edge_rot.requires_grad or frames.requires_grad)
-    value, _, _ = _sqnorm_op(edge_rot, frames.to(dtype=dt), _edge_vectors(mesh, dev, dt), _edge_index(mesh, dev), w,
-                             *_tables(k), with_grad)
-    return value
+    args = (edge_rot, frames.to(dtype=dt), _edge_vectors(mesh, dev, dt), _edge_index(mesh, dev), w, *_tables(k),
+            with_grad)
+    return (_sqnorm_op(*args) if torch.compiler.is_compiling() else _Fn.apply(*args))[0]
