@@ -113,7 +113,8 @@ def test_public_function_matches_the_composition_with_gradients(on):
     R, F, w = _data(mesh, seed=3)
     with _switch(on):
         out = []
-        for fn in (lambda A, B, c: ops_sqn.tet_dd_frames_sqnorm(A, B, c, mesh), lambda A, B, c: _composed(A, B, c, mesh)):
+        for fn in (lambda A, B, c: ops_sqn.tet_dd_frames_sqnorm(A, B, c, mesh),
+                   lambda A, B, c: _composed(A, B, c, mesh)):
             Rr, Fr, wr = R.clone().requires_grad_(), F.clone().requires_grad_(), w.clone().requires_grad_()
             v = fn(Rr, Fr, wr)
             out.append((v.detach(), *torch.autograd.grad(3.0 * v, (Rr, Fr, wr))))

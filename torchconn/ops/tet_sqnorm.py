@@ -6,8 +6,9 @@
     the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃'`` with ``θ̃'_ij = F_iᵀ √(F_i R_ij F_jᵀ) (v_j - v_i)``),
 
 with per-tet weights ``w (*B, T)`` (not differentiated by the C kernel; a tet with ``w_t = 0`` is
-not computed at all). It is the loss term of a squared ``d∇d∇θ`` (:class:`torchconn.frames.terms.RegularCovariantD`:
-``w_t = [t regular] / (vol_t^{2/3} · #regular)``) without its ``(T, 3)`` output and the torch passes
+not computed at all). It is the loss term of a squared ``d∇d∇θ``
+(:class:`torchconn.frames.terms.RegularCovariantD`: ``w_t = [t regular] / vol_t^{2/3}``, the sum then
+divided by ``#regular``) without its ``(T, 3)`` output and the torch passes
 over it: the C kernel (``tet_ddf_sqn`` in ``csrc/tet.c``) forms ``θ̃'`` once per edge, and with
 ``with_grad`` computes the gradient ``(∂s/∂R, ∂s/∂F)`` in the same sweep (the tet pass
 back-propagates ``2 w_t dd_t`` as soon as it has ``dd_t``), so no forward tet pass precedes the
