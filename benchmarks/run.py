@@ -549,8 +549,8 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
     phi = (0.2 * torch.randn(mesh.vertices.shape[0], 3, generator=g, dtype=dtype)).requires_grad_()
     big = T >= 500_000
     cases = loss_cases(mesh)  # imports torchconn.frames.kernels, which registers the kernel's C source
-    path = "compiled kernel frames/kernels/csrc/frame_loss.c" if torchconn.ops.can_use_compiled("frame_loss", w, phi) \
-        else "modules (no compiled kernel)"
+    path = ("compiled kernels frames/kernels/csrc/frame_loss.c + ops/csrc/tet.c (dnabla: tet_dd_frames_sqnorm)"
+            if torchconn.ops.can_use_compiled("frame_loss", w, phi) else "modules (no compiled kernel)")
     for name, loss in cases:
         def fast_fn(loss=loss):
             w.grad = phi.grad = None

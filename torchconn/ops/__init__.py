@@ -16,7 +16,9 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
   kernel in ``_tet_soa``; tables in :class:`~.tet.TetKernel`);
 * :mod:`.tet_solder`: ``tet_dd_sqrt`` / ``tet_dd_rot`` / ``tet_dd_frames``, the same with ``θ̃`` (and
   ``√R``, or the solder form in a frame field) formed inside the kernel, and ``tet_dd_solder``, the
-  mesh-level entry point.
+  mesh-level entry point;
+* :mod:`.tet_sqnorm`: ``tet_dd_frames_sqnorm``, the weighted squared norm ``Σ_t w_t |d∇d∇θ_t|²`` of
+  ``tet_dd_frames`` per item, its gradient computed in the same C sweep (the ``dnabla`` loss term).
 
 The ops that only the frame-field method uses (``frame_loss``, ``matched_edge_terms``) are
 declared the same way in :mod:`torchconn.frames.kernels`, with their C sources there
@@ -32,7 +34,7 @@ module keep mesh objects out of the ops (index tables built once per mesh are op
 some return ``None`` where they do not apply, and their caller evaluates its generic formula.
 This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
 """
-from . import backend, curvature, native, so3, tet, tet_solder, torsion
+from . import backend, curvature, native, so3, tet, tet_solder, tet_sqnorm, torsion
 from .backend import can_use_compiled, compiled, compiled_enabled, set_compiled
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "torsion",
     "tet",
     "tet_solder",
+    "tet_sqnorm",
     "compiled_enabled",
     "set_compiled",
     "compiled",

@@ -43,8 +43,11 @@
  *   int tet_ddf_fwd_SUF(rot, frames, vec, edges, ridx, tidx, out, nb, E, V, T, threads, eps)
  *   int tet_ddf_bwd_SUF(rot, frames, vec, edges, gin, ridx, tidx, order, chunk_start, color_start,
  *                       n_colors, grot, gframes, gvec, nb, E, V, T, threads, eps)
+ *   int tet_ddf_sqn_SUF(rot, frames, vec, edges, w, ridx, tidx, order, chunk_start, color_start,
+ *                       n_colors, value, grot, gframes, nb, E, V, T, threads, eps, grad)
  * (tet_ddr_*: √R formed in the kernel as well, eps the so3 small-angle threshold; tet_ddf_*: the
- * solder form in a frame field, θ̃'_ij = F_i^T √(F_i R F_j^T) v, formed in the kernel)
+ * solder form in a frame field, θ̃'_ij = F_i^T √(F_i R F_j^T) v, formed in the kernel; tet_ddf_sqn_*:
+ * the value sum_t w_t |dd_t|^2 of tet_ddf per item (double) and, with grad, its gradient in one sweep)
  * (the √R variants return 0, or -1 when their scratch cannot be mapped; in tet_dds_bwd the θ̃
  * of pass 1 live in ghalf (its first 6E entries per item) until the last pass overwrites it).
  */
@@ -822,9 +825,10 @@ static void FN(ddf_grad_task)(void *vc, long task)
             for (int i = 0; i < 3; i++)
                 for (int k = 0; k < 3; k++)
                     G[3 * i + k][j] = gu[i] * v[k] + v[i] * gw[k];
-            for (int i = 0; i < 3; i++)
-                c->gvec[3 * e + i] = (O[i][j] * gu[0] + O[3 + i][j] * gu[1] + O[6 + i][j] * gu[2])
-                                   + (O[3 * i][j] * gw[0] + O[3 * i + 1][j] * gw[1] + O[3 * i + 2][j] * gw[2]);
+            if (c->gvec) /* NULL: ∂L/∂v not wanted (tet_ddf_sqn) */
+                for (int i = 0; i < 3; i++)
+                    c->gvec[3 * e + i] = (O[i][j] * gu[0] + O[3 + i][j] * gu[1] + O[6 + i][j] * gu[2])
+                                       + (O[3 * i][j] * gw[0] + O[3 * i + 1][j] * gw[1] + O[3 * i + 2][j] * gw[2]);
         }
         SO3FN(sqrt_bwd_block)(A, G, O, m, c->eps2); /* O = ∂L/∂A */
         for (int j = 0; j < m; j++) {
@@ -910,6 +914,171 @@ int FN(tet_ddf_bwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
         if (nt > 1) {
             FN(sumf_t) s = {c.gfr[0], c.gfr, nt, 9 * V};
             tc_parallel(tc_tasks(9 * V, TET_ZERO_STEP), nt, FN(sumf_task), &s);
+        }
+    }
+    munmap(theta, bytes ? bytes : 1);
+    return 0;
+}
+
+/* ---- the weighted squared norm of tet_ddf (tet_ddf_sqn_*): per item the value
+ * s = sum_t w_t |dd_t|^2 (w (nb, T), dd_t the tet_ddf output) and, with grad, its gradient in the same
+ * sweep: the tet pass forms dd_t, adds w_t |dd_t|^2 to its chunk's sum and back-propagates
+ * 2 w_t dd_t at once (no (T, 3) output, no separate forward tet pass, θ̃' formed once); tets with
+ * w_t = 0 are neither gathered nor computed. Sums per chunk (grad) or per task (no grad), in
+ * double, added in chunk / task order: the value does not depend on the threads. */
+typedef struct {
+    const T_ *rot, *th, *w;
+    const int64_t *ridx, *tidx, *order, *chunk_start;
+    T_ *grot, *gth;
+    double *part;
+    int64_t T, c0;
+} FN(sqn_t);
+
+/* the next lanes: up to LANES tets k = order[*s ..] (order NULL: k = *s ..) with w[k] != 0 */
+static inline int FN(sqn_lanes)(const T_ *w, const int64_t *order, int64_t *s, int64_t end, int64_t *ks)
+{
+    int n = 0;
+    while (*s < end && n < LANES) {
+        const int64_t k = order ? order[*s] : *s;
+        ++*s;
+        if (w[k] != 0)
+            ks[n++] = k;
+    }
+    return n;
+}
+
+/* b->g <- dd of the block (block_fwd); returns sum_l w_l |dd_l|^2 over the n lanes and, with grad,
+ * sets b->g <- 2 w_l dd_l (0 on unused lanes) */
+static inline double FN(sqn_block)(FN(block) *b, const T_ *w, const int64_t *ks, int n, int grad)
+{
+    FN(block_fwd)(b);
+    double s = 0;
+    for (int l = 0; l < LANES; l++) {
+        const T_ wl = l < n ? w[ks[l]] : 0;
+        if (l < n)
+            s += (double)wl * ((double)b->g[0][l] * b->g[0][l] + (double)b->g[1][l] * b->g[1][l]
+                               + (double)b->g[2][l] * b->g[2][l]);
+        if (grad)
+            for (int i = 0; i < 3; i++)
+                b->g[i][l] = l < n ? 2 * wl * b->g[i][l] : 0;
+    }
+    return s;
+}
+
+static void FN(sqn_rows)(const FN(sqn_t) *c, const int64_t *ks, int n, const int64_t **ris, const int64_t **tis)
+{
+    for (int l = 0; l < LANES; l++) {
+        const int64_t k = ks[l < n ? l : 0];
+        ris[l] = c->ridx + 6 * k;
+        tis[l] = c->tidx + 7 * k;
+    }
+}
+
+/* task: chunk c0 + task of one color (as bwd_chunk_task): value and gradient */
+static void FN(sqn_chunk_task)(void *vc, long task)
+{
+    const FN(sqn_t) *c = (const FN(sqn_t) *)vc;
+    const int64_t ch = c->c0 + task, end = c->chunk_start[ch + 1];
+    FN(block) b;
+    FN(gblock) o;
+    int64_t ks[LANES], s0 = c->chunk_start[ch];
+    const int64_t *ris[LANES], *tis[LANES];
+    double s = 0;
+    int n;
+    while ((n = FN(sqn_lanes)(c->w, c->order, &s0, end, ks)) > 0) {
+        FN(sqn_rows)(c, ks, n, ris, tis);
+        FN(gather_block)(&b, n, c->rot, c->th, ris, tis);
+        FN(prefetch)(c->rot, c->th, c->grot, c->gth, c->ridx, c->tidx, c->order, s0, end);
+        s += FN(sqn_block)(&b, c->w, ks, n, 1);
+        FN(block_bwd)(&b, &o);
+        for (int l = 0; l < n; l++)
+            FN(scatter)(&o, l, c->ridx + 6 * ks[l], c->tidx + 7 * ks[l], c->grot, c->gth);
+    }
+    c->part[ch] = s;
+}
+
+/* task: TET_TASK_BLOCKS * LANES consecutive tets: the value only */
+static void FN(sqn_fwd_task)(void *vc, long task)
+{
+    const FN(sqn_t) *c = (const FN(sqn_t) *)vc;
+    const int64_t step = TET_TASK_BLOCKS * LANES;
+    const int64_t end = (task + 1) * step < c->T ? (task + 1) * step : c->T;
+    FN(block) b;
+    int64_t ks[LANES], s0 = task * step;
+    const int64_t *ris[LANES], *tis[LANES];
+    double s = 0;
+    int n;
+    while ((n = FN(sqn_lanes)(c->w, NULL, &s0, end, ks)) > 0) {
+        FN(sqn_rows)(c, ks, n, ris, tis);
+        FN(gather_block)(&b, n, c->rot, c->th, ris, tis);
+        s += FN(sqn_block)(&b, c->w, ks, n, 0);
+    }
+    c->part[task] = s;
+}
+
+int FN(tet_ddf_sqn)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_t *edges, const T_ *w,
+                    const int64_t *ridx, const int64_t *tidx, const int64_t *order, const int64_t *chunk_start,
+                    const int64_t *color_start, int64_t n_colors, double *value, T_ *grot, T_ *gframes,
+                    int64_t nb, int64_t E, int64_t V, int64_t T, int threads, double eps, int grad)
+{
+    /* pass 0 (edges): θ̃' into a scratch; pass 1 (tets): the value and, with grad, grot and ∂L/∂θ̃'
+     * (colored chunks, as tet_ddf_bwd); pass 2 (edge stripes, with grad): the chain to R and F */
+    int nt = threads < 1 ? 1 : (threads > 64 ? 64 : threads);
+    if (E < TET_PAR_MIN)
+        nt = 1;
+    const int64_t n_chunks = color_start[n_colors], n_tasks = tc_tasks(T, TET_TASK_BLOCKS * LANES);
+    const int64_t n_part = grad ? n_chunks : n_tasks;
+    const size_t n_fbuf = grad ? (size_t)9 * (size_t)V * (size_t)(nt - 1) : 0;
+    const size_t bytes = sizeof(T_) * ((size_t)(grad ? 12 : 6) * (size_t)E + n_fbuf)
+                       + sizeof(double) * (size_t)(n_part > 0 ? n_part : 1);
+    T_ *theta = tet_scratch(bytes);
+    if (!theta)
+        return -1;
+    T_ *gth = theta + 6 * E, *fbuf = gth + 6 * E;
+    double *part = (double *)(theta + (grad ? 12 : 6) * E + n_fbuf);
+    const T_ eps2 = (T_)(eps * eps);
+    const int64_t nblk = (E + SO3_B - 1) / SO3_B;
+    for (int64_t bi = 0; bi < nb; bi++) {
+        const T_ *rb = rot + bi * 9 * E, *fb = frames + bi * 9 * V;
+        FN(fr_t) f = {.rot = rb, .fr = fb, .vec = vec, .edges = edges, .out = theta, .E = E, .V = V,
+                      .nblk = nblk, .eps2 = eps2};
+        FN(theta_frames)(&f, threads);
+        FN(sqn_t) c = {.rot = rb, .th = theta, .w = w + bi * T, .ridx = ridx, .tidx = tidx, .order = order,
+                       .chunk_start = chunk_start, .part = part, .T = T};
+        double s = 0;
+        if (!grad) {
+            tc_parallel(n_tasks, T >= TET_PAR_MIN_TETS ? threads : 1, FN(sqn_fwd_task), &c);
+            for (int64_t k = 0; k < n_tasks; k++)
+                s += part[k];
+            value[bi] = s;
+            continue;
+        }
+        c.grot = grot + bi * 9 * E;
+        c.gth = gth;
+        FN(zero)(c.grot, 9 * E, threads);
+        if (bi > 0)
+            FN(zero)(gth, 6 * E, threads);
+        for (int64_t k = 0; k < n_colors; k++) {
+            const int64_t nc = color_start[k + 1] - color_start[k];
+            const int64_t tets = nc > 0 ? chunk_start[color_start[k + 1]] - chunk_start[color_start[k]] : 0;
+            c.c0 = color_start[k];
+            tc_parallel(nc, tets >= TET_PAR_MIN_TETS ? threads : 1, FN(sqn_chunk_task), &c);
+        }
+        for (int64_t k = 0; k < n_chunks; k++)
+            s += part[k];
+        value[bi] = s;
+        f.gth = gth;
+        f.grot = c.grot;
+        f.gvec = NULL;
+        f.nt = nt;
+        f.gfr[0] = gframes + bi * 9 * V;
+        memset(f.gfr[0], 0, sizeof(T_) * 9 * (size_t)V);
+        for (int t = 1; t < nt; t++)
+            f.gfr[t] = fbuf + (size_t)(t - 1) * 9 * (size_t)V;
+        tc_parallel(nt, nt, FN(ddf_grad_task), &f);
+        if (nt > 1) {
+            FN(sumf_t) su = {f.gfr[0], f.gfr, nt, 9 * V};
+            tc_parallel(tc_tasks(9 * V, TET_ZERO_STEP), nt, FN(sumf_task), &su);
         }
     }
     munmap(theta, bytes ? bytes : 1);
