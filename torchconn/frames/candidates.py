@@ -62,6 +62,8 @@ class Candidate:
         metrics: :func:`frame_metrics` of ``frames`` (without the curl).
         score: :func:`quality_score` against the reference (the SH field): lower is better.
         edge_rot: ``(E, 3, 3)`` the optimized connection for ``kind == "optimized"``, else ``None``.
+        repaired: descends from the singular-structure repair (the repaired field, or a checkpoint
+            of a path from it: labelled ``start/repaired/kind@lambda``).
     """
 
     frames: torch.Tensor
@@ -71,11 +73,13 @@ class Candidate:
     metrics: dict
     score: float
     edge_rot: torch.Tensor | None = None
+    repaired: bool = False
 
     @property
     def label(self) -> str:
         lam = "" if self.dirichlet_weight is None else f"@{self.dirichlet_weight:g}"
-        return f"{self.start}/{self.kind}{lam}"
+        via = "repaired/" if self.repaired and self.kind != "repaired" else ""
+        return f"{self.start}/{via}{self.kind}{lam}"
 
     def summary(self) -> dict:
         """JSON-ready: label, kind, start, lambda, score and the proxies."""
@@ -187,10 +191,10 @@ class CandidateStack:
         self.candidates.append(c)
         return c
 
-    def _run_paths(self, F, start, weights) -> None:
+    def _run_paths(self, F, start, weights, repaired: bool = False) -> None:
         for kind in dict.fromkeys(self.paths):
             for cp in quality_path(self.mesh, F, kind=kind, dirichlet_weights=weights, **self.path_options):
-                self._consider(cp.frames, kind, start, cp.dirichlet_weight)
+                self._consider(cp.frames, kind, start, cp.dirichlet_weight).repaired = repaired
 
     def _stage_optimized(self, start: str) -> None:
         field = self._optimized[start]
@@ -218,9 +222,9 @@ class CandidateStack:
                      "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
             self.info["repairs"].append(entry)
             if sinfo["complex_after"] < sinfo["complex_before"]:
-                self._consider(Fs, "repaired", cur.start, None)
+                self._consider(Fs, "repaired", cur.start, None).repaired = True
                 entry["paths_run"] = bool(self.paths)
-                self._run_paths(Fs, cur.start, self.repair_dirichlet_weights)
+                self._run_paths(Fs, cur.start, self.repair_dirichlet_weights, repaired=True)
             entry["seconds"] = time.perf_counter() - t0
 
 
