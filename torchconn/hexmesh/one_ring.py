@@ -45,7 +45,7 @@ import torch
 from .cut import GROUP_INV, face_matchings, tet_charts
 from .meshability import REGULAR, VERTEX_CLASSES, meshability_report
 
-__all__ = ["OneRingReport", "one_ring_test", "ANGLE_TOL", "REASONS"]
+__all__ = ["OneRingReport", "one_ring_test", "ANGLE_TOL", "REASONS", "SOLVER_BUDGET"]
 
 ANGLE_TOL = 0.035
 """LMFF's acceptance of an edge's parametric angle (radians; AlgoHex's one-ring check)."""
@@ -53,6 +53,12 @@ ANGLE_TOL = 0.035
 REASONS = ("inverted", "angle", "flat", "complex")
 """Why a vertex fails: tets inverted after the solve, edges whose parametric angle is off, tets
 the ring's constraints flatten, a complex singular edge at the vertex."""
+
+SOLVER_BUDGET = {"untangle_rounds": 6, "rounds": 2, "max_iter": 20}
+"""The foldover-free solve's budget per ring (:func:`~.injective.minimize_barrier`'s options). On
+the HexMe ``c`` models with SH fields every ring it untangled was untangled within its first
+untangling solve (at most 10 Newton steps); a ring it cannot untangle spends the whole budget
+(with the solver's defaults, 15 / 4 / 50: about 250 steps, 1-1.5 s on one busy core)."""
 
 _PAIRS = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]  # TetMesh.tet_edges' local pairs
 
@@ -70,9 +76,10 @@ class OneRingReport:
     Per edge at a tested vertex: ``edge_ring (K,)`` the row of its vertex, ``edge (K,)`` its id
     in the mesh, ``edge_verts (K, 2)`` its vertices (the tested one first), ``edge_hexes (K,)``
     its hex count (boundary: quarter turns; ``-1`` complex), ``edge_boundary (K,)`` bool, on the
-    boundary, ``expected (K,)`` radians
+    boundary, ``edge_flat (K,)`` the flat tets about it, ``expected (K,)`` radians
     (``edge_hexes * pi/2``, NaN at a complex edge), ``measured (K,)`` the sum of the signed
-    parametric dihedral angles about it.
+    parametric dihedral angles about it (flat tets add nothing). An edge's angle is judged
+    where it is defined: not at a complex edge, not about a flat tet (the ``flat`` reason).
 
     ``timings``: seconds per step; ``options``: what the test ran with.
     """
@@ -90,10 +97,16 @@ class OneRingReport:
     edge_verts: np.ndarray
     edge_hexes: np.ndarray
     edge_boundary: np.ndarray
+    edge_flat: np.ndarray
     expected: np.ndarray
     measured: np.ndarray
     timings: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
+
+    @property
+    def edge_judged(self) -> np.ndarray:
+        """``(K,)`` bool: edges whose angle is judged (not complex, no flat tet about them)."""
+        return np.isfinite(self.expected) & (self.edge_flat == 0)
 
     @property
     def edge_ok(self) -> np.ndarray:
@@ -102,8 +115,8 @@ class OneRingReport:
 
     @property
     def angle_off(self) -> np.ndarray:
-        """``(N,)`` edges of each vertex whose angle is off (complex edges not counted)."""
-        bad = ~self.edge_ok & np.isfinite(self.expected)
+        """``(N,)`` judged edges of each vertex whose angle is off."""
+        bad = ~self.edge_ok & self.edge_judged
         return np.bincount(self.edge_ring[bad], minlength=self.vertices.size)
 
     def failed_by(self) -> dict:
@@ -142,7 +155,7 @@ class OneRingReport:
         if self.inverted[row]:
             how = "after the foldover-free solve" if self.solved[row] else "in the least-squares map"
             out.append(f"{int(self.inverted[row])} of {int(self.n_tets[row])} tets inverted {how}")
-        sel = np.nonzero((self.edge_ring == row) & ~self.edge_ok & np.isfinite(self.expected))[0]
+        sel = np.nonzero((self.edge_ring == row) & ~self.edge_ok & self.edge_judged)[0]
         for k in sel:
             a, b = self.edge_verts[k]
             out.append(f"edge {a}-{b} ({_edge_kind(self, k)}): parametric angle {self.measured[k]:.3f} rad, "
@@ -276,7 +289,7 @@ def _dihedral_sums(rings: _Rings, uvw: np.ndarray, skip: np.ndarray) -> np.ndarr
 # ----------------------------------------------------------------------------- the test
 def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=None, meshability=None,
                   edge_length: float | None = None, features: bool = True, feature_max_deg: float = 30.0,
-                  solve: bool = True, backend: str = "auto") -> OneRingReport:
+                  solve: bool = True, solver_options: dict | None = None, backend: str = "auto") -> OneRingReport:
     """LMFF's numeric one-ring test at the singular vertices of a field (module docstring).
 
     Args:
@@ -295,7 +308,10 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
             verdict does not depend on it: no integer is rounded).
         features, feature_max_deg: the feature constraints (:func:`~.seamless.build_problem`).
         solve: untangle the rings whose least-squares map folds with
-            :func:`~.injective.minimize_barrier` (``False``: judge the least-squares map).
+            :func:`~.injective.minimize_barrier` (``False``: judge the least-squares map); rings
+            that fail anyway (a flat tet, a complex edge) are not solved.
+        solver_options: :func:`~.injective.minimize_barrier`'s options (default
+            :data:`SOLVER_BUDGET`; also ``w_fit``, ``w_sd``, ``tol``).
         backend: sparse solver (:mod:`.solver`).
 
     Returns:
@@ -341,8 +357,8 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
         return OneRingReport(vertices=empty, position=np.zeros((0, 3)), vertex_class=np.zeros(0, np.int8),
                              inverted=empty, flat=empty, complex=empty, solved=np.zeros(0, bool), n_tets=empty,
                              edge_ring=empty, edge=empty, edge_verts=np.zeros((0, 2), np.int64), edge_hexes=empty,
-                             edge_boundary=np.zeros(0, bool), expected=np.zeros(0), measured=np.zeros(0), timings={"total_s": 0.0},
-                             options={"solve": solve})
+                             edge_boundary=np.zeros(0, bool), edge_flat=empty, expected=np.zeros(0), measured=np.zeros(0), timings={"total_s": 0.0},
+                             options={"solve": solve, "solver": dict(SOLVER_BUDGET if solver_options is None else solver_options)})
 
     # ---- the rings as one mesh: charts, constraints, flat tets (once)
     t0 = time.perf_counter()
@@ -376,19 +392,32 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
     is_flat[flat] = True
     timings["least_squares_s"] = time.perf_counter() - t0
 
-    # ---- the foldover-free solve, ring by ring where the least-squares map folds
+    # ---- the foldover-free solve, ring by ring where the least-squares map folds and the ring
+    # has no other reason to fail (a flat tet or a complex edge: the solve could not change the verdict)
     t0 = time.perf_counter()
     ptr = np.searchsorted(rings.ring_tet, np.arange(N + 1))
     folds = np.bincount(rings.ring_tet, weights=(det <= DET_SAFE) & ~is_flat, minlength=N) > 0
+    Eu = um.edges.numpy()
+    cen = np.zeros(um.n_vertices, bool)
+    cen[um.tets.numpy()[np.arange(um.n_tets), rings.center]] = True
+    ek = np.nonzero(cen[Eu[:, 0]] | cen[Eu[:, 1]])[0]  # the edges through a ring's vertex
+    ring_v = np.zeros(um.n_vertices, np.int64)
+    ring_v[um.tets.numpy().reshape(-1)] = np.repeat(rings.ring_tet, 4)
+    e_ring = ring_v[Eu[ek, 0]]
+    oe = rings.orig_edge[ek]
+    hexes = rep.edge_hexes[oe].astype(np.int64)
+    nflat = np.bincount(rings.ring_tet, weights=is_flat, minlength=N).astype(np.int64)
+    ncx = np.bincount(e_ring, weights=hexes < 0, minlength=N).astype(np.int64)
     solved = np.zeros(N, bool)
+    opts = dict(SOLVER_BUDGET if solver_options is None else solver_options)
     if solve:
-        for r in np.nonzero(folds)[0]:  # one small system per folded ring (its unknowns are its own)
+        for r in np.nonzero(folds & (nflat == 0) & (ncx == 0))[0]:  # one small system per folded ring (its unknowns are its own)
             rows = slice(9 * ptr[r], 9 * ptr[r + 1])
             Gr = GZ[rows]
             cols = np.unique(Gr.indices)
             jr = TetJacobians(GZ=Gr[:, cols].tocsr(), j0=jac.j0[rows], vol=jac.vol[ptr[r]:ptr[r + 1]])
             ign = np.nonzero(is_flat[ptr[r]:ptr[r + 1]])[0]
-            res = minimize_barrier(jr, y[cols], ignore=ign if ign.size else None, backend=backend)
+            res = minimize_barrier(jr, y[cols], ignore=ign if ign.size else None, backend=backend, **opts)
             y[cols] = res.y
             solved[r] = True
         det = np.linalg.det(sub(y))
@@ -399,27 +428,17 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
     y_full[used] = y
     uvw = prob.corner_params(y_full)
     ang = _dihedral_sums(rings, uvw, is_flat)
-    Eu = um.edges.numpy()
-    cen = np.zeros(um.n_vertices, bool)
-    cen[um.tets.numpy()[np.arange(um.n_tets), rings.center]] = True
-    ek = np.nonzero(cen[Eu[:, 0]] | cen[Eu[:, 1]])[0]  # the edges through a ring's vertex
-    ring_v = np.zeros(um.n_vertices, np.int64)
-    ring_v[um.tets.numpy().reshape(-1)] = np.repeat(rings.ring_tet, 4)
-    e_ring = ring_v[Eu[ek, 0]]
     first = cen[Eu[ek, 0]]
     ev = np.stack([np.where(first, Eu[ek, 0], Eu[ek, 1]), np.where(first, Eu[ek, 1], Eu[ek, 0])], 1)
-    oe = rings.orig_edge[ek]
-    hexes = rep.edge_hexes[oe].astype(np.int64)
     expected = np.where(hexes >= 0, hexes * (math.pi / 2), np.nan)
     order = np.lexsort((ev[:, 1], e_ring))
     inverted = np.bincount(rings.ring_tet, weights=(det <= 0) & ~is_flat, minlength=N).astype(np.int64)
-    nflat = np.bincount(rings.ring_tet, weights=is_flat, minlength=N).astype(np.int64)
-    ncx = np.bincount(e_ring, weights=hexes < 0, minlength=N).astype(np.int64)
+    eflat = np.bincount(um.tet_edges.numpy()[flat].reshape(-1), minlength=um.n_edges)
     timings["total_s"] = time.perf_counter() - t_all
     bnd_edge = (rep.boundary_expected >= 0)[oe][order]
     return OneRingReport(
         vertices=vertices, position=X[vertices], vertex_class=rep.vertex_class[vertices].astype(np.int8),
         inverted=inverted, flat=nflat, complex=ncx, solved=solved, n_tets=np.diff(ptr),
         edge_ring=e_ring[order], edge=oe[order], edge_verts=rings.orig_vertex[ev[order]], edge_hexes=hexes[order],
-        edge_boundary=bnd_edge, expected=expected[order], measured=ang[ek][order], timings=timings,
-        options={"solve": solve, "edge_length": h, "features": features})
+        edge_boundary=bnd_edge, edge_flat=eflat[ek][order], expected=expected[order], measured=ang[ek][order], timings=timings,
+        options={"solve": solve, "edge_length": h, "features": features, "solver": opts})
