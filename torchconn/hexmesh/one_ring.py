@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .cut import GROUP_INV, face_matchings, tet_charts
+from .cut import GROUP_INV, tet_charts
 from .meshability import REGULAR, VERTEX_CLASSES, meshability_report
 
 __all__ = ["OneRingReport", "one_ring_test", "ANGLE_TOL", "REASONS", "SOLVER_BUDGET"]
@@ -336,9 +336,8 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
         frames = np.asarray(charts.frames, np.float64)
         fm = GROUP_INV[charts.face_rot]  # the combed frames' matchings g' = R'^T (0 on boundary faces)
     else:
-        frames = torch.as_tensor(tet_frames).detach().to("cpu", torch.float64)
-        fm = face_matchings(mesh, frames) if face_match is None else check_face_match(mesh, face_match)
-        charts = tet_charts(mesh, frames, fm)  # validates the frames
+        fm = None if face_match is None else check_face_match(mesh, face_match)
+        charts = tet_charts(mesh, tet_frames, fm)  # validates the frames; default: the best matchings
         frames = charts.frames
         fm = GROUP_INV[charts.face_rot]
     rep = meshability_report(mesh, frames, charts=charts, features=features) if meshability is None else meshability
