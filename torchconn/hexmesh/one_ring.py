@@ -328,7 +328,6 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
     from .injective import DET_SAFE, TetJacobians, minimize_barrier
     from .seamless import build_problem, default_edge_length
     from .solver import factorize
-    from .structure import check_face_match
 
     t_all = time.perf_counter()
     timings = {}
@@ -336,8 +335,8 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
         frames = np.asarray(charts.frames, np.float64)
         fm = GROUP_INV[charts.face_rot]  # the combed frames' matchings g' = R'^T (0 on boundary faces)
     else:
-        fm = None if face_match is None else check_face_match(mesh, face_match)
-        charts = tet_charts(mesh, tet_frames, fm)  # validates the frames; default: the best matchings
+        # validates the frames and the matchings; default: the best matchings
+        charts = tet_charts(mesh, tet_frames, None if face_match is None else np.asarray(face_match))
         frames = charts.frames
         fm = GROUP_INV[charts.face_rot]
     rep = meshability_report(mesh, frames, charts=charts, features=features) if meshability is None else meshability
