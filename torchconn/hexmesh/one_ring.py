@@ -350,13 +350,14 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
             raise ValueError(f"vertices must be vertex ids in [0, {V}); got {bad[:5].tolist()}")
     N = vertices.size
     X = mesh.vertices.detach().cpu().double().numpy()
+    opts = dict(SOLVER_BUDGET if solver_options is None else solver_options)
     empty = np.zeros(0, np.int64)
     if N == 0:
         return OneRingReport(vertices=empty, position=np.zeros((0, 3)), vertex_class=np.zeros(0, np.int8),
                              inverted=empty, flat=empty, complex=empty, solved=np.zeros(0, bool), n_tets=empty,
                              edge_ring=empty, edge=empty, edge_verts=np.zeros((0, 2), np.int64), edge_hexes=empty,
-                             edge_boundary=np.zeros(0, bool), edge_flat=empty, expected=np.zeros(0), measured=np.zeros(0), timings={"total_s": 0.0},
-                             options={"solve": solve, "solver": dict(SOLVER_BUDGET if solver_options is None else solver_options)})
+                             edge_boundary=np.zeros(0, bool), edge_flat=empty, expected=np.zeros(0),
+                             measured=np.zeros(0), timings={"total_s": 0.0}, options={"solve": solve, "solver": opts})
 
     # ---- the rings as one mesh: charts, constraints, flat tets (once)
     t0 = time.perf_counter()
@@ -407,9 +408,9 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
     nflat = np.bincount(rings.ring_tet, weights=is_flat, minlength=N).astype(np.int64)
     ncx = np.bincount(e_ring, weights=hexes < 0, minlength=N).astype(np.int64)
     solved = np.zeros(N, bool)
-    opts = dict(SOLVER_BUDGET if solver_options is None else solver_options)
     if solve:
-        for r in np.nonzero(folds & (nflat == 0) & (ncx == 0))[0]:  # one small system per folded ring (its unknowns are its own)
+        # one small system per folded ring (its unknowns are its own)
+        for r in np.nonzero(folds & (nflat == 0) & (ncx == 0))[0]:
             rows = slice(9 * ptr[r], 9 * ptr[r + 1])
             Gr = GZ[rows]
             cols = np.unique(Gr.indices)
@@ -438,5 +439,5 @@ def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=No
         vertices=vertices, position=X[vertices], vertex_class=rep.vertex_class[vertices].astype(np.int8),
         inverted=inverted, flat=nflat, complex=ncx, solved=solved, n_tets=np.diff(ptr),
         edge_ring=e_ring[order], edge=oe[order], edge_verts=rings.orig_vertex[ev[order]], edge_hexes=hexes[order],
-        edge_boundary=bnd_edge, edge_flat=eflat[ek][order], expected=expected[order], measured=ang[ek][order], timings=timings,
-        options={"solve": solve, "edge_length": h, "features": features, "solver": opts})
+        edge_boundary=bnd_edge, edge_flat=eflat[ek][order], expected=expected[order], measured=ang[ek][order],
+        timings=timings, options={"solve": solve, "edge_length": h, "features": features, "solver": opts})
