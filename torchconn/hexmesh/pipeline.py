@@ -30,8 +30,8 @@ from .validity import STAGES, Gate, MapValidity
 __all__ = ["HexMeshResult", "hex_mesh", "extraction_gate", "MAP_OPTIONS"]
 
 MAP_OPTIONS = ("edge_length", "face_match", "straighten", "straighten_boundary", "touch_rounds", "repair",
-               "repair_rounds", "split", "collapse", "features", "feature_max_deg", "flat_rounds", "injective", "fit_weight",
-               "sd_weight", "refine_limit", "integrable", "batch_error", "stiffening_iters", "stiffening_factor",
+               "repair_rounds", "split", "collapse", "features", "feature_max_deg", "flat_rounds", "one_ring", "injective",
+               "fit_weight", "sd_weight", "refine_limit", "integrable", "batch_error", "stiffening_iters", "stiffening_factor",
                "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
 #: The extraction's lattice-point limit per tet (``extract_hexes``' default, which

@@ -233,20 +233,24 @@ def _objective_rows(M: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vv.reshape(-1), (rr.reshape(-1), cc.reshape(-1))), shape=(9 * T, 12 * T))
 
 
-def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool = True,
-                  feature_max_deg: float = 30.0, targets=None) -> SeamlessProblem:
+def build_problem(mesh, charts: TetCharts, edge_length: float, *, features=True,
+                  feature_max_deg: float = 30.0, targets=None, plane_faces=None) -> SeamlessProblem:
     """Unknowns, constraints (eliminated) and objective of the seamless map (module docstring).
 
     Args:
         mesh: the ``TetMesh``; ``charts``: its :func:`~.cut.tet_charts`.
         edge_length: ``h > 0``, in the mesh's length unit.
         features: constrain feature edges and CAD corners (a mesh's CAD tags or its dihedral
-            features, as :class:`torchconn.frames.constraints.BoundaryConstraint` finds them).
+            features, as :class:`torchconn.frames.constraints.BoundaryConstraint` finds them);
+            or a pair ``(feature_edges (K, 2), corner_vertices (C,))`` of vertex ids to constrain
+            instead (a piece of a larger mesh keeps the features of the whole: :mod:`.one_ring`).
         feature_max_deg: feature edges whose parametric direction is farther than this from
             every axis are left free (the field does not follow them; forcing them would fold
             the map); their number is in ``counts``.
         targets: ``(T, 3, 3)`` target coframes ``B_t`` (:meth:`SeamlessProblem.with_targets`);
             ``None``: the frames' ``F_t^T / h``.
+        plane_faces: ``(B,)`` bool over the rows of ``mesh.boundary_faces``: the boundary faces
+            held on a parametric plane (default all; a one-ring's link faces are left free).
     """
     if not (isinstance(edge_length, (int, float)) and math.isfinite(edge_length) and edge_length > 0):
         raise ValueError(f"edge_length must be a positive finite number, got {edge_length!r}")
@@ -278,7 +282,10 @@ def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool
     sing = np.nonzero(charts.singular_edge & charts.edge_meshable)[0]
     from ..frames.constraints import BoundaryConstraint  # the one home of feature edges
 
-    if features:
+    if isinstance(features, tuple):
+        fedges = np.asarray(features[0], np.int64).reshape(-1, 2)
+        corners = np.asarray(features[1], np.int64).reshape(-1)
+    elif features:
         bc = BoundaryConstraint.from_mesh(mesh)
         fedges = (bc.feature_edges.cpu().numpy() if bc.feature_edges is not None else np.zeros((0, 2), np.int64))
         corners = (bc.corner_vertices.cpu().numpy() if bc.corner_vertices is not None else np.zeros(0, np.int64))
@@ -334,10 +341,13 @@ def build_problem(mesh, charts: TetCharts, edge_length: float, *, features: bool
     baxis = np.abs(npar).argmax(1)
     slot = np.argmax(tet_faces[bt] == bf_index[:, None], axis=1)  # local slot of the face in its tet
     bvar = off["boundary"] + np.arange(B)
+    held = np.ones(B, bool) if plane_faces is None else np.asarray(plane_faces, bool)
+    if held.shape != (B,):
+        raise ValueError(f"plane_faces must be a ({B},) bool mask over the boundary faces, got shape {held.shape}")
     for m in range(3):
         loc = (slot + 1 + m) % 4  # the three other local corners
         cv = corner_var[bt, loc, baxis]
-        rows.add_many(np.stack([cv, bvar], 1), np.array([1.0, -1.0]), label="boundary plane")
+        rows.add_many(np.stack([cv, bvar], 1)[held], np.array([1.0, -1.0]), label="boundary plane")
 
     # ---- singular edges: transverse coordinates of both endpoints equal two integers
     if sing.size:

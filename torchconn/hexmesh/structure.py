@@ -10,8 +10,10 @@
 3. rounds of "build the seamless problem, find the tets its constraints flatten
    (:meth:`~.seamless.SeamlessProblem.flat_tets`), split an edge of every flat tet that is not
    collapsed" (:func:`~.split.open_flat_tets`);
-4. LMFF's conditions on the result (:func:`~.meshability.meshability_report`) and the structure
-   gate (:func:`~.validity.structure_gate`), with what the repair did and left.
+4. LMFF's conditions on the result (:func:`~.meshability.meshability_report`), beside them
+   LMFF's numeric one-ring test at every singular vertex (:func:`~.one_ring.one_ring_test`,
+   ``one_ring=True``), and the structure gate (:func:`~.validity.structure_gate`), with what
+   the repair did and left.
 
 The map stage then fits the seamless map on ``Structure.problem``.
 """
@@ -43,6 +45,7 @@ class Structure:
         flat, collapsed, line_face: :meth:`~.seamless.SeamlessProblem.flat_tets` of ``problem``.
         meshability: the :class:`~.meshability.Meshability` report; gate: the structure
             :class:`~.validity.Gate`.
+        one_ring: the :class:`~.one_ring.OneRingReport` (``None`` when the test did not run).
         repair: the :class:`~.repair.RepairReport` (``None`` when the repair did not run).
         stats: ``splits``, ``straighten`` (the search's info), ``repair`` (the report's dict);
             timings: seconds per step.
@@ -60,6 +63,7 @@ class Structure:
     meshability: object
     gate: Gate
     repair: object | None = None
+    one_ring: object | None = None
     stats: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
 
@@ -99,7 +103,7 @@ def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np
 def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, straighten: bool = True,
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
                   repair_rounds: int = 30, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = 30.0,
-                  flat_rounds: int = 8, progress: bool = False) -> Structure:
+                  flat_rounds: int = 8, one_ring: bool = True, progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 
     Args:
@@ -113,6 +117,8 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         collapse: in the flat-tet rounds, collapse the tet edges that the constraints send to one
             point (:func:`~.collapse.collapse_edges`; refused where it would invert a tet or move
             a pinned vertex), before splitting the other flat tets.
+        one_ring: run LMFF's numeric one-ring test on the result (:func:`~.one_ring.one_ring_test`;
+            reported in the gate's ``counts`` and ``info``, it does not decide the gate).
         progress: a progress bar over the repair's rounds.
 
     Returns:
@@ -213,7 +219,15 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
     t0 = time.perf_counter()
     report = meshability_report(mesh, charts.frames, charts=charts)
     timings["meshability_s"] = time.perf_counter() - t0
-    gate = structure_gate(mesh, report, flat, collapsed)
+    ring = None
+    if one_ring:
+        from .one_ring import one_ring_test
+
+        t0 = time.perf_counter()
+        ring = one_ring_test(mesh, None, charts=charts, meshability=report, edge_length=h, features=features,
+                             feature_max_deg=feature_max_deg)
+        timings["one_ring_s"] = time.perf_counter() - t0
+    gate = structure_gate(mesh, report, flat, collapsed, one_ring=ring)
     if rep is not None:
         gate.counts["repair_moves"] = int(sum(rep.moves.values()))
         if not gate.passed:
@@ -223,7 +237,7 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         stats["repair"] = rep.as_dict()
     return Structure(mesh=mesh, tet_frames=Fr, parent_tet=parent, face_match=face_match, charts=charts, problem=prob,
                      flat=flat, collapsed=collapsed, line_face=line_face, meshability=report, gate=gate, repair=rep,
-                     stats=stats, timings=timings)
+                     one_ring=ring, stats=stats, timings=timings)
 
 
 def _collapsed_pairs(mesh, charts: TetCharts, prob: SeamlessProblem, tets: np.ndarray, seed: int = 0) -> np.ndarray:

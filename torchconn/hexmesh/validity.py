@@ -109,6 +109,8 @@ class Gate:
         where_xyz: ``{check: [points]}``; reasons: one sentence per failing check.
         before: for ``quantization``, whether its input (the seamless map) was valid (``None``
             elsewhere): a quantization that loses a valid map says so.
+        info: reported beside the checks, not deciding ``passed`` (the structure gate: the
+            one-ring test's counts and failing vertices with their reasons).
     """
 
     stage: str
@@ -118,6 +120,7 @@ class Gate:
     where_xyz: dict = field(default_factory=dict)
     reasons: list = field(default_factory=list)
     before: bool | None = None
+    info: dict = field(default_factory=dict)
 
     @classmethod
     def of_validity(cls, stage: str, v: MapValidity, before: bool | None = None) -> "Gate":
@@ -130,6 +133,8 @@ class Gate:
                "where": {k: list(v) for k, v in self.where.items()}}
         if self.before is not None:
             out["valid_before"] = self.before
+        if self.info:
+            out["info"] = dict(self.info)
         return out
 
 
@@ -144,10 +149,15 @@ def first_failed(gates: dict) -> str | None:
     return None
 
 
-def structure_gate(mesh, meshability, flat: np.ndarray, collapsed: np.ndarray) -> Gate:
+def structure_gate(mesh, meshability, flat: np.ndarray, collapsed: np.ndarray, one_ring=None) -> Gate:
     """The structure gate: LMFF's conditions of ``meshability`` (a
     :class:`~.meshability.Meshability`) and the flat tets ``flat (k,)`` of the seamless problem,
-    ``collapsed (k,)`` bool those with a collapsed edge (:data:`STRUCTURE_CHECKS`)."""
+    ``collapsed (k,)`` bool those with a collapsed edge (:data:`STRUCTURE_CHECKS`).
+
+    ``one_ring``: a :class:`~.one_ring.OneRingReport`, reported beside the conditions (counts
+    ``one_ring_tested`` / ``one_ring_failed``, the failing vertices in ``where`` and
+    ``where_xyz``, its :meth:`~.one_ring.OneRingReport.as_dict` in ``info["one_ring"]``); it
+    does not decide ``passed``."""
     X = mesh.vertices.detach().cpu().double().numpy()
     edges = mesh.edges.cpu().numpy()
     tets = mesh.tets.cpu().numpy()
@@ -177,7 +187,17 @@ def structure_gate(mesh, meshability, flat: np.ndarray, collapsed: np.ndarray) -
         if n:
             eg = f" (e.g. {where[name][0]} at {tuple(xyz[name][0])})" if name in where else ""
             reasons.append(f"{n} {_WHAT[name]}{eg}")
-    return Gate(stage="structure", passed=not reasons, counts=counts, where=where, where_xyz=xyz, reasons=reasons)
+    info = {}
+    if one_ring is not None:
+        ok = one_ring.passed
+        counts["one_ring_tested"] = int(ok.size)
+        counts["one_ring_failed"] = int((~ok).sum())
+        if (~ok).any():
+            where["one_ring_failed"] = one_ring.vertices[~ok][:_WHERE].tolist()
+            xyz["one_ring_failed"] = one_ring.position[~ok][:_WHERE].round(6).tolist()
+        info["one_ring"] = one_ring.as_dict(limit=_WHERE)
+    return Gate(stage="structure", passed=not reasons, counts=counts, where=where, where_xyz=xyz, reasons=reasons,
+                info=info)
 
 
 def check_map(mesh, igm) -> MapValidity:
