@@ -90,6 +90,9 @@ class HexStage:
     split: bool = option(True)
     #: collapse tet edges that the constraints send to one point (hexmesh.collapse)
     collapse: bool = option(True)
+    #: LMFF's numeric one-ring test at every singular vertex (hexmesh.one_ring), reported in
+    #: hex_metrics.json beside LMFF's conditions (it does not decide the structure gate)
+    one_ring: bool = option(True)
     #: CAD curves / sharp edges on integer lines, CAD corners on integer points
     features: bool = option(True)
     #: feature edges farther than this from every parameter axis stay free
