@@ -57,12 +57,6 @@ VARIANTS: dict[str, dict] = {
     "no_flat": {"weights": {"flat": 0.0}},
     "no_torsion": {"weights": {"torsion": 0.0}},
     "no_dnabla": {"weights": {"dnabla": 0.0}},
-    # the singular-structure repair (torchconn.frames.matching_search; default: one round, the repair
-    # paths with the Dirichlet weights 8, 2, 0.5): off (the default until 2026-11-25 evening), the
-    # repair paths with every Dirichlet weight, two rounds
-    "no_repair": {"quality": {"repair_rounds": 0}},
-    "repair_full_weights": {"quality": {"repair_dirichlet_weights": None}},
-    "repair_2": {"quality": {"repair_rounds": 2}},
     # complex-type singular faces charged more (their edges weigh 1 + c in the paths)
     "complex_4": {"quality": {"complex_weight": 4.0}},
     # no feature-normal term in the paths

@@ -148,7 +148,7 @@ def test_connection_candidates_from_an_optimized_field(cyl):
     m, F0 = cyl
     ref = frame_metrics(F0, m)
     R0 = matched_connection(F0, m.edges)
-    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15, "repair_rounds": 0}
+    kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15}
     cands, info = connection_candidates(m, {"sh": (F0, R0)}, ref, **kw)
     # the optimized field first (with its connection), then one checkpoint per (path, weight) from it
     assert [(c.kind, c.start, c.dirichlet_weight) for c in cands] == [
@@ -157,7 +157,7 @@ def test_connection_candidates_from_an_optimized_field(cyl):
     assert [c.label for c in cands[:2]] == ["sh/optimized", "sh/soft@4"]
     assert torch.equal(cands[0].frames, F0) and torch.equal(cands[0].edge_rot, R0)
     assert all(c.edge_rot is None for c in cands[1:])
-    assert info["repairs"] == [] and info["seconds"] > 0
+    assert info["stages"] == ["optimized:sh", "paths"] and info["seconds"] > 0
     for c in cands:
         so3.check_rotation(c.frames)
         assert c.metrics["alignment_max_deg"] < 1e-6  # rotation about the normal only
@@ -194,7 +194,7 @@ def test_connection_candidates_paths_start_at_each_optimized_field(cyl):
     gen = torch.Generator().manual_seed(2)
     noisy = so3.exp(0.3 * torch.randn(F0.shape[0], 3, generator=gen, dtype=torch.float64)) @ F0
     ref = frame_metrics(F0, m)
-    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10, "repair_rounds": 0}
+    kw = {"paths": ("soft",), "dirichlet_weights": (2.0,), "rounds": 1, "iters": 10}
     both, _ = connection_candidates(m, {"sh": (F0, None), "mbo": (noisy, None)}, ref, **kw)
     # the optimized fields first, in the order given, then the paths of each start
     assert [(c.kind, c.start) for c in both] == [("optimized", "sh"), ("optimized", "mbo"), ("soft", "sh"),

@@ -1,17 +1,14 @@
 """Singular-structure search (torchconn.frames.matching_search) and the fixed-matching relaxation
-(torchconn.frames.quality_paths.relax_to_matchings): against a slow per-edge reference, its invariants, and
-its use as the repair candidate of connection_candidates (issue 13)."""
+(torchconn.frames.quality_paths.relax_to_matchings): against a slow per-edge reference, and its invariants."""
 from __future__ import annotations
 
 import math
 
 import pytest
 import torch
-from conftest import DATA_DIR
 
 from torchconn import io, so3
 from torchconn.frames import frame_metrics, octahedral, sh
-from torchconn.frames.candidates import choose_by_proxies, connection_candidates
 from torchconn.frames.quality_paths import relax_to_matchings
 from torchconn.frames.singular import classify_holonomy, face_holonomy_from_matchings
 from torchconn.frames.matching_search import (FACE_COSTS, complex_face_count, edge_face_incidence, repair_matchings,
@@ -184,58 +181,6 @@ def test_repair_structure(small):
                     ({"passes": -1}, "passes")]:
         with pytest.raises(ValueError, match=msg):
             repair_structure(noisy, m, a_ref=a_ref, d_ref=d_ref, **kw)
-
-
-def test_connection_candidates_repair(cyl):
-    m, F0, noisy = cyl
-    ref = frame_metrics(noisy, m)
-    opt = {"sh": (noisy, None)}
-    kw = {"paths": ("soft",), "dirichlet_weights": (8.0,), "rounds": 1, "iters": 5, "repair_relax_iters": 30}
-    cands, info = connection_candidates(m, opt, ref, **kw)
-    rep = info["repairs"]
-    assert len(rep) == 1 and rep[0]["complex_after"] < rep[0]["complex_before"] and rep[0]["paths_run"]
-    assert rep[0]["from"] in ("sh/optimized", "sh/soft@8")
-    # after the optimized field and its checkpoint: the repaired field and the path checkpoints from it
-    # (the repair paths' own weights, default 8, 2, 0.5), with the start of the field it repaired
-    assert [(c.kind, c.start, c.dirichlet_weight) for c in cands[2:]] == [
-        ("repaired", "sh", None), ("soft", "sh", 8.0), ("soft", "sh", 2.0), ("soft", "sh", 0.5)]
-    assert rep[0]["complex_after"] == cands[2].metrics["n_singular_faces_complex"]
-    # the repair lowers the complex faces of the best candidate here
-    best = cands[choose_by_proxies(m, cands)[0]]
-    assert best.metrics["n_singular_faces_complex"] < min(c.metrics["n_singular_faces_complex"] for c in cands[:2])
-    # two rounds, the repair paths with the paths' weights: the second round repairs the new best field
-    # when it has complex faces
-    two, itwo = connection_candidates(m, opt, ref, repair_rounds=2, repair_dirichlet_weights=None, **kw)
-    assert [(c.kind, c.dirichlet_weight) for c in two[2:4]] == [("repaired", None), ("soft", 8.0)]
-    assert itwo["repairs"][0]["complex_after"] == rep[0]["complex_after"]
-    assert len(itwo["repairs"]) == (2 if itwo["repairs"][0]["complex_after"] else 1)
-    # off: no repair entry, no candidate from it; no complex face: no repair
-    off, ioff = connection_candidates(m, opt, ref, repair_rounds=0, **kw)
-    assert ioff["repairs"] == [] and [c.kind for c in off] == ["optimized", "soft"]
-    clean, iclean = connection_candidates(m, {"sh": (F0, None)}, frame_metrics(F0, m), **kw)
-    assert iclean["repairs"] == [] and len(clean) == 2
-
-
-def test_repair_removes_complex_faces_on_a_hexme_model():
-    """HexMe s06c (dodecahedron): the SH field's 10 complex faces survive every quality path from the
-    SH and MBO fields (2026-11-25: docs/results/hexme.md at commit f4941d1); the repaired candidates have almost none, and one of them
-    is the proxies' choice."""
-    if not (DATA_DIR / "hexme" / "meta" / "s06c_dodecahedron.yaml").is_file():
-        pytest.skip(f"HexMe parameter files not found in {DATA_DIR / 'hexme'} (the shared data is missing)")
-    pytest.importorskip("gmsh", reason="the HexMe meshes are made by gmsh (torchconn[cad])")
-    pytest.importorskip("yaml", reason="HexMe parameter files are YAML")
-    from benchmarks.frames_hexme import load_case
-
-    m = load_case("hexme", "s06c_dodecahedron")
-    F_sh = sh.sh_frame_field(m)
-    ref = frame_metrics(F_sh, m)
-    cands, info = connection_candidates(m, {"sh": (F_sh, None)}, ref)
-    n_before = 1 + 2 * 6  # the field itself and one checkpoint per (path, weight)
-    best_i = choose_by_proxies(m, cands)[0]
-    best = cands[best_i].metrics
-    assert ref["n_singular_faces_complex"] >= 8
-    assert info["repairs"][0]["complex_before"] == 10
-    assert cands[n_before].kind == "repaired" and best_i >= n_before and best["n_singular_faces_complex"] <= 2
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -62,7 +62,7 @@ def test_the_chooser_makes_the_stages_only_until_a_good_hex_mesh():
     stack = _stack(mesh, ("noisy", "good"), calls)
     idx, info = hex_chooser(edge_length=0.25)(mesh, stack)
     # the first start's field does not mesh well: the next stage is made, its field meshed, and the
-    # quality paths and the repair (stages 3 and 4) are never made
+    # quality paths (stage 3) are never made
     assert calls == ["noisy", "good"] and stack.info["stages"] == ["optimized:noisy", "optimized:good"]
     assert stack[idx].start == "good" and [r["good"] for r in info["meshed"]] == [False, True]
     assert not stack.done and stack.next_stage() is not None  # what is left can still be made
@@ -71,10 +71,9 @@ def test_the_chooser_makes_the_stages_only_until_a_good_hex_mesh():
 def test_the_chooser_without_first_good_makes_and_meshes_everything():
     mesh = box(1)
     calls = []
-    stack = _stack(mesh, ("good", "noisy"), calls, paths=(), repair_rounds=0)
+    stack = _stack(mesh, ("good", "noisy"), calls, paths=())
     idx, info = hex_chooser(edge_length=0.25, first_good=False)(mesh, stack)
     assert calls == ["good", "noisy"] and stack.done and stack.next_stage() is None
     assert stack[idx].start == "good" and info["stopped"] == "every candidate meshed" and len(info["meshed"]) == 2
-    capped = hex_chooser(1, edge_length=0.25, first_good=False)(mesh, _stack(mesh, ("noisy", "good"), [], paths=(),
-                                                                               repair_rounds=0))[1]
+    capped = hex_chooser(1, edge_length=0.25, first_good=False)(mesh, _stack(mesh, ("noisy", "good"), [], paths=()))[1]
     assert capped["stopped"] == "max_candidates=1 meshed" and len(capped["meshed"]) == 1

@@ -81,21 +81,14 @@ def test_steps_fraction_is_not_rounded():
     ("feature_angle_deg", 200.0, "<= 180"),
     ("smooth_power", 3.0, "<= 2"),
     ("seed", -1, ">= 0"),
-    ("quality.repair_rounds", -1, ">= 0"),
-    ("quality.repair_relax_iters", 0, ">= 1"),
+    ("quality.rounds", 0, ">= 1"),
+    ("quality.score_complex", -1.0, ">= 0"),
 ])
 def test_out_of_range_values_name_the_key(key, value, allowed):
     section, _, leaf = key.rpartition(".")
     user = {section: {leaf: value}} if section else {key: value}
     with pytest.raises(ConfigError, match=rf"'{key}' = {value!r}.*out of range.*{allowed}"):
         _validate({**user, "output_dir": "x"})
-
-
-def test_repair_weights_may_be_null_or_a_list():
-    _validate({"quality": {"repair_dirichlet_weights": None}, "output_dir": "x"})
-    _validate({"quality": {"repair_dirichlet_weights": [8.0, 1]}, "output_dir": "x"})
-    with pytest.raises(ConfigError, match="quality.repair_dirichlet_weights"):
-        _validate({"quality": {"repair_dirichlet_weights": [8.0, -1.0]}, "output_dir": "x"})
 
 
 @pytest.mark.parametrize("value", [0, -1, float("nan"), float("inf")])
@@ -227,7 +220,7 @@ def test_the_jobs_checks_keep_their_ranges():
     assert tf["smooth_power"].describe() == "a finite number >= 0.5 and <= 2"
     assert tf["seed"].describe() == "an integer >= 0 and <= 4.29497e+09"
     assert tf["starts"].describe() == "a non-empty list, each element one of ['sh', 'mbo']"
-    assert tf["quality.repair_dirichlet_weights"].describe() == "a non-empty list, each element a finite number >= 0 or null"
+    assert tf["quality.dirichlet_weights"].describe() == "a non-empty list, each element a finite number >= 0"
     assert tf["method"].choices == ("connection", "sh_baseline") and "mbo" in hx["method"].choices
     assert hx["hex.feature_max_deg"].describe() == "a finite number >= 0 and <= 90"
     assert hx["hex.backend"].describe() == "one of ['auto', 'cholmod', 'superlu']"

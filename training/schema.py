@@ -49,7 +49,7 @@ class TrainFramesConfig(FrameOptions):
     #: integer-grid map and a good hex mesh first, then fewer broken tets, hex quality; the proxies
     #: break ties), meshing with the hex stage's defaults at most select_candidates of them in the
     #: order of their promise (each start's optimized field, the best checkpoint per start and path
-    #: kind, the best repaired field), made stage by stage and stopping at the first good hex mesh;
+    #: kind), made stage by stage and stopping at the first good hex mesh;
     #: proxies: the lowest proxy score of every candidate (the quality stage's).
     select: str = option("hex", choices=("hex", "proxies"))
     select_candidates: int = option(8, lo=1)

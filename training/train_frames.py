@@ -15,9 +15,9 @@ Method (``method=connection``; the pieces live in :mod:`torchconn.frames`):
    + feature`` with the config's weights, on the mesh's
    :class:`~torchconn.frames.constraints.BoundaryConstraint`; Adam or L-BFGS with a cosine
    schedule (:func:`~torchconn.frames.solver.optimize`).
-4. Candidates (:func:`~torchconn.frames.candidates.connection_candidates`): the optimized fields, the
-   L-BFGS quality paths from them and the singular-structure repair; the returned one is chosen by
-   the proxies (``select=proxies``) or by the hex meshes they make (``select=hex``).
+4. Candidates (:class:`~torchconn.frames.candidates.CandidateStack`): the optimized fields and the
+   L-BFGS quality paths from them; the returned one is chosen by the proxies (``select=proxies``)
+   or by the hex meshes they make (``select=hex``, stage by stage until the first good hex mesh).
 5. Metrics (:mod:`~torchconn.frames.metrics`) and invariants: Bianchi residuals of the connection
    (:func:`torchconn.dec.bianchi.check`), tets with exactly one singular face.
 

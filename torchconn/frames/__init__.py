@@ -6,9 +6,9 @@ Modules, in the order of the method: :mod:`.octahedral` (the group O, matching, 
 of Ray et al. 2016) and :mod:`.mbo` (Palmer, Bommes & Solomon 2020); :mod:`.propagate` (spanning
 tree, combing, parallel propagation), :mod:`.model` (matched connection, trainable model),
 :mod:`.loss` and :mod:`.terms`, :mod:`.solver` (schedule, optimizer, loop); then
-:mod:`.quality_paths` (the L-BFGS quality paths), :mod:`.matching_search` (the singular-structure
-search over edge matchings), :mod:`.candidates` (the candidates of the connection method and
-their proxy choice); :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.field_files`
+:mod:`.quality_paths` (the L-BFGS quality paths), :mod:`.candidates` (the candidates of the
+connection method, made stage by stage, and their proxy choice); :mod:`.matching_search` (a
+singular-structure search over edge matchings: a tool beside the method, which no longer runs it); :mod:`.metrics`, :mod:`.singular` (the singular graph), :mod:`.field_files`
 (VTU files: :func:`write_frames_vtu`, :func:`read_frames_vtu` -> :class:`FramesVTU`, singular faces
 and curves; ``.fra``, mouette's ``.frame``); :mod:`.design` (the whole method in one call:
 :func:`design` -> :class:`FrameFieldResult`). Beside the method: :mod:`.kernels` (the frame-field

@@ -5,9 +5,7 @@ demand (:func:`connection_candidates`: all of them), every one descended from a 
 optimization: each optimized field itself; the checkpoints of the
 quality paths of :mod:`torchconn.frames.quality_paths` started at it (L-BFGS on the frames, the mean
 angle and the matched Dirichlet energy ``mean_e ||F_i g_ij - F_j||^2`` of Ray et al. 2016 /
-Palmer et al. 2020 traded along an annealed weight, with the feature curves soft or held); and,
-where the best candidate by the proxies has complex-type singular faces, the singular-structure
-repair of :mod:`torchconn.frames.matching_search` (a field with fewer of them) and the paths from it.
+Palmer et al. 2020 traded along an annealed weight, with the feature curves soft or held).
 
 Each :class:`Candidate` carries its :func:`~torchconn.frames.metrics.frame_metrics` and its
 proxy score (:func:`quality_score` against a reference field's metrics, the SH field: log ratios
@@ -27,7 +25,6 @@ import torch
 
 from .metrics import frame_metrics
 from .quality_paths import DIRICHLET_WEIGHTS, PATH_KINDS, quality_path
-from .matching_search import repair_structure
 
 __all__ = ["Candidate", "CandidateStack", "connection_candidates", "choose_by_proxies", "quality_score"]
 
@@ -55,15 +52,13 @@ class Candidate:
         frames: ``(V, 3, 3)``.
         kind: ``"optimized"`` (the connection optimization's own field), a path kind of
             :data:`~torchconn.frames.quality_paths.PATH_KINDS` (a checkpoint of a quality path from an
-            optimized field) or ``"repaired"`` (the singular-structure repair of a candidate).
+            optimized field).
         start: the start field the connection optimization began from (``"sh"``, ``"mbo"``,
             ``"init"``): every candidate descends from that optimization.
         dirichlet_weight: the path checkpoint's ``lambda`` (``None`` otherwise).
         metrics: :func:`frame_metrics` of ``frames`` (without the curl).
         score: :func:`quality_score` against the reference (the SH field): lower is better.
         edge_rot: ``(E, 3, 3)`` the optimized connection for ``kind == "optimized"``, else ``None``.
-        repaired: descends from the singular-structure repair (the repaired field, or a checkpoint
-            of a path from it: labelled ``start/repaired/kind@lambda``).
     """
 
     frames: torch.Tensor
@@ -73,13 +68,11 @@ class Candidate:
     metrics: dict
     score: float
     edge_rot: torch.Tensor | None = None
-    repaired: bool = False
 
     @property
     def label(self) -> str:
         lam = "" if self.dirichlet_weight is None else f"@{self.dirichlet_weight:g}"
-        via = "repaired/" if self.repaired and self.kind != "repaired" else ""
-        return f"{self.start}/{via}{self.kind}{lam}"
+        return f"{self.start}/{self.kind}{lam}"
 
     def summary(self) -> dict:
         """JSON-ready: label, kind, start, lambda, score and the proxies."""
@@ -101,12 +94,10 @@ class CandidateStack:
     1. ``"optimized:<start label>"``, one per start: the optimized field itself;
     2. ``"paths"``: the checkpoints of the quality paths
        (:func:`~torchconn.frames.quality_paths.quality_path`, ``paths`` x ``dirichlet_weights``)
-       started at each optimized field (all the optimized stages come first);
-    3. ``"repair"``: where the best candidate so far by the proxies (:func:`choose_by_proxies` on
-       :func:`quality_score` against ``reference``, the SH field's :func:`frame_metrics`) has
-       complex-type singular faces, the singular-structure repair of that candidate
-       (:func:`~torchconn.frames.matching_search.repair_structure`) and the paths from it
-       (``repair_rounds`` rounds).
+       started at each optimized field (all the optimized stages come first).
+
+    Each candidate is scored by :func:`quality_score` against ``reference`` (the SH field's
+    :func:`frame_metrics`).
 
     A chooser that judges candidates by an expensive end metric (the hex chooser) takes the
     stages one at a time (:meth:`next_stage`) and stops when it has what it needs: the later
@@ -115,15 +106,13 @@ class CandidateStack:
 
     Attributes:
         candidates: the :class:`Candidate` s made so far, in the order they were made.
-        info: ``{"stages": [names made], "repairs": [...], "seconds": ...}``.
+        info: ``{"stages": [names made], "seconds": ...}``.
     """
 
     def __init__(self, mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = PATH_KINDS,
                  dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
                  feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
-                 score_dirichlet: float = 1.0, score_complex: float = 0.1, feature_curve_bound: float = 2.0,
-                 repair_rounds: int = 1, repair_residual_weight: float = 0.5, repair_relax_iters: int = 40,
-                 repair_dirichlet_weights: Sequence[float] | None = (8.0, 2.0, 0.5), eps: float = 1e-3,
+                 score_dirichlet: float = 1.0, score_complex: float = 0.1, eps: float = 1e-3,
                  angle_deg: float = 30.0, align_eps: float = 1e-3):
         bad_paths = [k for k in paths if k not in PATH_KINDS]
         if bad_paths:
@@ -132,22 +121,16 @@ class CandidateStack:
             raise ValueError("connection_candidates: no optimized field")
         self.mesh, self.reference = mesh, reference
         self._optimized = dict(optimized)  # label -> (F, R) or a callable returning it
-        self.stages = tuple(f"optimized:{label}" for label in self._optimized) + ("paths", "repair")
+        self.stages = tuple(f"optimized:{label}" for label in self._optimized) + ("paths",)
         self.paths, self.dirichlet_weights = tuple(paths), tuple(dirichlet_weights)
-        self.repair_dirichlet_weights = (self.dirichlet_weights if repair_dirichlet_weights is None
-                                         else tuple(repair_dirichlet_weights))
         self.path_options = dict(rounds=rounds, iters=iters, feature_weight=feature_weight,
                                  tangent_weight=tangent_weight, complex_weight=complex_weight, eps=eps,
                                  align_eps=align_eps, angle_deg=angle_deg,
                                  a_ref=math.radians(reference["smoothness_mean_deg"]),
                                  d_ref=reference["dirichlet_energy_mean"])
         self.score_weights = (score_dirichlet, score_complex)
-        self.feature_curve_bound = feature_curve_bound
-        self.repair_options = dict(residual_weight=repair_residual_weight, relax_iters=repair_relax_iters,
-                                   feature_weight=feature_weight, eps=eps, align_eps=align_eps, angle_deg=angle_deg)
-        self.repair_rounds = int(repair_rounds)
         self.candidates: list[Candidate] = []
-        self.info: dict = {"stages": [], "repairs": [], "seconds": 0.0}
+        self.info: dict = {"stages": [], "seconds": 0.0}
 
     # a read-only sequence of the candidates made so far
     def __len__(self) -> int:
@@ -191,10 +174,10 @@ class CandidateStack:
         self.candidates.append(c)
         return c
 
-    def _run_paths(self, F, start, weights, repaired: bool = False) -> None:
+    def _run_paths(self, F, start, weights) -> None:
         for kind in dict.fromkeys(self.paths):
             for cp in quality_path(self.mesh, F, kind=kind, dirichlet_weights=weights, **self.path_options):
-                self._consider(cp.frames, kind, start, cp.dirichlet_weight).repaired = repaired
+                self._consider(cp.frames, kind, start, cp.dirichlet_weight)
 
     def _stage_optimized(self, start: str) -> None:
         field = self._optimized[start]
@@ -206,27 +189,6 @@ class CandidateStack:
         for start, (F, _) in self._optimized.items():
             self._run_paths(F.detach(), start, self.dirichlet_weights)
 
-    def _stage_repair(self) -> None:
-        last = None
-        for r in range(self.repair_rounds):
-            cur = self.candidates[choose_by_proxies(self.mesh, self.candidates, self.feature_curve_bound)[0]]
-            if cur.metrics["n_singular_faces_complex"] == 0 or cur.frames is last:
-                break
-            last = cur.frames
-            t0 = time.perf_counter()
-            Fs, sinfo = repair_structure(cur.frames, self.mesh, a_ref=self.path_options["a_ref"],
-                                         d_ref=self.path_options["d_ref"],
-                                         dirichlet_weight=max(self.dirichlet_weights, default=8.0),
-                                         **self.repair_options)
-            entry = {"round": r, "from": cur.label, "complex_before": sinfo["complex_before"],
-                     "complex_after": sinfo["complex_after"], "passes": sinfo["passes"], "paths_run": False}
-            self.info["repairs"].append(entry)
-            if sinfo["complex_after"] < sinfo["complex_before"]:
-                self._consider(Fs, "repaired", cur.start, None).repaired = True
-                entry["paths_run"] = bool(self.paths)
-                self._run_paths(Fs, cur.start, self.repair_dirichlet_weights, repaired=True)
-            entry["seconds"] = time.perf_counter() - t0
-
 
 def connection_candidates(mesh, optimized: dict, reference: dict, **options) -> tuple[list[Candidate], dict]:
     """Every candidate of the connection method: :class:`CandidateStack` ``(mesh, optimized,
@@ -234,7 +196,7 @@ def connection_candidates(mesh, optimized: dict, reference: dict, **options) -> 
 
     Returns:
         ``(candidates, info)``: :class:`Candidate` list (optimized fields first, in the order of
-        ``optimized``) and ``{"stages": [...], "repairs": [...], "seconds": ...}``.
+        ``optimized``) and ``{"stages": [...], "seconds": ...}``.
     """
     stack = CandidateStack(mesh, optimized, reference, **options)
     return stack.complete(), stack.info

@@ -12,9 +12,8 @@ design() -> writers``); nothing is written to disk. Methods:
   exterior derivative, alignment; plus any ``extra_terms``, e.g. the seamless map's fitting
   energy of :mod:`torchconn.hexmesh.energy`) by :func:`~torchconn.frames.solver.optimize`;
   then the candidates (:class:`~torchconn.frames.candidates.CandidateStack`, made stage by stage
-  as the choice asks for them): the optimized fields, the checkpoints of the L-BFGS quality paths
-  from them (:mod:`~torchconn.frames.quality_paths`) and the singular-structure repair
-  (:mod:`~torchconn.frames.matching_search`) of the best of them.
+  as the choice asks for them): the optimized fields and the checkpoints of the L-BFGS quality
+  paths from them (:mod:`~torchconn.frames.quality_paths`).
   Every candidate descends from a connection optimization; the SH field is the yardstick of the
   proxies and is reported beside the result (``metrics["init"]``), never returned. The returned
   field is the candidate ``choose`` picks (default: the proxies' score; the jobs choose by the
@@ -458,18 +457,14 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
         # the hex chooser: the next one only when the fields so far did not mesh well)
         optimized = {label: (lambda n=n, label=label: run_start(n, label)) for n, label in enumerate(labels)}
 
-        # 4. the candidates: the optimized fields, the quality paths from them, the structure repair
+        # 4. the candidates: the optimized fields and the quality paths from them
         q = opts["quality"]
         stack = CandidateStack(
             mesh, optimized, init_metrics, paths=tuple(q["paths"]) if q["enabled"] else (),
             dirichlet_weights=tuple(float(x) for x in q["dirichlet_weights"]), rounds=int(q["rounds"]),
             iters=int(q["iters"]), feature_weight=float(q["feature_weight"]), tangent_weight=float(q["tangent_weight"]),
             complex_weight=float(q["complex_weight"]), score_dirichlet=float(q["score_dirichlet"]),
-            score_complex=float(q["score_complex"]), feature_curve_bound=float(q["feature_curve_bound"]),
-            repair_rounds=int(q["repair_rounds"]) if q["enabled"] else 0,
-            repair_residual_weight=float(q["repair_residual_weight"]), repair_relax_iters=int(q["repair_relax_iters"]),
-            repair_dirichlet_weights=(None if q["repair_dirichlet_weights"] is None
-                                      else tuple(float(x) for x in q["repair_dirichlet_weights"])),
+            score_complex=float(q["score_complex"]),
             angle_deg=angle, align_eps=float(opts["align_eps"]))
         # 5. the choice (default: the proxies, of every candidate; a hex chooser: the hex meshes
         # they make, taking the stages one at a time and stopping at its first good hex mesh)

@@ -23,9 +23,10 @@ of O at once), and after each move only the edges of the faces around the moved 
 rescored (the only ones whose moves changed); the loop runs over moves, not mesh elements.
 
 The frames then follow the prescribed matchings by :func:`~torchconn.frames.quality_paths.relax_to_matchings`
-(L-BFGS with the matchings held), and :func:`~torchconn.frames.candidates.connection_candidates` makes the
-result a candidate (kind ``"repaired"``) and runs the quality paths from it, scored like every
-other candidate.
+(L-BFGS with the matchings held). Until 2026-11-27 the connection method made the result a
+candidate and ran the quality paths from it; on the HexMe ``c`` models those candidates never gave a
+good hex mesh where the others did not, so the method no longer does (the hex stage repairs the
+structure, :mod:`torchconn.hexmesh.repair`): this module is a tool beside it.
 
 Measurements (2026-11-25, of a default since superseded): ``docs/results/hexme.md`` at commit f4941d1
 (git history).

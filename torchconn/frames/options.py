@@ -98,16 +98,9 @@ class Quality:
     ratio + ``score_dirichlet`` x log Dirichlet ratio + ``score_complex`` x log complex-face ratio,
     those within ``feature_curve_bound`` first) or, in the jobs with ``select=hex``, by the hex meshes
     they make (:mod:`torchconn.hexmesh.choose`). ``enabled=False``: only the optimized fields are
-    candidates.
-
-    Singular-structure repair (:mod:`torchconn.frames.matching_search`), after the paths: where the
-    best candidate has complex-type singular faces, a greedy search over its edge matchings removes
-    them (a complex face costs 6, a quarter or half turn 1; ``repair_residual_weight`` prices a move
-    by the residual it adds), the frames are relaxed onto the new matchings (L-BFGS,
-    ``repair_relax_iters``; the re-matched edges weigh 1 and 10, the better is kept; two passes; 40
-    and 100 iterations give the same c-set figures), and when that field has fewer complex faces the
-    paths run again from it with ``repair_dirichlet_weights`` (``None``: ``dirichlet_weights``).
-    ``repair_rounds``: 0 is off, 2 repairs the new best once more.
+    candidates. (The singular-structure search of :mod:`torchconn.frames.matching_search` was a
+    third stage until 2026-11-27: its candidates never gave a good hex mesh where the others did
+    not, on any HexMe ``c`` model measured, so the method no longer runs it.)
     """
 
     enabled: bool = option(True)
@@ -127,10 +120,6 @@ class Quality:
     score_complex: float = option(0.1, lo=0)
     #: degrees (the HexMe issue's per-model bound)
     feature_curve_bound: float = option(2.0, lo=0)
-    repair_rounds: int = option(1, lo=0)
-    repair_residual_weight: float = option(0.5, lo=0)
-    repair_relax_iters: int = option(40, lo=1)
-    repair_dirichlet_weights: list[float] | None = option([8.0, 2.0, 0.5], lo=0)
 
 
 @dataclass

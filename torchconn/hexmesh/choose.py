@@ -8,7 +8,7 @@ then a valid map, then fewer inverted and flat tets in the map, fewer cubes drop
 minimum scaled Jacobian, fewer irregular interior edges; the proxies' score
 (:func:`~torchconn.frames.candidates.quality_score`) breaks ties. Only the most promising candidates are
 meshed (the cost is one hex stage each): each start's optimized field, then the best checkpoint
-by the proxies of each (start, path kind), then the best repaired field, up to ``max_candidates``.
+by the proxies of each (start, path kind), up to ``max_candidates``.
 
 :func:`design_for_hex` is :func:`torchconn.frames.design` with this chooser and the seamless map's
 fitting energy (:class:`~.energy.MapEnergy`) as the loss term ``map``: the connection method as the
@@ -59,22 +59,19 @@ def hex_key(result, score: float) -> tuple:
 
 
 def preselect(candidates, max_candidates: int) -> list[int]:
-    """Indices of the candidates to mesh: optimized fields, the best checkpoint per (start, kind)
-    by the proxies, the best repaired field; at most ``max_candidates``, in that order."""
+    """Indices of the candidates to mesh: optimized fields, then the best checkpoint per (start, kind)
+    by the proxies; at most ``max_candidates``, in that order."""
     order = []
     for i, c in enumerate(candidates):
         if c.kind == "optimized":
             order.append(i)
     best = {}
     for i, c in enumerate(candidates):
-        if c.kind not in ("optimized", "repaired"):
+        if c.kind != "optimized":
             key = (c.start, c.kind)
             if key not in best or c.score < candidates[best[key]].score:
                 best[key] = i
     order += sorted(best.values(), key=lambda i: candidates[i].score)
-    rep = [i for i, c in enumerate(candidates) if c.kind == "repaired"]
-    if rep:
-        order.append(min(rep, key=lambda i: candidates[i].score))
     seen, out = set(), []
     for i in order:
         if i not in seen:
