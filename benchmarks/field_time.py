@@ -14,8 +14,8 @@ Per mesh (``benchmarks.frames_hexme.load_case``), in one process:
   select="proxies", weights={"map": 1})`` (both starts, the quality paths, the repair): the
   field's cost when no candidate meshes well (the chooser then also meshes up to 8 of them).
 
-Prints one row per (mesh, field) with the wall seconds, ``design()``'s stage timings and the ratio
-to ``sh``; writes them to ``--out`` (JSON) when given.
+Prints one row per (mesh, field) with the wall seconds (``wall_s``, around the call), the ratio to
+``sh``'s and ``design()``'s own timings (``design_*``); writes them to ``--out`` (JSON) when given.
 """
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ def main(argv=None) -> list[dict]:
             row = {"model": name, "tets": int(mesh.n_tets), "field": field, "wall_s": round(wall, 2),
                    "ratio_to_sh": None if base is None else round(wall / base, 2),
                    "threads": args.threads,
-                   **{k: (round(v, 2) if isinstance(v, float) else v) for k, v in res.timings.items()}}
+                   **{f"design_{k}": (round(v, 2) if isinstance(v, float) else v) for k, v in res.timings.items()}}
             rows.append(row)
             print(json.dumps(row), flush=True)
     if args.out:
