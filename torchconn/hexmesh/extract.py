@@ -85,7 +85,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .lattice import _apply, _bad_singular_edges, _bbox, _bbox_counts, _lattice, _stars
+from .lattice import _apply, _bad_singular_edges, _bbox, _bbox_counts, _cross_face, _lattice, _stars
 from .predicates import _barycentric_signs_int, _orient3d_int, _orient3d_sos_int, to_grid
 
 __all__ = ["extract_hexes", "HexExtraction", "REASONS"]
@@ -322,11 +322,7 @@ def _walk(U, G, mult, inv, tet_faces, ft, face_rot, shiftS, usable, oversized, s
         reason[act[fail]] = code[fail]
         go = ~fail
         w, f, from_t0, nbr = act[go], f[go], from_t0[go], nbr[go]
-        A = rot[w]
-        gf = face_rot[f]
-        A_new = np.where(from_t0, mult[A, inv[gf]], mult[A, gf])
-        b[w] = np.where(from_t0[:, None], b[w] - _apply(G, A_new, shiftS[f]), b[w] + _apply(G, A, shiftS[f]))
-        rot[w] = A_new
+        rot[w], b[w] = _cross_face(G, mult, inv, rot[w], b[w], face_rot[f], shiftS[f], from_t0)
         cur[w] = nbr
         touched[w] |= tainted[nbr]
         act = w

@@ -133,6 +133,15 @@ def _apply(G: np.ndarray, rot: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cross_face(G, mult, inv, A, b, gf, shift_f, from_t0):
+    """A walk's chart map ``x -> G[A] x + b`` (rows ``(N,)``, ``(N, 3)``) carried across faces with
+    transitions ``gf (N,)``, ``shift_f (N, 3)`` (``t0 -> t1``: ``G x + s``), entered from ``t0``
+    (``from_t0``) or from ``t1``: the new ``(A, b)``."""
+    A_new = np.where(from_t0, mult[A, inv[gf]], mult[A, gf])
+    b_new = np.where(from_t0[:, None], b - _apply(G, A_new, shift_f), b + _apply(G, A, shift_f))
+    return A_new, b_new
+
+
 # ----------------------------------------------------------------------------- stars
 def _transport(G, inv, rot_f, shift_f, from_t0, Q):
     """Scaled point ``Q`` across faces: ``G Q + s`` from ``t0`` to ``t1``, ``G^T (Q - s)`` back."""
@@ -211,7 +220,9 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, face_edges, U, G, mult, 
     b = np.zeros((t.size, 3), np.int64)
     act = np.nonzero(usable[t])[0]
     bad = np.zeros(t.size, bool)
-    for _ in range(tets.shape[0] + 1):                          # at most the ring length
+    # every candidate edge's walk advances together, one tet per step (batched over the edges):
+    # a walk closes or leaves through the boundary within its edge's valence
+    for _ in range(int(np.bincount(tet_edges.ravel()).max()) + 1):
         if not act.size:
             break
         ta, fa = t[act], f[act]
@@ -221,11 +232,7 @@ def _bad_singular_edges(tets, tet_edges, tet_faces, ft, face_edges, U, G, mult, 
         go = (nbr >= 0) & seam_ok[fa]                           # boundary edges are skipped
         go[go] &= usable[nbr[go]]
         act, ta, fa, from_t0, nbr = act[go], ta[go], fa[go], from_t0[go], nbr[go]
-        A = rot[act]
-        gf = face_rot[fa]
-        A_new = np.where(from_t0, mult[A, inv[gf]], mult[A, gf])
-        b[act] = np.where(from_t0[:, None], b[act] - _apply(G, A_new, shiftS[fa]), b[act] + _apply(G, A, shiftS[fa]))
-        rot[act] = A_new
+        rot[act], b[act] = _cross_face(G, mult, inv, rot[act], b[act], face_rot[fa], shiftS[fa], from_t0)
         t[act] = nbr
         closed = nbr == t_start[act]
         done = act[closed]
