@@ -140,10 +140,13 @@ def test_unknown_keys_keep_raising():
         check_config({"lbfgs": {"max_itr": 1}}, config_check.TRAIN_FRAMES, "cfg.yaml")
 
 
-def test_unresolved_output_dir_is_named():
-    """Outside Hydra the default ``${hydra:runtime.output_dir}`` cannot be resolved."""
-    with pytest.raises(ConfigError, match=r"'output_dir'.*cannot be resolved.*output_dir=\.\.\."):
-        _validate({})
+def test_train_without_output_dir_is_named(tmp_path, monkeypatch):
+    """``train()`` outside the command line needs ``output_dir`` (null is the CLI's "Hydra's run
+    directory"): the error names it, and nothing is written in the working directory."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"output_dir is null"):
+        train({})
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_config_files_hold_no_option_and_compose_the_schema():

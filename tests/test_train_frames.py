@@ -187,6 +187,42 @@ def test_cli_unknown_key_exits_nonzero(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+CLI_TINY = ["mesh=cylinder", "edge_length=0.6", "method=sh_baseline", "sh.n_smooth_iters=5", "progress=false",
+            "num_threads=1"]
+
+
+def _main_in_process(args, cwd, monkeypatch):
+    """The frame job's console entry point run in this process (Hydra parses ``sys.argv``) in
+    ``cwd``; its exit status (0 when it returns)."""
+    from training import train_frames as job
+
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "argv", ["train_frames", *args])
+    try:
+        job.main()
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_console_run_writes_only_its_output_dir(tmp_path, monkeypatch, capsys, given):
+    """With ``output_dir`` given nothing is written under the working directory (no
+    ``outputs/<date>``, no ``.hydra``, no log); without it the outputs go to
+    ``outputs/train_frames/<date>/<time>``."""
+    cwd, out = tmp_path / "cwd", tmp_path / "out"
+    cwd.mkdir()
+    assert _main_in_process([*CLI_TINY] + ([f"output_dir={out}"] if given else []), cwd, monkeypatch) == 0
+    printed = capsys.readouterr().out
+    if given:
+        assert list(cwd.iterdir()) == [] and (out / "metrics.json").is_file() and not (out / ".hydra").exists()
+        assert f"output {out}" in printed
+    else:
+        runs = list((cwd / "outputs" / "train_frames").glob("*/*"))
+        assert [p.name for p in cwd.iterdir()] == ["outputs"] and len(runs) == 1
+        assert (runs[0] / "metrics.json").is_file() and f"output {runs[0]}" in printed
+
+
 def test_unwritable_output_dir(tmp_path):
     blocker = tmp_path / "file.txt"
     blocker.write_text("x")

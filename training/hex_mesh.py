@@ -256,16 +256,6 @@ def summary_line(metrics: dict, output_dir) -> str:
             f"output {output_dir}")
 
 
-def _resolve_run_dir(output_dir, default):
-    """``hydra.run.dir`` of ``configs/hex_mesh.yaml``: the working directory (which exists, so Hydra
-    creates nothing) when ``output_dir`` is given, else ``default`` (the job's outputs go there)."""
-    return default if output_dir in (None, "") else "."
-
-
-if not OmegaConf.has_resolver("torchconn_run_dir"):  # before any composition of configs/hex_mesh.yaml
-    OmegaConf.register_resolver("torchconn_run_dir", _resolve_run_dir)
-
-
 def main() -> None:
     """Console entry point ``torchconn-hex``: Hydra composes ``configs/hex_mesh.yaml`` + overrides.
 
@@ -277,19 +267,8 @@ def main() -> None:
     def app(cfg: DictConfig) -> None:
         debug = OmegaConf.select(cfg, "debug", default=False) is True
         with io_utils.report_errors("hex_mesh", debug=debug, how="debug=true or HYDRA_FULL_ERROR=1"):
-            created = []  # Hydra's run directory and its parents below the working directory
-            if cfg.output_dir is None:  # the outputs go to Hydra's run directory: outputs/hex_mesh/<date>/<time>
-                from hydra.core.hydra_config import HydraConfig
-
-                run_dir = Path(HydraConfig.get().runtime.output_dir)
-                cfg.output_dir = str(run_dir)
-                cwd = Path.cwd().resolve()
-                created = [d for d in (run_dir, *run_dir.parents) if cwd in d.resolve().parents]
-            try:
+            with io_utils.hydra_output_dir(cfg):
                 m = run(cfg)
-            except BaseException:
-                io_utils.remove_empty_dirs(created)  # an input error leaves no (empty) output directory behind
-                raise
         print(summary_line(m, cfg.output_dir))
 
     app()

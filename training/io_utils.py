@@ -43,6 +43,7 @@ __all__ = [
     "OutputDirLockedError",
     "output_dir_for_run",
     "remove_empty_dirs",
+    "hydra_output_dir",
     "full_errors_wanted",
     "report_errors",
     "StaleLockWarning",
@@ -243,6 +244,28 @@ def remove_empty_dirs(dirs) -> None:
             Path(d).rmdir()
         except OSError:
             break
+
+
+@contextlib.contextmanager
+def hydra_output_dir(cfg):
+    """A job's command line run: with ``cfg.output_dir`` null, set it to Hydra's run directory
+    (``outputs/<job>/<date>/<time>``, which Hydra created); if the block raises, the directories
+    it made below the working directory are removed again where they are empty, so a run that
+    fails on its input leaves no empty output directory behind. With ``output_dir`` given, Hydra
+    created nothing (:func:`training.schema.run_dir`) and the block runs as is."""
+    created = []
+    if cfg.output_dir is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        cfg.output_dir = str(run_dir)
+        cwd = Path.cwd().resolve()
+        created = [d for d in (run_dir, *run_dir.parents) if cwd in d.resolve().parents]
+    try:
+        yield cfg.output_dir
+    except BaseException:
+        remove_empty_dirs(created)  # deepest first
+        raise
 
 
 def full_errors_wanted(debug: bool = False) -> bool:

@@ -65,8 +65,10 @@ class TrainFramesConfig(FrameOptions):
     num_threads: int | str | None = option("auto", kind="threads")
     dtype: str = option("float64", choices=("float32", "float64"))
     seed: int = option(0, lo=0, hi=_SEED_MAX)
-    #: the run's directory (Hydra's, unless given)
-    output_dir: str = option("${hydra:runtime.output_dir}")
+    #: Where the outputs go. null: a new outputs/<job>/<date>/<time> under the working directory (the
+    #: job's Hydra run directory); given, nothing at all is written under the working directory
+    #: (the jobs' hydra: settings in configs/, training.io_utils.hydra_run_dir). train() needs it set.
+    output_dir: str | None = option(None)
     #: continue from output_dir/checkpoint.pt (same mesh/method/optimizer)
     resume: bool = option(False)
     checkpoint_every: int = option(25, lo=1)
@@ -120,9 +122,6 @@ class HexMeshConfig(TrainFramesConfig):
     #: field is read instead of computed. null: compute it with ``method``. (resume=true reuses
     #: output_dir/frames.npz, written by an earlier run of this job, if present.)
     frames: str | None = option(None)
-    #: Where the outputs go. null: a new outputs/hex_mesh/<date>/<time> under the working directory;
-    #: given, nothing at all is written under the working directory (configs/hex_mesh.yaml's hydra:).
-    output_dir: str | None = option(None)
     #: An error prints its message, not a traceback; debug: true (or HYDRA_FULL_ERROR=1) shows it.
     debug: bool = option(False)
     hex: HexStage = group(HexStage)
@@ -153,14 +152,25 @@ def defaults(cls) -> dict:
     return dataclasses.asdict(cls())
 
 
+def run_dir(output_dir, default) -> str:
+    """The resolver ``torchconn_run_dir`` of the jobs' ``hydra.run.dir``: the working directory
+    (which exists, so Hydra creates nothing there) when ``output_dir`` is given, else ``default``
+    (``outputs/<job>/<date>/<time>``, where the job's outputs then go)."""
+    return default if output_dir in (None, "") else "."
+
+
 def register() -> None:
     """Store every schema's defaults in Hydra's ``ConfigStore`` under its name in :data:`SCHEMAS`
-    (idempotent; the jobs' YAML files list that name first in their ``defaults``)."""
+    (idempotent; the jobs' YAML files list that name first in their ``defaults``) and register the
+    ``torchconn_run_dir`` resolver (:func:`run_dir`) their ``hydra.run.dir`` uses."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
 
     cs = ConfigStore.instance()
     for name, cls in SCHEMAS.items():
         cs.store(name=name, node=defaults(cls))
+    if not OmegaConf.has_resolver("torchconn_run_dir"):
+        OmegaConf.register_resolver("torchconn_run_dir", run_dir)
 
 
 register()

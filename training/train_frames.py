@@ -192,6 +192,9 @@ def train(cfg) -> dict:
     """
     t_start = time.perf_counter()
     cfg = _validate(cfg)  # types and ranges of every key (ConfigError), before anything is created
+    if cfg.output_dir is None:
+        raise ConfigError("output_dir is null: train() needs the directory its outputs go to "
+                          "(the command line job defaults it to outputs/train_frames/<date>/<time>)")
     out = io_utils.check_output_dir(cfg.output_dir)
     with io_utils.lock_output_dir(out):  # one run per output_dir (OutputDirLockedError)
         return _train(cfg, out, t_start)
@@ -260,7 +263,8 @@ def main() -> None:
     @hydra.main(config_path="../configs", config_name="train_frames", version_base="1.3")
     def app(cfg: DictConfig) -> None:
         with io_utils.report_errors("train_frames"):  # the message, not a traceback (unless HYDRA_FULL_ERROR=1)
-            m = train(cfg)
+            with io_utils.hydra_output_dir(cfg):
+                m = train(cfg)
         f, i = m["final"], m["init"]
         print(f"[train_frames] {cfg.method}: smoothness {i['smoothness_mean_deg']:.2f} -> "
               f"{f['smoothness_mean_deg']:.2f} deg, alignment mean {f['alignment_mean_deg']:.3f} deg, "
