@@ -138,6 +138,19 @@ def _rec(model, method, **kw):
     return base
 
 
+def test_chooser_rows_report_their_own_hex_stage_time(tmp_path):
+    """A row whose hex mesh the chooser made reports that mesh's hex stage seconds (also in files
+    written when ``hex_s`` held the seconds of reading the columns); other rows are unchanged."""
+    (tmp_path / "jobs").mkdir()
+    recs = {"a": {"model": "s01c_a", "method": "connection", "hex_from_chooser": True, "hex_s": 0.001,
+                  "hex_times": {"total_s": 12.5}},
+            "b": {"model": "s01c_a", "method": "sh", "hex_from_chooser": False, "hex_s": 3.0,
+                  "hex_times": {"total_s": 2.9}}}
+    for k, r in recs.items():
+        (tmp_path / "jobs" / f"{k}.json").write_text(json.dumps(r))
+    assert [r["hex_s"] for r in rep.load_rows(tmp_path)] == [12.5, 3.0]
+
+
 def test_set_figures_and_targets_on_known_numbers(tmp_path):
     rows = [
         _rec("s01c_a", "sh", smoothness_mean_deg=10.0, smoothness_rms_deg=12.0, dirichlet_energy_mean=0.2,
