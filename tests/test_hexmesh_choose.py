@@ -20,11 +20,17 @@ def _cands(mesh):
     return [mk(noisy, "optimized", 0.0), mk(eye, "optimized", 1.0)]
 
 
-def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it():
+def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it(monkeypatch):
+    from torchconn.hexmesh import one_ring
+
+    tested = []
+    real = one_ring.one_ring_test
+    monkeypatch.setattr(one_ring, "one_ring_test", lambda *a, **k: tested.append(1) or real(*a, **k))
     mesh = box(1)
     cands = _cands(mesh)
     choose = hex_chooser(edge_length=0.25)
     idx, info = choose(mesh, cands)
+    assert len(tested) == 1  # two candidates meshed, the one-ring test run on the chosen one only
     assert idx == 1 and info["by"] == "hex" and info["reason"] == "a valid map and a good hex mesh"
     assert [r["good"] for r in info["meshed"]] == [False, True]
     frames, kept = choose.chosen
@@ -33,6 +39,12 @@ def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it():
     again = hex_mesh(mesh, cands[1].frames, edge_length=0.25)
     assert torch.equal(torch.as_tensor(kept.hexes), torch.as_tensor(again.hexes))
     assert torch.equal(torch.as_tensor(kept.points), torch.as_tensor(again.points))
+    g, h = kept.gates["structure"], again.gates["structure"]
+    assert g.counts == h.counts and g.counts["one_ring_tested"] > 0 and g.passed == h.passed
+    for d in (g.info, h.info):
+        d["one_ring"]["counts"].pop("seconds")
+    assert g.info == h.info
+    assert kept.map.stats["timings"]["one_ring_s"] > 0
 
 
 def _stack(mesh, order, calls, **kw):

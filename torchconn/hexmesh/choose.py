@@ -91,7 +91,9 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
             :class:`~torchconn.frames.candidates.CandidateStack` (what :func:`~torchconn.frames.design`
             passes) the later stages of candidates are then never made. ``False``: make every
             candidate, mesh the ``max_candidates`` first and return the best by :func:`hex_key`.
-        **hex_options: options of :func:`~.pipeline.hex_mesh` (``edge_length``, ...).
+        **hex_options: options of :func:`~.pipeline.hex_mesh` (``edge_length``, ...). Its
+            ``one_ring`` test (a report, deciding nothing) runs on the chosen candidate's hex
+            mesh only (:func:`~.pipeline.add_one_ring`), not on every meshed candidate.
 
     ``candidates`` is a sequence of :class:`~torchconn.frames.candidates.Candidate` s or a
     :class:`~torchconn.frames.candidates.CandidateStack`, whose stages are made one at a time: after
@@ -107,7 +109,7 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
 
     def choose(mesh, candidates):
         from ..frames.candidates import CandidateStack
-        from .pipeline import hex_mesh
+        from .pipeline import add_one_ring, hex_mesh
 
         lazy = isinstance(candidates, CandidateStack) and first_good
         if isinstance(candidates, CandidateStack) and not first_good:
@@ -123,7 +125,7 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
                     return f"max_candidates={max_candidates} meshed"
                 c = candidates[i]
                 t0 = time.perf_counter()
-                r = hex_mesh(mesh, c.frames, **hex_options)
+                r = hex_mesh(mesh, c.frames, **{**hex_options, "one_ring": False})
                 q = r.quality
                 rows.append({"label": c.label, "valid": bool(r.validity.valid), "good": bool(r.good),
                              "reasons": list(r.validity.reasons)[:3], "hexes": int(r.hexes.shape[0]),
@@ -148,6 +150,9 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
         best = min(range(len(keys)), key=keys.__getitem__)
         win = meshed[best]
         row = rows[best]
+        if hex_options.get("one_ring", True):
+            add_one_ring(results[best], **{k: hex_options[k] for k in ("features", "feature_max_deg", "backend")
+                                           if k in hex_options})
         choose.chosen = (candidates[win].frames, results[best])  # the winner's hex mesh, not made again
         reason = ("a valid map and a good hex mesh" if row["good"] else "a valid map" if row["valid"]
                   else "no candidate has a valid map: the fewest broken tets")

@@ -27,7 +27,7 @@ from .extract import extract_hexes
 from .igm import IntegerGridMap, integer_grid_map
 from .validity import STAGES, Gate, MapValidity
 
-__all__ = ["HexMeshResult", "hex_mesh", "extraction_gate", "MAP_OPTIONS"]
+__all__ = ["HexMeshResult", "hex_mesh", "add_one_ring", "extraction_gate", "MAP_OPTIONS"]
 
 MAP_OPTIONS = ("edge_length", "face_match", "straighten", "straighten_boundary", "touch_rounds", "repair",
                "repair_rounds", "split", "collapse", "features", "feature_max_deg", "flat_rounds", "one_ring", "injective",
@@ -203,6 +203,27 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
     timings["total_s"] = time.perf_counter() - t_all
     return HexMeshResult(map=igm, validity=igm.validity, extraction=ext, quality=hq, timings=timings,
                          meshability=igm.meshability, input_mesh=mesh, gates=gates)
+
+
+def add_one_ring(result: HexMeshResult, *, features: bool = True, feature_max_deg: float = 30.0,
+                 backend: str = "auto") -> HexMeshResult:
+    """LMFF's one-ring test (:func:`~.one_ring.one_ring_test`) on the structure of a result made
+    with ``one_ring=False``, written into its structure gate (:func:`~.validity.record_one_ring`) and
+    timed in the map's ``stats["timings"]["one_ring_s"]``: the result is then what
+    ``hex_mesh(..., one_ring=True)`` returns (the test reports, it does not decide a gate). Used
+    where many fields are meshed and one is kept (:func:`~.choose.hex_chooser`). ``features``,
+    ``feature_max_deg`` and ``backend``: the map's own options. Returns ``result`` (changed in place)."""
+    from .one_ring import one_ring_test
+    from .validity import record_one_ring
+
+    m = result.map
+    t0 = time.perf_counter()
+    ring = one_ring_test(m.mesh, None, charts=m.charts, meshability=m.meshability, edge_length=m.edge_length,
+                         features=features, feature_max_deg=feature_max_deg, backend=backend)
+    record_one_ring(m.gates["structure"], ring)
+    result.gates["structure"] = m.gates["structure"]
+    m.stats.setdefault("timings", {})["one_ring_s"] = time.perf_counter() - t0
+    return result
 
 
 def extraction_gate(ext, quality=None) -> Gate:

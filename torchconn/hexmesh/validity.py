@@ -37,7 +37,8 @@ import numpy as np
 
 from .cut import face_corner_pairs, group_matrices
 
-__all__ = ["MapValidity", "Gate", "check_map", "check_seamless", "check_params", "structure_gate", "first_failed",
+__all__ = ["MapValidity", "Gate", "check_map", "check_seamless", "check_params", "structure_gate", "record_one_ring",
+           "first_failed",
            "VALIDITY_CHECKS", "FEATURE_CHECKS", "SEAMLESS_CHECKS", "STRUCTURE_CHECKS", "STAGES"]
 
 VALIDITY_CHECKS = ("unmeshable_singular_edges", "inverted_tets", "degenerate_tets", "broken_transitions",
@@ -187,17 +188,26 @@ def structure_gate(mesh, meshability, flat: np.ndarray, collapsed: np.ndarray, o
         if n:
             eg = f" (e.g. {where[name][0]} at {tuple(xyz[name][0])})" if name in where else ""
             reasons.append(f"{n} {_WHAT[name]}{eg}")
-    info = {}
+    gate = Gate(stage="structure", passed=not reasons, counts=counts, where=where, where_xyz=xyz, reasons=reasons,
+                info={})
     if one_ring is not None:
-        ok = one_ring.passed
-        counts["one_ring_tested"] = int(ok.size)
-        counts["one_ring_failed"] = int((~ok).sum())
-        if (~ok).any():
-            where["one_ring_failed"] = one_ring.vertices[~ok][:_WHERE].tolist()
-            xyz["one_ring_failed"] = one_ring.position[~ok][:_WHERE].round(6).tolist()
-        info["one_ring"] = one_ring.as_dict(limit=_WHERE)
-    return Gate(stage="structure", passed=not reasons, counts=counts, where=where, where_xyz=xyz, reasons=reasons,
-                info=info)
+        record_one_ring(gate, one_ring)
+    return gate
+
+
+def record_one_ring(gate: Gate, one_ring) -> Gate:
+    """Write a :class:`~.one_ring.OneRingReport` into the structure ``gate`` (in place; returned):
+    counts ``one_ring_tested`` / ``one_ring_failed``, the failing vertices in ``where`` and
+    ``where_xyz``, the report's :meth:`~.one_ring.OneRingReport.as_dict` in ``info["one_ring"]``.
+    It does not change ``passed``."""
+    ok = one_ring.passed
+    gate.counts["one_ring_tested"] = int(ok.size)
+    gate.counts["one_ring_failed"] = int((~ok).sum())
+    if (~ok).any():
+        gate.where["one_ring_failed"] = one_ring.vertices[~ok][:_WHERE].tolist()
+        gate.where_xyz["one_ring_failed"] = one_ring.position[~ok][:_WHERE].round(6).tolist()
+    gate.info["one_ring"] = one_ring.as_dict(limit=_WHERE)
+    return gate
 
 
 def check_map(mesh, igm) -> MapValidity:
