@@ -78,3 +78,25 @@ def test_bad_input_is_a_clear_error():
         fixed_holonomy_frames(mesh, F, fm, weights={"flat": 1.0})
     with pytest.raises(ValueError, match="steps"):
         fixed_holonomy_frames(mesh, F, fm, steps=-1)
+
+
+def test_the_map_follows_the_field_re_optimized_with_its_matchings():
+    """The map stage's ``fixed_holonomy``: where the matchings it follows are not the frames' best
+    ones (here the zipped hairpin's, given), the frames are re-optimized with them fixed and the
+    map fits those; the returned field's own matchings are the map's, and it fits them better."""
+    from torchconn.hexmesh import hex_mesh
+
+    mesh, F, (p, q, v) = hairpin()
+    fm, _ = zip_zipper(mesh, F, None, v)
+    on = hex_mesh(mesh, F, face_match=fm, extract=False, quality=False, one_ring=False)
+    off = hex_mesh(mesh, F, face_match=fm, extract=False, quality=False, one_ring=False, fixed_holonomy=False)
+    st = on.map.stats["fixed_holonomy"]
+    assert st["free_tets"] > 0 and st["agree"] == 1.0 and st["misfit_deg_after"] < st["misfit_deg_before"]
+    assert off.map.stats.get("fixed_holonomy") is None  # off: the input's frames, a child tet with its parent's
+    torch.testing.assert_close(off.map.tet_frames, F[torch.as_tensor(off.map.parent_tet)], atol=0, rtol=0)
+    assert not torch.allclose(on.map.tet_frames, off.map.tet_frames)
+    # the charts carry the new field, combed as before (same cut and transitions)
+    np.testing.assert_array_equal(on.map.charts.comb, off.map.charts.comb)
+    np.testing.assert_array_equal(on.map.charts.face_rot, off.map.charts.face_rot)
+    assert not np.allclose(on.map.charts.frames, off.map.charts.frames)
+    assert on.map.energy_continuous < off.map.energy_continuous

@@ -42,7 +42,8 @@ def _cfg(out, **kw):
 def test_box_writes_every_output_and_a_good_grid(tmp_path):
     m = run(_cfg(tmp_path))
     assert m["map"]["valid"] and m["good"] and m["quality"]["n_hexes"] == 64
-    for name in ("seamless.hexex", "igm.hexex", "hex.vtu", "hex.mesh", "hex_metrics.json", "hex.png", "frames.npz"):
+    for name in ("seamless.hexex", "igm.hexex", "hex.vtu", "hex.mesh", "hex_metrics.json", "hex.png", "frames.npz",
+                 "map_frames.npz"):
         assert (tmp_path / name).is_file() and (tmp_path / name).stat().st_size > 0, name
     saved = json.loads((tmp_path / "hex_metrics.json").read_text())
     assert saved["first_failed"] is None
@@ -58,6 +59,9 @@ def test_box_writes_every_output_and_a_good_grid(tmp_path):
     V, T, U = read_hexex(tmp_path / "igm.hexex")
     z = np.load(tmp_path / "frames.npz")
     assert np.array_equal(V[: z["vertices"].shape[0]], z["vertices"]) and U.shape == (T.shape[0], 4, 3)
+    # the field the map follows, per tet on the map's mesh
+    zm = np.load(tmp_path / "map_frames.npz")
+    assert np.array_equal(zm["vertices"], V) and np.array_equal(zm["tets"], T) and zm["frames"].shape == (T.shape[0], 3, 3)
     P, H = read_hex_mesh(tmp_path / "hex.vtu")
     assert H.shape == (64, 8)
     vtu = meshio.read(tmp_path / "hex.vtu")

@@ -27,7 +27,11 @@ Outputs in ``output_dir``:
   their sub-tets in the map's refined mesh; the singular graph as line cells) and
   ``map_failure.png`` (the input's boundary with the flagged tets and the singular graph);
 * ``frames.npz`` (vertices, tets, frames): the field, reusable with ``frames=`` (and by
-  ``resume=true``, which skips the field's computation when the file is there).
+  ``resume=true``, which skips the field's computation when the file is there);
+* ``map_frames.npz`` (vertices, tets, frames per tet): the field the map follows, on the map's tet
+  mesh (``igm.hexex``'s): the field's frames with the structure stage's matchings, re-optimized
+  with those fixed where the stage changed them and its gate passed (``hex.fixed_holonomy``): its
+  own singular graph is then the repaired one.
 
 The console prints the verdict (``good hex mesh``, ``not a good hex mesh: <reasons>``, or ``no hex
 mesh: <reasons>``: the invalid map, an edge length too small or too large for the mesh, every cube
@@ -224,6 +228,8 @@ def _save(out: Path, mesh, result, metrics: dict, frames) -> None:
             io_utils.atomic_savez(stage / "frames.npz", vertices=mesh.vertices.detach().cpu().double().numpy(),
                                   tets=mesh.tets.cpu().numpy().astype(np.int64), frames=frames)
         X, tets = m.mesh.vertices.detach().cpu().double().numpy(), m.mesh.tets.cpu().numpy()
+        io_utils.atomic_savez(stage / "map_frames.npz", vertices=X, tets=tets.astype(np.int64),
+                              frames=m.tet_frames.detach().cpu().double().numpy())
         write_hexex(stage / "seamless.hexex", X, tets, m.seamless_uvw)
         write_hexex(stage / "igm.hexex", X, tets, m.uvw)
         if result.hexes.shape[0]:

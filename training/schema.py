@@ -95,6 +95,9 @@ class HexStage:
     #: LMFF's numeric one-ring test at every singular vertex (hexmesh.one_ring), reported in
     #: hex_metrics.json beside LMFF's conditions (it does not decide the structure gate)
     one_ring: bool = option(True)
+    #: where the structure stage changed face matchings, re-optimize the frames there with the
+    #: matchings fixed (frames.fixed_holonomy) and map those (hex_metrics.json: fixed_holonomy)
+    fixed_holonomy: bool = option(True)
     #: CAD curves / sharp edges on integer lines, CAD corners on integer points
     features: bool = option(True)
     #: feature edges farther than this from every parameter axis stay free

@@ -33,7 +33,7 @@ and the extraction decide topology with exact arithmetic.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -79,6 +79,10 @@ class IntegerGridMap:
         stats: sizes of the problem (:attr:`SeamlessProblem.counts`), splits, the structure
             search, the foldover-free solve and the rounding, timings per step (seconds).
         problem: the :class:`~.seamless.SeamlessProblem` (constraints, objective).
+        tet_frames: ``(T, 3, 3)`` float64 tensor, the field the map follows, on ``mesh``: the
+            input's frames (a child tet has its parent's), re-optimized with the holonomy fixed
+            where the structure stage changed matchings (``fixed_holonomy``); its best face
+            matchings are the map's where ``stats["fixed_holonomy"]["agree"]`` is 1.
     """
 
     mesh: object
@@ -98,6 +102,7 @@ class IntegerGridMap:
     meshability: object | None = field(default=None, repr=False)
     stats: dict = field(default_factory=dict)
     problem: SeamlessProblem | None = field(default=None, repr=False)
+    tet_frames: object | None = field(default=None, repr=False)
 
     def flipped(self) -> np.ndarray:
         """``(T,)`` bool: tets whose parametric volume is not positive (exact predicate)."""
@@ -119,7 +124,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
                      straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
                      repair_rounds: int = 30, split: bool = True, collapse: bool = True,
                      features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
-                     one_ring: bool = True, injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
+                     one_ring: bool = True, fixed_holonomy: bool = True, injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
                      stiffening_factor: float = 4.0,
                      grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
@@ -155,6 +160,13 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
         one_ring: LMFF's numeric one-ring test at the singular vertices of the structure
             (:func:`~.one_ring.one_ring_test`), reported in ``gates["structure"]`` (``counts``,
             ``info``); it does not decide the gate.
+        fixed_holonomy: stage 2, when the structure gate passes and the structure stage changed
+            face matchings (the search or the repair: the frames no longer match as the matchings
+            say), re-optimize the frames there with the matchings fixed, by a connection
+            (:func:`torchconn.frames.fixed_holonomy.fixed_holonomy_frames`), and fit the map to
+            those (``result.tet_frames``; ``stats["fixed_holonomy"]``). Not run on a structure
+            that fails its gate: it changed no verdict on the 17 simple HexMe models there, and
+            costs up to 16 s per hex stage (docs/results/structures.md).
         injective: untangle a folded least-squares map with the foldover-free solve and round a
             valid seamless map by injective moves (``False``: the plain least-squares map, greedy
             rounding and stiffening, as CubeCover).
@@ -213,6 +225,21 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
 
     # ------------------------------------------------------------------ 2. frames
     targets = None
+    map_frames = st.tet_frames
+    if fixed_holonomy and st.gate.passed:
+        from ..frames.fixed_holonomy import fixed_holonomy_frames
+
+        t0 = time.perf_counter()
+        fh = fixed_holonomy_frames(mesh, st.tet_frames, st.face_match)
+        if fh.free_tets:
+            # the same charts (cut, transitions: the matchings), combed frames of the new field
+            map_frames = fh.tet_frames.detach().cpu().double()
+            combed = map_frames.numpy() @ group_matrices()[charts.comb].astype(np.float64)
+            charts = replace(charts, frames=combed)
+            prob = replace(prob, charts=charts).with_targets(np.transpose(combed, (0, 2, 1)) / h)
+        stats["fixed_holonomy"] = {"free_tets": int(fh.free_tets), "passes": int(fh.passes), "agree": fh.agree,
+                                   "misfit_deg_before": fh.misfit_deg_before, "misfit_deg_after": fh.misfit_deg_after}
+        timings["fixed_holonomy_s"] = time.perf_counter() - t0
     if integrable:
         from .integrable import integrable_frames
 
@@ -329,7 +356,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     out = IntegerGridMap(mesh=mesh, parent_tet=parent, uvw=uvw, seamless_uvw=uvw_s, face_rot=charts.face_rot.copy(),
                          face_shift=face_shift, edge_length=h, charts=charts, energy=energy, energy_seamless=e_seam,
                          energy_continuous=e_cont, grid_bits=grid_bits, gates=gates, meshability=mesh_report,
-                         stats=stats, problem=prob)
+                         stats=stats, problem=prob, tet_frames=map_frames)
     t0 = time.perf_counter()
     out.validity = check_map(mesh, out)
     gates["quantization"] = Gate.of_validity("quantization", out.validity, before=seamless_validity.valid)
