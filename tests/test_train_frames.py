@@ -61,6 +61,8 @@ def test_cli_end_to_end(tmp_path):
     assert inv["n_tets_one_singular_face"] == m["final"]["n_tets_one_singular_face"]
     assert m["timings"]["iterations"] == 6 and m["timings"]["wall_s"] > 0  # 3 steps from each of the 2 starts
     c = m["chosen"]  # the returned field: a candidate of the connection optimization, chosen by its hex mesh
+    zm = np.load(out / "map_frames.npz")  # the field its map follows, per tet on the map's mesh
+    assert zm["frames"].shape == (zm["tets"].shape[0], 3, 3) and zm["vertices"].shape[1] == 3
     assert c["by"] == "hex" and c["start"] in ("sh", "mbo") and c["meshed"] and len(c["candidates"]) >= 2
     assert "returned field:" in r.stdout and c["label"] in r.stdout
     z = np.load(out / "frames.npz")
@@ -185,6 +187,22 @@ def test_cli_unknown_key_exits_nonzero(tmp_path):
     r = _run_cli(["no_such_key=1", f"output_dir={tmp_path / 'x'}"], timeout=120)
     assert r.returncode != 0 and "no_such_key" in r.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_hex_choice_writes_the_field_its_map_follows(tmp_path):
+    """``select=hex``: ``map_frames.npz`` holds the chosen candidate's map's field (per tet on the
+    map's mesh, the input's vertices first); ``select=proxies`` writes none."""
+    out = tmp_path / "hex"
+    m = train(_cfg(tmp_path, "hex", mesh="box", edge_length=0.5, select="hex", select_candidates=1, steps=3,
+                   quality={"enabled": False}))
+    assert m["chosen"]["by"] == "hex"
+    zm, z = np.load(out / "map_frames.npz"), np.load(out / "frames.npz")
+    assert zm["frames"].shape == (zm["tets"].shape[0], 3, 3)
+    np.testing.assert_array_equal(zm["vertices"][: z["vertices"].shape[0]], z["vertices"])
+    R = torch.as_tensor(zm["frames"])
+    torch.testing.assert_close(R.transpose(1, 2) @ R, torch.eye(3, dtype=R.dtype).expand_as(R), atol=1e-9, rtol=0)
+    train(_cfg(tmp_path, "proxies", mesh="box", edge_length=0.5, steps=3, quality={"enabled": False}))
+    assert not (tmp_path / "proxies" / "map_frames.npz").exists()
 
 
 CLI_TINY = ["mesh=cylinder", "edge_length=0.6", "method=sh_baseline", "sh.n_smooth_iters=5", "progress=false",

@@ -28,7 +28,10 @@ Outputs in ``output_dir``: ``frames.npz`` (vertices, tets, frames, singular_face
 ``metrics.json``, ``frames.vtu`` (per-vertex and per-tet frames), ``frames.fra`` (per-tet frames for
 CubeCover / HexFrameFlow), ``singular_faces.vtu``, ``singular_curves.vtu`` (the singular graph's
 polylines with their type), ``loss.png``, ``singularities.png``,
-``checkpoint.pt`` (atomic, every ``checkpoint_every`` steps and at the end). ``resume=true``
+``checkpoint.pt`` (atomic, every ``checkpoint_every`` steps and at the end); with ``select=hex``,
+``map_frames.npz``: the field the chosen candidate's map follows (per tet, on the map's tet mesh:
+with the hex stage's repaired matchings, re-optimized with them fixed where they changed; the hex
+job's file of the same name). ``resume=true
 continues from the checkpoint to the same result as an uninterrupted run; a checkpoint of another
 configuration (mesh, method, optimizer, weights, ``steps``) is refused.
 
@@ -161,6 +164,12 @@ def _write_outputs(out: Path, result: FrameFieldResult, metrics: dict) -> None:
     field_files.write_singular_curves_vtk(out / "singular_curves.vtu", result.singular_graph)
     frame_plots.plot_loss(out / "loss.png", result.history, result.histories, result.metrics.get("chosen"))
     frame_plots.plot_singularities(out / "singularities.png", mesh, result.singular_graph)
+    hx = getattr(result, "hex", None)  # select=hex: the chosen field's hex stage, made while choosing
+    if hx is not None:
+        m = hx.map
+        io_utils.atomic_savez(out / "map_frames.npz", vertices=m.mesh.vertices.detach().cpu().double().numpy(),
+                              tets=m.mesh.tets.cpu().numpy().astype(np.int64),
+                              frames=m.tet_frames.detach().cpu().double().numpy())
 
 
 # ----------------------------------------------------------------------------- train
