@@ -163,10 +163,9 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         split_passes: when a round makes no move, split the constrained edges around the stuck
             vertices (:func:`room_edges`) and go on, at most this many times (0: never split;
             then the returned matchings are on the input mesh).
-        slide: once no other move lowers the cost, slide the ends of arcs that touch the
-            boundary about a tangent axis along the surface (:func:`.ops.slide_moves`, single
-            and in chains); earlier, slides at the ends of curves still to be pushed inside
-            lead the rounds to worse states (measured on s13c: 2 invalid nodes left).
+        slide: slide the ends of arcs that touch the boundary about a tangent axis along the
+            surface (:func:`.ops.slide_moves`, single and in chains; chains also start at
+            touching ends).
         weights: overrides of :data:`.graph.REPAIR_WEIGHTS`.
         features: take sharp features from the mesh.
         progress: a tqdm bar over the rounds.
@@ -195,8 +194,7 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         bar = tqdm(total=max_rounds, desc="repair", unit="round", leave=False)
     stopped, r, n_split, passes = "budget", 0, 0, 0
     clock, stamp, failed = 1, np.ones(g.V, np.int64), np.zeros(g.V, np.int64)
-    no_slide = tuple(k for k in MOVE_KINDS if k != "slide_end")
-    kinds = no_slide  # slides join when the other moves are spent (see the docstring)
+    kinds = None if slide else tuple(k for k in MOVE_KINDS if k != "slide_end")
     try:
         while r < max_rounds:
             r += 1
@@ -217,7 +215,7 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                     g.set_matchings(mv.faces, mv.values)
                     kept = [mv]
                 elif chain_depth > 0 and (g.vertex_cost(np.array([v]))[0] > 0
-                                          or (kinds is None and touching_ends(g, lookup, v).size)):
+                                          or (slide and touching_ends(g, lookup, v).size)):
                     kept = chain_move(g, lookup, v, chain_depth, kinds)  # chains start at conditions (and touching ends)
                 else:
                     kept = []
@@ -235,11 +233,6 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                 c = g.counts()
                 bar.update(1)
                 bar.set_postfix(zipper=c["zipper_nodes"], invalid=c["invalid_nodes"], moves=made)
-            if not made and slide and kinds is not None:
-                kinds = None  # the other moves are spent: slide the touching ends too
-                if any(touching_ends(g, lookup, int(x)).size for x in stuck if g.on_b[x]):
-                    failed[:] = 0
-                    continue
             if not made:
                 pairs = room_edges(g, lookup, np.asarray(stuck, np.int64)) if passes < split_passes else np.zeros((0, 2))
                 if not len(pairs):

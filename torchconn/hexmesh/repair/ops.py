@@ -19,6 +19,11 @@ and the edges moved:
   time: LMFF's "push singular vertices on the boundary into the interior";
 * ``move_off``: an arc touching the boundary (both edges interior, ``v`` on the boundary)
   detached from ``v``: LMFF's "arcs touching feature faces tangentially";
+* ``slide_end``: an arc that ends at a boundary vertex about a tangent axis (a touching end:
+  on a curved face, or on a feature curve whose other face is tangent to the axis) slides its
+  end one ring along the surface (:func:`slide_moves`), chains of slides several rings, to
+  where the axis is the surface normal: LMFF's "arcs touching feature faces tangentially" for
+  an arc's end;
 * ``detach``: an arc detached from an invalid interior node (the dual-path search for an
   anti-parallel partner arc at the node is the search over pairs and paths here);
 * ``zip``: at a zipper node (an arc doubling back), the tip moved across the cone, which
@@ -179,8 +184,10 @@ def slide_moves(g: SingularGraph, lookup: MeshLookup, v: int, n_paths: int = 2):
     """The ``slide_end`` moves at a boundary vertex ``v`` where an arc ends touching the boundary
     about a tangent axis, as :class:`Move` s.
 
-    The arc ``.. a - v`` ends at ``v`` (its only singular edge there; an arc passing through
-    ``v`` is ``move_off``'s). For each boundary edge ``e2 = (v, w)`` and link path ``a -> w``
+    The arc ``.. a - v`` ends at ``v`` and nothing else is to repair there (an arc passing
+    through ``v`` is ``move_off``'s; a singular curve on the boundary at ``v``, or a feature
+    fan of the wrong angle, is ``push_inside``'s or ``feature_sector``'s first: slides there
+    lead the rounds to worse states, measured on s13c). For each boundary edge ``e2 = (v, w)`` and link path ``a -> w``
     (:func:`.disk.link_path`, the arc's axis), the cone over the path is re-solved with
     ``e1 = (v, a)`` regular: the arc now runs ``a - p_1 - .. - w`` and ends at ``w``, one ring
     along the surface; the fan of ``e2`` turns by the arc's rotation, which keeps it flat where
@@ -191,8 +198,12 @@ def slide_moves(g: SingularGraph, lookup: MeshLookup, v: int, n_paths: int = 2):
     if not e1s.size:
         return
     es = lookup.vertex_edges(v)
-    sing = es[~g.boundary[es] & (g.cls[es] >= 0)]
-    if sing.size != 1:
+    c = g.cls[es]
+    q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+    bnd = g.boundary[es]
+    other = (~bnd & (c >= 0)).sum() > 1 or (bnd & ~g.sharp[es] & (q != 2)).any() or \
+        (bnd & g.sharp[es] & (q != g.expected[es])).any()
+    if other:  # an arc through v, or a curve on the boundary (or a feature's fan) still to repair there
         return
     e1 = int(e1s[0])
     a = lookup.other_end(e1, v)
