@@ -215,6 +215,18 @@ def test_push_inside_and_move_off_on_a_hexme_model():
     assert g1.vcls[v] not in (ZIPPER, INVALID) and g.vcls[v] == INVALID
 
 
+@pytest.mark.slow  # gmsh meshing, the SH field, the straightening and the repair's rounds: 20-30 s
+def test_slide_touching_end_on_a_hexme_model():
+    # s13c: without slides the repair leaves one arc ending on the rounded edge about a tangent
+    # axis; the slide moves its end along the fillet to where its axis is the normal
+    mesh, Fr, fm = _hexme_case("s13c_cube_rounded_2")
+    fm1, rep = repair_singular_graph(mesh, Fr, fm, slide=False)
+    assert rep.after["meshable"] and rep.after["touching_edges"] >= 1
+    m, F = rep.mesh, rep.tet_frames
+    v, g, g1 = _check_operation(m, F, fm1, slide_touching_end, "slide_end")
+    assert g1.counts()["touching_edges"] < g.counts()["touching_edges"] and g1.counts()["meshable"]
+
+
 @pytest.mark.slow  # gmsh meshing, the SH field and the straightening: 2-4 s
 def test_feature_sector_on_a_hexme_model():
     # n08c: fans on the pentagonal pyramid's sharp edges whose angle is not the feature's
