@@ -332,10 +332,10 @@ def test_slide_touching_end_moves_the_arc_end_off_the_wall():
     assert g1.cost() == pytest.approx(g.cost() + mv.delta, abs=1e-9)
     # the driver slides it; without slides no single move lowers the cost and the end stays
     # (chains off: those of feature-sector and retract moves remove the arc at a higher cost)
-    fm2, rep = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0)
+    fm2, rep = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0, slide=True)
     assert rep.moves == {"slide_end": 1} and rep.after["touching_edges"] == 0 and rep.after["meshable"]
     assert (fm2 == fm).all()
-    fm3, rep3 = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0, slide=False)
+    fm3, rep3 = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0)  # the default
     assert rep3.after["touching_edges"] == 1 and rep3.faces_changed == 0 and rep3.stopped == "no_move"
 
 
