@@ -11,7 +11,7 @@ repaired matchings (given to the map as its straightened ones, :func:`given_matc
 frames re-optimized by the connection with those matchings fixed
 (:func:`torchconn.frames.fixed_holonomy.fixed_holonomy_frames`) and with the input frames.
 
-    python -m benchmarks.structures --method sh --out OUT [--models s n i] [--map] [--rounds 30]
+    python -m benchmarks.structures --method sh --out OUT [--models s n i] [--map] [--rounds 30] [--slide]
     python -m benchmarks.structures --set shared --models 78322_gear.2 fandisk --out OUT
 
 Writes ``OUT/<model>__<method>.json`` per model (kept: a rerun skips them) and prints one line
@@ -111,7 +111,7 @@ def run_hex(model: str, method: str, out: Path, rounds: int, set_name: str = "he
 
 
 def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool, set_name: str = "hexme",
-              fields: Path | None = None) -> dict:
+              fields: Path | None = None, slide: bool = False) -> dict:
     import torch
 
     from torchconn.hexmesh.repair import repair_singular_graph
@@ -123,7 +123,7 @@ def run_model(model: str, method: str, out: Path, rounds: int, with_map: bool, s
     fm, _ = straighten_singular_edges(mesh, Fr, boundary_moves=True)
     straighten_s = time.perf_counter() - t0
     before = _conditions(mesh, Fr, fm)
-    fm2, rep = repair_singular_graph(mesh, Fr, fm, max_rounds=rounds)
+    fm2, rep = repair_singular_graph(mesh, Fr, fm, max_rounds=rounds, slide=slide)
     after = _conditions(rep.mesh, rep.tet_frames, fm2)
     kind = model[0] if set_name == "hexme" else "shared"
     rec = {"model": model, "method": method, "kind": kind, "tets": int(mesh.n_tets), "field_s": field_s,
@@ -190,6 +190,7 @@ def main(argv=None) -> Path:
     ap.add_argument("--models", nargs="*", default=None, help="name prefixes (default: every c model)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--rounds", type=int, default=30)
+    ap.add_argument("--slide", action="store_true", help="the repair also slides touching arc ends (slide=True)")
     ap.add_argument("--map", action="store_true", help="also run the map stage (minutes per model)")
     ap.add_argument("--hex", action="store_true", help="the hex stage with repair=False and repair=True instead")
     ap.add_argument("--fields", type=Path, default=None, help="a folder of <model>__<method>.npy per-vertex frames")
@@ -207,7 +208,7 @@ def main(argv=None) -> Path:
             if a.hex:
                 rec = run_hex(model, a.method, a.out, a.rounds, a.set, a.fields)
             else:
-                rec = run_model(model, a.method, a.out, a.rounds, a.map, a.set, a.fields)
+                rec = run_model(model, a.method, a.out, a.rounds, a.map, a.set, a.fields, a.slide)
             rec["wall_s"] = time.perf_counter() - t0
             path.write_text(json.dumps(rec, indent=1, default=float))
         recs.append(rec)

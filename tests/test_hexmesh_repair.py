@@ -21,7 +21,7 @@ from torchconn.hexmesh.cut import edge_walks, face_matchings, group_matrices
 from torchconn.hexmesh.meshability import INVALID, ZIPPER, meshability_report
 from torchconn.hexmesh.repair import (MeshLookup, SingularGraph, cone_disk, detach_arc, link_path, move_off_boundary,
                                       push_inside, repair_feature_sector, repair_singular_graph, retract_hook,
-                                      solve_disk, spanning_disk, zip_zipper)
+                                      slide_touching_end, solve_disk, spanning_disk, zip_zipper)
 from torchconn.hexmesh.repair.graph import _TYP
 
 from conftest import DATA_DIR
@@ -215,6 +215,18 @@ def test_push_inside_and_move_off_on_a_hexme_model():
     assert g1.vcls[v] not in (ZIPPER, INVALID) and g.vcls[v] == INVALID
 
 
+@pytest.mark.slow  # gmsh meshing, the SH field, the straightening and the repair's rounds: 20-30 s
+def test_slide_touching_end_on_a_hexme_model():
+    # s13c: without slides the repair leaves one arc ending on the rounded edge about a tangent
+    # axis; the slide moves its end along the fillet to where its axis is the normal
+    mesh, Fr, fm = _hexme_case("s13c_cube_rounded_2")
+    fm1, rep = repair_singular_graph(mesh, Fr, fm, slide=False)
+    assert rep.after["meshable"] and rep.after["touching_edges"] >= 1
+    m, F = rep.mesh, rep.tet_frames
+    v, g, g1 = _check_operation(m, F, fm1, slide_touching_end, "slide_end")
+    assert g1.counts()["touching_edges"] < g.counts()["touching_edges"] and g1.counts()["meshable"]
+
+
 @pytest.mark.slow  # gmsh meshing, the SH field and the straightening: 2-4 s
 def test_feature_sector_on_a_hexme_model():
     # n08c: fans on the pentagonal pyramid's sharp edges whose angle is not the feature's
@@ -259,6 +271,72 @@ def test_detach_arc_at_an_invalid_interior_node():
     fm2, rep = repair_singular_graph(mesh, F, fm_bad, max_rounds=3, split_passes=0)
     _check_consistent(mesh, F, fm2, SingularGraph(mesh, F, fm2))
     assert rep.before["invalid_nodes"] >= 1 and rep.after["invalid_nodes"] == 0 and rep.after["meshable"]
+
+
+def _touching_box():
+    """The unit box ``io.box(4)`` (grid step 1/4, identity frames) with two quarter-turn arcs
+    about z in the plane ``y = 1/2``, made by group algebra: the least-area disk spanning the loop
+    bottom ``(1/4, 0) -> (3/4, 0)``, up the column ``x = 3/4`` to ``z = 3/4``, the face diagonal
+    to ``c = (1, 1/2, 1)`` on the box's top-right edge, along the top back to ``x = 1/4`` and down
+    the column ``x = 1/4``, re-solved (:func:`solve_disk`) with the loop's first edge a quarter
+    turn about z. Arc B (``x = 1/4``) meets the top and the floor along their normal; arc A ends
+    at ``c``, on a feature curve, whose wall faces (normal x) are tangent to its axis: one
+    touching end, and ``c`` an invalid node (an arc ends on a sharp edge), nothing else to
+    repair (the top and floor fans turn about their normal and stay flat).
+
+    Returns ``(mesh, frames, face matchings, c, the column's top vertex (3/4, 1/2, 1))``."""
+    from test_hexmesh_meshability import _element
+
+    mesh = io.box(4)
+    F = _identity(mesh)
+    g, L = SingularGraph(mesh, F), MeshLookup(mesh)
+
+    def vid(i, k):  # the grid vertex (i/4, 1/2, k/4)
+        return (i * 5 + 2) * 5 + k
+
+    loop = np.array([vid(1, 0), vid(2, 0), vid(3, 0), vid(3, 1), vid(3, 2), vid(3, 3), vid(4, 4), vid(3, 4),
+                     vid(2, 4), vid(1, 4), vid(1, 3), vid(1, 2), vid(1, 1), vid(1, 0)])
+    faces, inside, _ = spanning_disk(g, L, loop)
+    e1 = int(L.edge_id(loop[1], loop[2])[0])
+    seed = [f for f in faces.tolist() if e1 in L.face_edges[f]]
+    quarter = _element([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    vals = solve_disk(g, faces, seed[0], e1, quarter, inside)
+    g.set_matchings(faces, vals)
+    return mesh, F, g.match.copy(), vid(4, 4), vid(3, 4)
+
+
+def test_slide_touching_end_moves_the_arc_end_off_the_wall():
+    mesh, F, fm0, c, w = _touching_box()
+    g = SingularGraph(mesh, F, fm0)
+    L = MeshLookup(mesh)
+    _check_consistent(mesh, F, fm0, g)
+    c0 = g.counts()
+    assert c0["touching_edges"] == 1 and c0["invalid_nodes"] == 1 and c0["singular_edges"] == 8
+    assert c0["boundary_crease_edges"] == c0["feature_mismatch_edges"] == 0
+    assert g.bad_vertices().tolist() == [c] and g.vcls[c] == INVALID
+    # the other moves have nothing to do at an arc's touching end
+    for op in (push_inside, move_off_boundary, detach_arc, zip_zipper, repair_feature_sector):
+        assert op(mesh, F, fm0, c)[1] is None
+    fm, mv = slide_touching_end(mesh, F, fm0, c)
+    assert mv is not None and mv.kind == "slide_end" and mv.delta < 0
+    g1 = SingularGraph(mesh, F, fm)
+    _check_consistent(mesh, F, fm, g1)
+    c1 = g1.counts()
+    assert c1["touching_edges"] == 0 and c1["meshable"] and c1["boundary_crease_edges"] == 0
+    assert c1["feature_mismatch_edges"] == 0 and g1.bad_vertices().size == 0
+    # the arc now goes straight up the column to w, along the top's normal; nothing is left at c
+    ec = L.vertex_edges(c)
+    assert not (g1.cls[ec[~g1.boundary[ec]]] >= 0).any() and g1.vcls[c] != INVALID
+    e = int(L.edge_id(w - 1, w)[0])
+    assert g1.cls[e] >= 0 and _TYP[g1.prod[e]] == 1 and c1["singular_edges"] == 8
+    assert g1.cost() == pytest.approx(g.cost() + mv.delta, abs=1e-9)
+    # the driver slides it; without slides no single move lowers the cost and the end stays
+    # (chains off: those of feature-sector and retract moves remove the arc at a higher cost)
+    fm2, rep = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0, slide=True)
+    assert rep.moves == {"slide_end": 1} and rep.after["touching_edges"] == 0 and rep.after["meshable"]
+    assert (fm2 == fm).all()
+    fm3, rep3 = repair_singular_graph(mesh, F, fm0, max_rounds=4, chain_depth=0, split_passes=0)  # the default
+    assert rep3.after["touching_edges"] == 1 and rep3.faces_changed == 0 and rep3.stopped == "no_move"
 
 
 # ----------------------------------------------------------------------------- the driver

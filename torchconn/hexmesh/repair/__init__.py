@@ -10,7 +10,7 @@ singular arcs across the disks without changing the frames:
 * :mod:`.disk`: the disk re-solve (:func:`solve_disk`), the one-ring cone, the link paths and
   the least-area disk spanning a loop (:func:`spanning_disk`);
 * :mod:`.ops`: the operations (push a curve off the boundary, move an arc off a boundary vertex,
-  detach an arc from an invalid node, zip a zipper node, retract a hook through the boundary,
+  slide an arc's end that touches the boundary about a tangent axis along the surface, detach an arc from an invalid node, zip a zipper node, retract a hook through the boundary,
   repair a feature sector);
 * :mod:`.driver`: :func:`repair_singular_graph`, the rounds and the :class:`RepairReport`.
 """
@@ -18,8 +18,8 @@ from .disk import MeshLookup, cone_disk, link_path, solve_disk, spanning_disk
 from .driver import RepairReport, repair_singular_graph
 from .graph import REPAIR_WEIGHTS, SingularGraph
 from .ops import (MOVE_KINDS, Move, best_move, detach_arc, move_off_boundary, push_inside, repair_feature_sector,
-                  retract_hook, zip_zipper)
+                  retract_hook, slide_touching_end, zip_zipper)
 
 __all__ = ["repair_singular_graph", "RepairReport", "SingularGraph", "REPAIR_WEIGHTS", "MeshLookup", "solve_disk",
            "cone_disk", "spanning_disk", "link_path", "Move", "MOVE_KINDS", "best_move", "push_inside",
-           "move_off_boundary", "detach_arc", "zip_zipper", "retract_hook", "repair_feature_sector"]
+           "move_off_boundary", "slide_touching_end", "detach_arc", "zip_zipper", "retract_hook", "repair_feature_sector"]

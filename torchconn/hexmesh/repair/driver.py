@@ -26,7 +26,7 @@ import torch
 
 from .disk import MeshLookup
 from .graph import SingularGraph
-from .ops import best_move, candidate_moves
+from .ops import MOVE_KINDS, best_move, candidate_moves, touching_ends
 
 __all__ = ["RepairReport", "repair_singular_graph", "chain_move"]
 
@@ -150,7 +150,7 @@ def chain_move(g: SingularGraph, lookup: MeshLookup, v: int, depth: int = 8, kin
 
 
 def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None, *, max_rounds: int = 30,
-                          chain_depth: int = 8, split_passes: int = 3, weights: dict | None = None, features: bool = True, progress: bool = False
+                          chain_depth: int = 8, split_passes: int = 3, slide: bool = False, weights: dict | None = None, features: bool = True, progress: bool = False
                           ) -> tuple[np.ndarray, RepairReport]:
     """Repair the face matchings so that the edge-based singular graph meets LMFF's conditions.
 
@@ -163,6 +163,11 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         split_passes: when a round makes no move, split the constrained edges around the stuck
             vertices (:func:`room_edges`) and go on, at most this many times (0: never split;
             then the returned matchings are on the input mesh).
+        slide: also slide the ends of arcs that touch the boundary about a tangent axis along
+            the surface (:func:`.ops.slide_moves`, single and in chains; chains also start at
+            touching ends). Off by default: on the 17 simple HexMe models (SH fields) it leaves
+            9 touching edges instead of 19 and no zipper node instead of 1, but no map becomes
+            valid and the repair takes about twice as long (docs/results/structures.md).
         weights: overrides of :data:`.graph.REPAIR_WEIGHTS`.
         features: take sharp features from the mesh.
         progress: a tqdm bar over the rounds.
@@ -191,6 +196,7 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         bar = tqdm(total=max_rounds, desc="repair", unit="round", leave=False)
     stopped, r, n_split, passes = "budget", 0, 0, 0
     clock, stamp, failed = 1, np.ones(g.V, np.int64), np.zeros(g.V, np.int64)
+    kinds = None if slide else tuple(k for k in MOVE_KINDS if k != "slide_end")
     try:
         while r < max_rounds:
             r += 1
@@ -206,12 +212,13 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                 if failed[v] >= stamp[v]:  # nothing changed near v since it found no move
                     stuck.append(v)
                     continue
-                mv = best_move(g, lookup, v)
+                mv = best_move(g, lookup, v, kinds)
                 if mv is not None:
                     g.set_matchings(mv.faces, mv.values)
                     kept = [mv]
-                elif chain_depth > 0 and g.vertex_cost(np.array([v]))[0] > 0:  # chains start at conditions
-                    kept = chain_move(g, lookup, v, chain_depth)
+                elif chain_depth > 0 and (g.vertex_cost(np.array([v]))[0] > 0
+                                          or (slide and touching_ends(g, lookup, v).size)):
+                    kept = chain_move(g, lookup, v, chain_depth, kinds)  # chains start at conditions (and touching ends)
                 else:
                     kept = []
                 for mv in kept:

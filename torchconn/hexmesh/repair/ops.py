@@ -19,6 +19,11 @@ and the edges moved:
   time: LMFF's "push singular vertices on the boundary into the interior";
 * ``move_off``: an arc touching the boundary (both edges interior, ``v`` on the boundary)
   detached from ``v``: LMFF's "arcs touching feature faces tangentially";
+* ``slide_end``: an arc that ends at a boundary vertex about a tangent axis (a touching end:
+  on a curved face, or on a feature curve whose other face is tangent to the axis) slides its
+  end one ring along the surface (:func:`slide_moves`), chains of slides several rings, to
+  where the axis is the surface normal: LMFF's "arcs touching feature faces tangentially" for
+  an arc's end;
 * ``detach``: an arc detached from an invalid interior node (the dual-path search for an
   anti-parallel partner arc at the node is the search over pairs and paths here);
 * ``zip``: at a zipper node (an arc doubling back), the tip moved across the cone, which
@@ -47,13 +52,13 @@ from ..meshability import INVALID, ZIPPER, fan_quarters
 from .disk import MeshLookup, cone_disk, link_path, solve_disk, spanning_disk
 from .graph import _AXIS, SingularGraph
 
-__all__ = ["Move", "MOVE_KINDS", "best_move", "special_edges", "candidate_moves", "retract_moves", "push_inside",
-           "move_off_boundary", "detach_arc", "zip_zipper", "retract_hook", "repair_feature_sector"]
+__all__ = ["Move", "MOVE_KINDS", "best_move", "special_edges", "candidate_moves", "retract_moves", "slide_moves",
+           "touching_ends", "push_inside", "move_off_boundary", "slide_touching_end", "detach_arc", "zip_zipper", "retract_hook", "repair_feature_sector"]
 
 PATH_MODES = ("aligned", "monotone")
 """Weightings of :func:`.disk.link_path` the candidates are drawn with."""
 
-MOVE_KINDS = ("push_inside", "move_off", "detach", "zip", "retract", "feature_sector", "other")
+MOVE_KINDS = ("push_inside", "move_off", "slide_end", "detach", "zip", "retract", "feature_sector", "other")
 """Kinds of :class:`Move` (module docstring)."""
 
 
@@ -116,6 +121,8 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
     with its cost change, as :class:`Move` s."""
     if g.vcls[v] == ZIPPER and (kinds is None or "retract" in kinds):
         yield from retract_moves(g, lookup, v)
+    if g.on_b[v] and (kinds is None or "slide_end" in kinds):
+        yield from slide_moves(g, lookup, v, n_paths)
     sp_e = special_edges(g, lookup, v)
     seen = set()  # the pair (e2, e1) over the reversed path often makes the same singular graph
     for e1 in sp_e.tolist():
@@ -162,6 +169,77 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
                     seen.add(key)
                     yield Move(vertex=int(v), edges=(int(e1), int(e2)), path=path, faces=faces, values=vals,
                                delta=after - before, kind=kind)
+
+
+def touching_ends(g: SingularGraph, lookup: MeshLookup, v: int) -> np.ndarray:
+    """Interior singular edges at the boundary vertex ``v`` that touch the boundary there about a
+    tangent axis (their turn axis more than 45° from the normal of a boundary face at ``v``:
+    :func:`~torchconn.hexmesh.meshability.tangent_axes`)."""
+    es = lookup.vertex_edges(v)
+    es = es[~g.boundary[es] & (g.cls[es] >= 0) & (g.cls[es] != 4)]
+    return es[g.tang[es, np.maximum(_AXIS[g.prod[es]], 0)]]
+
+
+def slide_moves(g: SingularGraph, lookup: MeshLookup, v: int, n_paths: int = 2):
+    """The ``slide_end`` moves at a boundary vertex ``v`` where an arc ends touching the boundary
+    about a tangent axis, as :class:`Move` s.
+
+    The arc ``.. a - v`` ends at ``v`` and nothing else is to repair there (an arc passing
+    through ``v`` is ``move_off``'s; a singular curve on the boundary at ``v``, or a feature
+    fan of the wrong angle, is ``push_inside``'s or ``feature_sector``'s first: slides there
+    lead the rounds to worse states, measured on s13c). For each boundary edge ``e2 = (v, w)`` and link path ``a -> w``
+    (:func:`.disk.link_path`, the arc's axis), the cone over the path is re-solved with
+    ``e1 = (v, a)`` regular: the arc now runs ``a - p_1 - .. - w`` and ends at ``w``, one ring
+    along the surface; the fan of ``e2`` turns by the arc's rotation, which keeps it flat where
+    the arc's axis is the surface normal there. Chains of slides (:func:`.driver.chain_move`)
+    carry the end over several rings to where the axis is the normal.
+    """
+    e1s = touching_ends(g, lookup, v)
+    if not e1s.size:
+        return
+    es = lookup.vertex_edges(v)
+    c = g.cls[es]
+    q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+    bnd = g.boundary[es]
+    other = (~bnd & (c >= 0)).sum() > 1 or (bnd & ~g.sharp[es] & (q != 2)).any() or \
+        (bnd & g.sharp[es] & (q != g.expected[es])).any()
+    if other:  # an arc through v, or a curve on the boundary (or a feature's fan) still to repair there
+        return
+    e1 = int(e1s[0])
+    a = lookup.other_end(e1, v)
+    k = _AXIS[g.prod[e1]]
+    axis = g.frames[g.walks.start[e1]][:, max(int(k), 0)]
+    seen = set()
+    for e2 in es[g.boundary[es]].tolist():
+        w = lookup.other_end(e2, v)
+        paths = []
+        for mode in PATH_MODES:
+            p = link_path(g, lookup, v, a, w, axis, mode=mode)
+            if p is not None:
+                paths.append(p)
+                if n_paths > 1 and p.size > 2:
+                    q = link_path(g, lookup, v, a, w, axis, blocked=p[1:-1], mode=mode)
+                    if q is not None:
+                        paths.append(q)
+        for path in paths:
+            cone = cone_disk(lookup, v, path)
+            if cone is None:
+                continue
+            faces, inside, _ = cone
+            vals = solve_disk(g, faces, int(faces[0]), e1, 0, inside)
+            if vals is None or (vals == g.match[faces]).all():
+                continue
+            before = g.local_cost(faces)
+            token = g.set_matchings(faces, vals)
+            after = g.local_cost(faces)
+            ee = np.unique(g.face_edges[faces])
+            key = (tuple(ee.tolist()), tuple(g.prod[ee].tolist()))
+            g.undo(token)
+            if key in seen:
+                continue
+            seen.add(key)
+            yield Move(vertex=int(v), edges=(e1, int(e2)), path=path, faces=faces, values=vals,
+                       delta=after - before, kind="slide_end")
 
 
 def _branch(g: SingularGraph, lookup: MeshLookup, v: int, e: int, max_len: int) -> list[int]:
@@ -296,6 +374,12 @@ def move_off_boundary(mesh, tet_frames, face_match, vertex: int, *, weights: dic
     """Detach an arc that touches the boundary at ``vertex`` (both its edges interior) from it.
     Returns ``(face_match (F,), Move or None)``."""
     return _apply(("move_off",), mesh, tet_frames, face_match, vertex, weights)
+
+
+def slide_touching_end(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
+    """Slide the end of an arc that touches the boundary at ``vertex`` about a tangent axis one
+    ring along the surface (:func:`slide_moves`). Returns ``(face_match (F,), Move or None)``."""
+    return _apply(("slide_end",), mesh, tet_frames, face_match, vertex, weights)
 
 
 def detach_arc(mesh, tet_frames, face_match, vertex: int, *, weights: dict | None = None):
