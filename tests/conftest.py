@@ -88,10 +88,6 @@ SLOW_IDS = frozenset({
     "tests/test_cad.py::test_connection_method_follows_the_cad_curves[notch]",  # sibling: [prism]
     "tests/test_ops_library_curvature.py::test_curvature_opcheck_full[dtype2-True]",
     "tests/test_sh_baseline.py::test_gear_runs_and_aligns",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[off-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[FALSE-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[no-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[1-True]",
 })
 
 
