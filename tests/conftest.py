@@ -2,10 +2,18 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
-import pytest
-import torch
+# Before torch loads, as ``import torchconn`` does for its users (torchconn/__init__.py): torch's
+# OpenMP threads sleep at a barrier instead of spinning. Without it (pytest imports torch here,
+# first), a hex-mesh test on 2 cores with one held by another process ran 3-5x longer
+# (test_complex_singularity_...: 35.7 s spinning, 11.6 s passive). A value already set is kept.
+if "torch" not in sys.modules:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # ../shared/data beside the repository (DEVELOPERS.md); overridable for other layouts.
 DATA_DIR = Path(os.environ.get("TORCHCONN_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
