@@ -2,10 +2,18 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
-import pytest
-import torch
+# Before torch loads, as ``import torchconn`` does for its users (torchconn/__init__.py): torch's
+# OpenMP threads sleep at a barrier instead of spinning. Without it (pytest imports torch here,
+# first), a hex-mesh test on 2 cores with one held by another process ran 3-5x longer
+# (test_complex_singularity_...: 35.7 s spinning, 11.6 s passive). A value already set is kept.
+if "torch" not in sys.modules:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # ../shared/data beside the repository (DEVELOPERS.md); overridable for other layouts.
 DATA_DIR = Path(os.environ.get("TORCHCONN_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -88,10 +96,6 @@ SLOW_IDS = frozenset({
     "tests/test_cad.py::test_connection_method_follows_the_cad_curves[notch]",  # sibling: [prism]
     "tests/test_ops_library_curvature.py::test_curvature_opcheck_full[dtype2-True]",
     "tests/test_sh_baseline.py::test_gear_runs_and_aligns",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[off-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[FALSE-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[no-False]",
-    "tests/test_ops_backend.py::test_environment_variable_initializes_the_switch[1-True]",
 })
 
 

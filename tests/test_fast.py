@@ -19,6 +19,7 @@ from torchconn.ops import tet_solder as ops_tet_solder
 from torchconn.ops import torsion as ops_torsion
 from torchconn.dec.connection import Connection
 from torchconn.dec.transport import orient
+from torchconn.mesh import TetMesh
 
 DTYPES = [torch.float32, torch.float64]
 TOL = {torch.float32: 2e-6, torch.float64: 1e-13}
@@ -140,6 +141,12 @@ def _setup(dtype, n=3, scale=0.6, seed=0):
     return mesh, conn.edge_rot
 
 
+def _two_tets():
+    """Two tets sharing a face (9 edges, 7 faces): the smallest complex with shared edges and faces."""
+    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.2]], dtype=torch.float64)
+    return TetMesh(v, [[0, 1, 2, 3], [1, 2, 3, 4]], reorient=True)
+
+
 def _generic_dd(edge_rot, mesh, frames=None, half_rot=None):
     """The dense generic path (𝔡∇ Alt 𝔡∇ Alt θ̃ through the tuple machinery)."""
     T = dnabla.tet_transports(edge_rot, mesh)
@@ -217,12 +224,15 @@ def test_tet_dd_fused_gradcheck():
 
 
 def test_tet_dd_fused_gradgradcheck():
-    """The hand-written backward is itself differentiable (create_graph, double backward)."""
+    """The hand-written backward is itself differentiable (create_graph, double backward). Fast
+    mode on the cube (285 inputs: the full Jacobian of the backward took 15-23 s); the full
+    ``gradgradcheck`` of ``tet_dd`` is ``test_ops_library_tet.py::test_gradcheck_and_gradgradcheck``
+    (two tets)."""
     mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=4)
     k = ops_tet.tet_kernel(mesh)
     th = torch.randn(R.shape[0], 2, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     fused = lambda A, t: ops_tet.tet_dd(A, t, k)  # noqa: E731
-    assert gradgradcheck(fused, (R.clone().requires_grad_(), th.clone().requires_grad_()))
+    assert gradgradcheck(fused, (R.clone().requires_grad_(), th.clone().requires_grad_()), fast_mode=True)
     # one input differentiated only (needs_input_grad of the recorded backward)
     assert gradgradcheck(lambda A: fused(A, th), (R.clone().requires_grad_(),), fast_mode=True)
     assert gradgradcheck(lambda t: fused(R, t).square(), (th.clone().requires_grad_(),), fast_mode=True)
@@ -277,8 +287,10 @@ def test_face_curvature_fused_gradcheck(kind):
 
 @pytest.mark.parametrize("kind", [0, 1, 2])
 def test_face_curvature_fused_gradgradcheck(kind):
-    """The hand-written backward is itself differentiable (create_graph, double backward)."""
-    mesh, R = _setup(torch.float64, n=1, scale=0.8, seed=6)
+    """The hand-written backward is itself differentiable (create_graph, double backward); on two
+    tets sharing a face (on the cube, 19 edges, it took 3-6 s per kind)."""
+    mesh = _two_tets()
+    R = Connection.random_on_mesh(mesh, generator=torch.Generator().manual_seed(6), scale=0.8).edge_rot
     A = R.clone().requires_grad_()
     assert gradgradcheck(lambda A: ops_curvature.face_curvature(A, mesh, kind), (A,))
     # an incoming gradient in the output's component-major layout

@@ -82,9 +82,10 @@ def test_edge_face_incidence_lists_the_faces_of_every_edge(cyl):
 
 def test_repair_matches_the_slow_reference(small):
     m, noisy, _ = small
-    idx, info = repair_matchings(noisy, m, max_moves=6)
-    ref_idx, ref_moves = _slow_repair(noisy, m, 0.5, FACE_COSTS, 6)
-    assert len(ref_moves) == 6
+    # 3 greedy moves (two state updates after a move; 6 took 8 s on 2 loaded cores, the loop's cost)
+    idx, info = repair_matchings(noisy, m, max_moves=3)
+    ref_idx, ref_moves = _slow_repair(noisy, m, 0.5, FACE_COSTS, 3)
+    assert len(ref_moves) == 3
     assert [(mv[0], mv[2]) for mv in info["moves"]] == ref_moves
     assert torch.equal(idx, ref_idx)
 

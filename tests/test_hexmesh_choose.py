@@ -10,6 +10,12 @@ from torchconn.hexmesh.choose import hex_chooser
 from torchconn.mesh.builtin import box
 
 
+# The hex-mesh options of every chooser here: the singular-graph repair off (the noisy field's hex
+# mesh then fails its structure gate in ~0.8 s instead of ~4 s of repair; the chooser's logic does
+# not depend on why a hex mesh is not good; the repair is tests/test_hexmesh_repair.py's).
+HEX = {"edge_length": 0.25, "repair": False}
+
+
 def _cands(mesh):
     V = mesh.n_vertices
     eye = torch.eye(3, dtype=torch.float64).expand(V, 3, 3).clone()
@@ -28,7 +34,7 @@ def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it(monkeypatch):
     monkeypatch.setattr(one_ring, "one_ring_test", lambda *a, **k: tested.append(1) or real(*a, **k))
     mesh = box(1)
     cands = _cands(mesh)
-    choose = hex_chooser(edge_length=0.25)
+    choose = hex_chooser(**HEX)
     idx, info = choose(mesh, cands)
     assert len(tested) == 1  # two candidates meshed, the one-ring test run on the chosen one only
     assert idx == 1 and info["by"] == "hex" and info["reason"] == "a valid map and a good hex mesh"
@@ -36,7 +42,7 @@ def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it(monkeypatch):
     frames, kept = choose.chosen
     assert frames is cands[1].frames and kept.good
     # what it keeps is the hex mesh of that field with those options: no need to mesh it again
-    again = hex_mesh(mesh, cands[1].frames, edge_length=0.25)
+    again = hex_mesh(mesh, cands[1].frames, **HEX)
     assert torch.equal(torch.as_tensor(kept.hexes), torch.as_tensor(again.hexes))
     assert torch.equal(torch.as_tensor(kept.points), torch.as_tensor(again.points))
     g, h = kept.gates["structure"], again.gates["structure"]
@@ -67,12 +73,12 @@ def test_the_chooser_makes_the_stages_only_until_a_good_hex_mesh():
     mesh = box(1)
     calls = []
     stack = _stack(mesh, ("good", "noisy"), calls)
-    idx, info = hex_chooser(edge_length=0.25)(mesh, stack)
+    idx, info = hex_chooser(**HEX)(mesh, stack)
     assert calls == ["good"] and stack.info["stages"] == ["optimized:good"]  # the second start never optimized
     assert idx == 0 and info["stopped"] == "the first good hex mesh" and [r["good"] for r in info["meshed"]] == [True]
     calls = []
     stack = _stack(mesh, ("noisy", "good"), calls)
-    idx, info = hex_chooser(edge_length=0.25)(mesh, stack)
+    idx, info = hex_chooser(**HEX)(mesh, stack)
     # the first start's field does not mesh well: the next stage is made, its field meshed, and the
     # quality paths (stage 3) are never made
     assert calls == ["noisy", "good"] and stack.info["stages"] == ["optimized:noisy", "optimized:good"]
@@ -84,8 +90,8 @@ def test_the_chooser_without_first_good_makes_and_meshes_everything():
     mesh = box(1)
     calls = []
     stack = _stack(mesh, ("good", "noisy"), calls, paths=())
-    idx, info = hex_chooser(edge_length=0.25, first_good=False)(mesh, stack)
+    idx, info = hex_chooser(first_good=False, **HEX)(mesh, stack)
     assert calls == ["good", "noisy"] and stack.done and stack.next_stage() is None
     assert stack[idx].start == "good" and info["stopped"] == "every candidate meshed" and len(info["meshed"]) == 2
-    capped = hex_chooser(1, edge_length=0.25, first_good=False)(mesh, _stack(mesh, ("noisy", "good"), [], paths=()))[1]
+    capped = hex_chooser(1, first_good=False, **HEX)(mesh, _stack(mesh, ("noisy", "good"), [], paths=()))[1]
     assert capped["stopped"] == "max_candidates=1 meshed" and len(capped["meshed"]) == 1

@@ -12,7 +12,7 @@ import torch
 import torchconn.ops
 from torchconn import io, so3
 from torchconn.frames.loss import FrameFieldLoss, TERMS
-from torchconn.ops import native
+from torchconn.ops import backend, native
 
 PACKAGE = Path(torchconn.ops.__file__).resolve().parent.parent
 
@@ -83,13 +83,26 @@ def test_switch_off_equals_compiled_path(dtype):
     torch.testing.assert_close(gp_on, gp_off, atol=tol * scale, rtol=0)
 
 
-@pytest.mark.parametrize("value,expected", [("0", False), ("off", False), ("FALSE", False), ("no", False),
-                                            ("1", True), ("", True)])
-def test_environment_variable_initializes_the_switch(value, expected):
-    env = {**os.environ, "TORCHCONN_NATIVE": value}
+def test_environment_variable_initializes_the_switch():
+    """A fresh process started with ``TORCHCONN_NATIVE=0`` has the switch off from its import on
+    (one process: ~10 s on 2 loaded cores; the values are read by ``_from_env``, tested below)."""
+    env = {**os.environ, "TORCHCONN_NATIVE": "0"}
     code = "import torchconn.ops as o; print(o.compiled_enabled())"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == str(expected)
+    assert out.stdout.strip() == "False"
+    # and this process, started without the variable set to an off value, started with it on
+    assert torchconn.ops.compiled_enabled() == backend._from_env()
+
+
+@pytest.mark.parametrize("value,expected", [("0", False), ("off", False), ("FALSE", False), ("no", False),
+                                            (" No ", False), ("1", True), ("", True), ("yes", True), (None, True)])
+def test_environment_variable_values(value, expected, monkeypatch):
+    """The value the switch starts from, for each spelling (``None``: the variable unset)."""
+    if value is None:
+        monkeypatch.delenv("TORCHCONN_NATIVE", raising=False)
+    else:
+        monkeypatch.setenv("TORCHCONN_NATIVE", value)
+    assert backend._from_env() is expected
 
 
 #: The kernel packages: the core ops and the frame-field ops (torchconn/frames/kernels, whose C

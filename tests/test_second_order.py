@@ -19,6 +19,7 @@ from torch.autograd import gradgradcheck
 import torchconn.ops
 from torchconn import AveragedCovariantD, ConnectionField, Curvature, Torsion, curvature, dnabla, io, so3
 from torchconn.frames.loss import FrameFieldLoss
+from torchconn.mesh import TetMesh
 from torchconn.ops import curvature as ops_curvature
 from torchconn.ops import native
 from torchconn.ops import tet as ops_tet
@@ -38,6 +39,13 @@ def _frames(mesh, seed):
 
 # ---------------------------------------------------------------- gradgradcheck through so3.exp
 
+
+def _two_tets():
+    """Two tets sharing a face (9 edges, 7 faces): the gradgradchecks' complex (tets sharing edges
+    and faces, edges used in both directions; on ``io.box(1)``, 19 edges, they took 3-13 s each)."""
+    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.2]], dtype=DT)
+    return TetMesh(v, [[0, 1, 2, 3], [1, 2, 3, 4]], reorient=True)
+
 MODULES = {
     "Curvature(two_prong)": lambda m: Curvature(m),
     "Curvature(two_prong, cut b)": lambda m: Curvature(m, cut=1),
@@ -49,14 +57,14 @@ MODULES = {
 
 @pytest.mark.parametrize("name", list(MODULES))
 def test_module_gradgradcheck_through_exp(name):
-    mesh = io.box(1)
+    mesh = _two_tets()
     mod = MODULES[name](mesh)
     w = _skew(mesh, seed=1).requires_grad_()
     assert gradgradcheck(lambda p: mod(so3.exp(p)), (w,))
 
 
 def test_module_with_frames_gradgradcheck_through_exp():
-    mesh = io.box(1)
+    mesh = _two_tets()
     frames = _frames(mesh, 2)
     w = _skew(mesh, seed=3).requires_grad_()
     assert gradgradcheck(lambda p: AveragedCovariantD(mesh)(so3.exp(p), frames), (w,))
@@ -64,14 +72,14 @@ def test_module_with_frames_gradgradcheck_through_exp():
 
 @pytest.mark.parametrize("cut,kind", [(-1, "two_prong"), (1, "two_prong"), (-1, "holonomy")])
 def test_functional_face_curvature_gradgradcheck(cut, kind):
-    mesh = io.box(1)
+    mesh = _two_tets()
     w = _skew(mesh, seed=4).requires_grad_()
     assert gradgradcheck(lambda p: curvature.face_curvature(so3.exp(p), mesh, cut=cut, kind=kind), (w,))
 
 
 @pytest.mark.parametrize("variant", ["sqrt", "half_exp", "frames"])
 def test_functional_averaged_dd_solder_gradgradcheck(variant):
-    mesh = io.box(1)
+    mesh = _two_tets()
     frames = _frames(mesh, 5) if variant == "frames" else None
 
     def f(p):

@@ -18,7 +18,7 @@ with the compiled kernels on and off (``torchconn.ops.compiled``):
   eager call. The full compile matrix is ``slow`` (one fresh process per case, ~1 min each on
   2 cores); the default suite runs issue 24's loss (so3.exp, Curvature, Torsion,
   AveragedCovariantD) with ``backend="eager"`` cold and warm, then inductor cold, in one
-  subprocess (~20 s CPU), and BianchiCheck's documented compile error in process (~1 s).
+  subprocess (~20 s CPU; its kernel cache holds the C kernels built by the test process), and BianchiCheck's documented compile error in process (~1 s).
 
 A combination either matches eager autograd or raises the documented error listed in
 ``transform_cases.DOCUMENTED_ERRORS`` (``BianchiCheck`` under ``vmap`` and ``torch.compile``: a
@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -166,11 +167,26 @@ def test_transform_matrix(name, transform, dtype, on):
 
 # ----------------------------------------------------------------------------- compile (subprocess)
 
-def _compile_runner(tmp_path: Path, args: list[str], timeout: float) -> list[dict]:
-    """Run ``transform_cases.py`` in a fresh process with empty torchconn and inductor caches."""
+def _prebuilt_kernel_cache(folder: Path) -> None:
+    """Fill ``folder`` with this process's built kernel libraries (``ops/csrc``: built here, or
+    loaded from this process's cache) so the fresh process loads them instead of compiling them
+    again with ``cc`` (~20 s on 2 cores); it still loads each one for the first time under
+    ``torch.compile``. Building into an empty cache is tested by ``test_native.py``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for src in sorted(native.CSRC.glob("*.c")):
+        lib = native.library(src.stem)
+        if lib is not None:
+            shutil.copy2(lib._name, folder / Path(lib._name).name)
+
+
+def _compile_runner(tmp_path: Path, args: list[str], timeout: float, prebuilt: bool = False) -> list[dict]:
+    """Run ``transform_cases.py`` in a fresh process with empty inductor caches and an empty
+    torchconn kernel cache (``prebuilt``: one holding the kernels built here)."""
     env = dict(os.environ)
     env.update(TORCHCONN_CACHE=str(tmp_path / "torchconn"), TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"),
                TRITON_CACHE_DIR=str(tmp_path / "triton"))
+    if prebuilt:
+        _prebuilt_kernel_cache(tmp_path / "torchconn")
     proc = subprocess.run([sys.executable, str(HERE / "transform_cases.py"), *args], capture_output=True,
                           text=True, env=env, timeout=timeout, cwd=tmp_path)
     rows = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
@@ -197,9 +213,11 @@ def test_compile_module_loss_fresh_process(tmp_path):
     caches: ``backend="eager"`` as the first call of fresh modules (the tet schedule and the
     curvature tables built while dynamo traces: NumPy on a fake tensor before the fix), again
     after an eager call (the guard on the vertex tensor's ``_version``), and inductor as the
-    first call of other fresh modules; value and gradient against eager autograd. ~30 s."""
+    first call of other fresh modules; value and gradient against eager autograd. The kernel
+    cache holds the libraries built by this process (loaded, not rebuilt, by the fresh one: the
+    build is ``test_native.py``'s, and cost ~20 s here). ~25 s on 2 cores."""
     rows = _compile_runner(tmp_path, ["--cases", "pipeline", "--backends", "eager,inductor", "--dtypes", "float64",
-                                      "--switch", "on"], timeout=600)
+                                      "--switch", "on"], timeout=600, prebuilt=True)
     assert [(r["backend"], r["when"]) for r in rows] == [("eager", "cold"), ("eager", "warm"), ("inductor", "cold")]
     for row in rows:
         _judge(row)
