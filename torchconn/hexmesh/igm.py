@@ -226,7 +226,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     # ------------------------------------------------------------------ 2. frames
     targets = None
     map_frames = st.tet_frames
-    if fixed_holonomy and st.gate.passed:
+    if fixed_holonomy and st.gate.passed and st.face_match is not None:  # None: the frames' own matchings
         from ..frames.fixed_holonomy import fixed_holonomy_frames
 
         t0 = time.perf_counter()
