@@ -51,8 +51,7 @@ Cases
    one-thread time / default-threads time (issue 24's target with the spinner: >= 1/1.5).
 
 Timing: each figure is the median of ``--repeats`` runs after one warm-up run; fast and
-reference are measured alternately in the same process (``ratio`` is taken side by side), a fast
-run that follows a reference run after one more untimed fast run (:func:`_side_by_side`). The
+reference are measured alternately in the same process (``ratio`` is taken side by side). The
 operator and loss rows also record ``cpu_seconds``, the median process CPU time (all threads) of
 the fast runs: on a machine other processes load, wall time measures the load too, CPU time much
 less (the table prints it in the note). At
@@ -195,28 +194,19 @@ _LAST_CPU = {"fast": None}
 
 def _side_by_side(fast_fn, ref_fn, repeats: int, ref_repeats: int | None = None):
     """Medians of alternated runs after one warm-up each: ``(fast_s, ref_s)`` (wall time); the
-    median process CPU time of the fast runs goes to ``_LAST_CPU["fast"]``.
-
-    A fast run that follows a reference run is preceded by one more untimed fast run: the fast
-    path is timed warm, as a training loop runs it, not just after a reference that allocated
-    and freed several GB (at 1M tets that cold run measured 0.72 s against 0.40 s warm for the
-    default loss, 2026-11-27)."""
+    median process CPU time of the fast runs goes to ``_LAST_CPU["fast"]``."""
     ref_repeats = repeats if ref_repeats is None else ref_repeats
     fast_fn()
     if ref_fn is not None:
         ref_fn()
     tf, tr, cf = [], [], []
-    after_ref = ref_fn is not None
     for i in range(max(repeats, ref_repeats)):
         if i < repeats:
-            if after_ref:
-                fast_fn()
             c0, t0 = time.process_time(), time.perf_counter()
             fast_fn()
             tf.append(time.perf_counter() - t0)
             cf.append(time.process_time() - c0)
-        after_ref = ref_fn is not None and i < ref_repeats
-        if after_ref:
+        if ref_fn is not None and i < ref_repeats:
             t0 = time.perf_counter()
             ref_fn()
             tr.append(time.perf_counter() - t0)

@@ -416,25 +416,3 @@ def test_comb_frames_relabels_only_and_combs_tree_edges(box, gen):
     for lv in tree.levels:
         idx, _ = octahedral.match(C[lv.parent], C[lv.child])
         assert (idx == 0).all()
-
-
-def test_benchmark_times_the_fast_path_warm_after_a_reference_run():
-    """``benchmarks.run._side_by_side``: alternated runs, and a timed fast run never directly
-    follows a reference run (an untimed fast run comes between)."""
-    from benchmarks.run import _side_by_side
-
-    calls = []
-
-    def fast():
-        calls.append("f")
-
-    def ref():
-        calls.append("r")
-
-    t, tr = _side_by_side(fast, ref, 3, 1)
-    assert t >= 0 and tr >= 0
-    # warm-ups f r; then (untimed f, timed f) r; then (untimed f, timed f); then timed f
-    assert calls == ["f", "r", "f", "f", "r", "f", "f", "f"]
-    calls.clear()
-    _side_by_side(fast, None, 2)
-    assert calls == ["f", "f", "f"]
