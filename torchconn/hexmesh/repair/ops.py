@@ -116,6 +116,41 @@ def _kind(g: SingularGraph, v: int, e1: int, e2: int) -> str:
     return "other"
 
 
+def _link_paths(g: SingularGraph, lookup: MeshLookup, v: int, a: int, b: int, axis, n_paths: int,
+                modes=PATH_MODES) -> list:
+    """Link paths ``a -> b`` around ``v`` (:func:`.disk.link_path`): per weighting of ``modes``
+    the shortest and, with ``n_paths > 1``, the shortest around its inside."""
+    paths = []
+    for mode in modes:
+        p = link_path(g, lookup, v, a, b, axis, mode=mode)
+        if p is not None:
+            paths.append(p)
+            if n_paths > 1 and p.size > 2:
+                q = link_path(g, lookup, v, a, b, axis, blocked=p[1:-1], mode=mode)
+                if q is not None:
+                    paths.append(q)
+    return paths
+
+
+def _try_disk(g: SingularGraph, faces, seed: int, e1: int, target: int, inside, seen: set):
+    """Re-solve the disk ``faces`` so that ``e1`` takes ``target`` (:func:`.disk.solve_disk`), try it
+    on ``g`` and undo it: ``(values, cost change)``, or ``None`` when there is no new solution or
+    it makes a singular graph already in ``seen`` (which it joins)."""
+    vals = solve_disk(g, faces, seed, e1, target, inside)
+    if vals is None or (vals == g.match[faces]).all():
+        return None
+    before = g.local_cost(faces)
+    token = g.set_matchings(faces, vals)
+    after = g.local_cost(faces)
+    es = np.unique(g.face_edges[faces])
+    key = (tuple(es.tolist()), tuple(g.prod[es].tolist()))  # the same singular graph
+    g.undo(token)
+    if key in seen:
+        return None
+    seen.add(key)
+    return vals, after - before
+
+
 def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2):
     """Every cone move at ``v`` and, at a zipper node, every ``retract`` move (module docstring)
     with its cost change, as :class:`Move` s."""
@@ -138,15 +173,7 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
                 k = _AXIS[g.prod[e1]]
                 if k >= 0:
                     axis = g.frames[g.walks.start[e1]][:, k]
-            paths = []
-            for mode in (PATH_MODES if axis is not None else PATH_MODES[:1]):
-                p = link_path(g, lookup, v, a, b, axis, mode=mode)
-                if p is not None:
-                    paths.append(p)
-                    if n_paths > 1 and p.size > 2:
-                        q = link_path(g, lookup, v, a, b, axis, blocked=p[1:-1], mode=mode)
-                        if q is not None:
-                            paths.append(q)
+            paths = _link_paths(g, lookup, v, a, b, axis, n_paths, PATH_MODES if axis is not None else PATH_MODES[:1])
             seen = set()
             paths = [p for p in paths if not (tuple(p.tolist()) in seen or seen.add(tuple(p.tolist())))]
             for path in paths:
@@ -155,20 +182,10 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
                     continue
                 faces, inside, _ = cone
                 for target in _targets(g, e1):
-                    vals = solve_disk(g, faces, int(faces[0]), e1, target, inside)
-                    if vals is None or (vals == g.match[faces]).all():
-                        continue
-                    before = g.local_cost(faces)
-                    token = g.set_matchings(faces, vals)
-                    after = g.local_cost(faces)
-                    es = np.unique(g.face_edges[faces])
-                    key = (tuple(es.tolist()), tuple(g.prod[es].tolist()))  # the same singular graph
-                    g.undo(token)
-                    if key in seen:
-                        continue
-                    seen.add(key)
-                    yield Move(vertex=int(v), edges=(int(e1), int(e2)), path=path, faces=faces, values=vals,
-                               delta=after - before, kind=kind)
+                    tried = _try_disk(g, faces, int(faces[0]), e1, target, inside, seen)
+                    if tried is not None:
+                        yield Move(vertex=int(v), edges=(int(e1), int(e2)), path=path, faces=faces, values=tried[0],
+                                   delta=tried[1], kind=kind)
 
 
 def touching_ends(g: SingularGraph, lookup: MeshLookup, v: int) -> np.ndarray:
@@ -212,34 +229,15 @@ def slide_moves(g: SingularGraph, lookup: MeshLookup, v: int, n_paths: int = 2):
     seen = set()
     for e2 in es[g.boundary[es]].tolist():
         w = lookup.other_end(e2, v)
-        paths = []
-        for mode in PATH_MODES:
-            p = link_path(g, lookup, v, a, w, axis, mode=mode)
-            if p is not None:
-                paths.append(p)
-                if n_paths > 1 and p.size > 2:
-                    q = link_path(g, lookup, v, a, w, axis, blocked=p[1:-1], mode=mode)
-                    if q is not None:
-                        paths.append(q)
-        for path in paths:
+        for path in _link_paths(g, lookup, v, a, w, axis, n_paths):
             cone = cone_disk(lookup, v, path)
             if cone is None:
                 continue
             faces, inside, _ = cone
-            vals = solve_disk(g, faces, int(faces[0]), e1, 0, inside)
-            if vals is None or (vals == g.match[faces]).all():
-                continue
-            before = g.local_cost(faces)
-            token = g.set_matchings(faces, vals)
-            after = g.local_cost(faces)
-            ee = np.unique(g.face_edges[faces])
-            key = (tuple(ee.tolist()), tuple(g.prod[ee].tolist()))
-            g.undo(token)
-            if key in seen:
-                continue
-            seen.add(key)
-            yield Move(vertex=int(v), edges=(e1, int(e2)), path=path, faces=faces, values=vals,
-                       delta=after - before, kind="slide_end")
+            tried = _try_disk(g, faces, int(faces[0]), e1, 0, inside, seen)
+            if tried is not None:
+                yield Move(vertex=int(v), edges=(e1, int(e2)), path=path, faces=faces, values=tried[0],
+                           delta=tried[1], kind="slide_end")
 
 
 def _branch(g: SingularGraph, lookup: MeshLookup, v: int, e: int, max_len: int) -> list[int]:
@@ -322,20 +320,10 @@ def retract_moves(g: SingularGraph, lookup: MeshLookup, v: int, max_len: int = 4
                 seed = [f for f in faces.tolist() if e1 in lookup.face_edges[f]]
                 if len(seed) != 1:
                     continue
-                vals = solve_disk(g, faces, seed[0], e1, 0, inside)
-                if vals is None or (vals == g.match[faces]).all():
-                    continue
-                before = g.local_cost(faces)
-                token = g.set_matchings(faces, vals)
-                after = g.local_cost(faces)
-                ee = np.unique(g.face_edges[faces])
-                key = (tuple(ee.tolist()), tuple(g.prod[ee].tolist()))
-                g.undo(token)
-                if key in seen:
-                    continue
-                seen.add(key)
-                yield Move(vertex=int(v), edges=(e1, int(long_)), path=loop, faces=faces, values=vals,
-                           delta=after - before, kind="retract")
+                tried = _try_disk(g, faces, seed[0], e1, 0, inside, seen)
+                if tried is not None:
+                    yield Move(vertex=int(v), edges=(e1, int(long_)), path=loop, faces=faces, values=tried[0],
+                               delta=tried[1], kind="retract")
 
 
 def best_move(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_paths: int = 2) -> Move | None:
