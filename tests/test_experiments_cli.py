@@ -50,6 +50,7 @@ def reduced_run(tmp_path_factory) -> Path:
     proc = _run(["experiment=quick", "cases=[A,B]", "levels=4", "mesh.levels=2", f"output_dir={out}"], cwd=tmp)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "claims reproduced" in proc.stdout
+    assert [p.name for p in tmp.iterdir()] == ["out"]  # output_dir given: nothing else in the working directory
     return out
 
 
@@ -141,3 +142,14 @@ def test_train_validates_in_process(tmp_path):
     res = train(base)
     assert set(res["slopes"]) == set(E.QUANTITIES) and list(res["slopes"]["torsion_sqrt"]) == ["A"]
     assert (tmp_path / "o" / "convergence.csv").exists() and (tmp_path / "o" / "summary.md").exists()
+
+
+def test_bad_value_is_a_message_and_leaves_nothing(tmp_path, monkeypatch, capsys):
+    """A value the study refuses: the message (no traceback), a nonzero exit, and without
+    ``output_dir`` no empty ``outputs/convergence/<date>/<time>`` left in the working directory."""
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    code = _main_in_process(["experiment=quick", "cases=[A]", "levels=3", "mesh.levels=1"], tmp_path, monkeypatch)
+    err = capsys.readouterr().err
+    assert code not in (0, None)
+    assert "[convergence] error: mesh.levels must be >= 2" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []

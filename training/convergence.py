@@ -8,7 +8,8 @@ Usage (Hydra; config ``configs/convergence.yaml``)::
         transport=path_ordered reference_point=centroid dtype=float32 connection=wave \\
         output_dir=/tmp/conv
 
-Outputs in ``output_dir`` (default: Hydra's run directory), all written atomically:
+Outputs in ``output_dir`` (default: Hydra's run directory ``outputs/convergence/<date>/<time>``; with
+``output_dir`` given nothing is written under the working directory), all written atomically:
 
 * ``convergence.csv`` -- ``case,quantity,level,h,error``, one row per case × quantity × level
   of the main series (floats with full precision, ``repr``);
@@ -397,9 +398,13 @@ def main() -> None:
     """Hydra entry point (thin wrapper around :func:`train`)."""
     import hydra
 
+    from . import io_utils, schema  # noqa: F401 - schema registers the run-directory resolver
+
     @hydra.main(version_base="1.3", config_path="../configs", config_name="convergence")
     def _run(cfg) -> None:
-        result = train(cfg)
+        with io_utils.report_errors("convergence"):  # the message, not a traceback (unless HYDRA_FULL_ERROR=1)
+            with io_utils.hydra_output_dir(cfg):
+                result = train(cfg)
         ok = sum(result["reproduced"].values())
         print(f"convergence study written to {result['output_dir']} "
               f"({ok}/{len(result['reproduced'])} claims reproduced, {result['seconds']:.1f} s)")
