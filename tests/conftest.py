@@ -19,6 +19,18 @@ import torch  # noqa: E402
 DATA_DIR = Path(os.environ.get("TORCHCONN_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+def hexme_mesh(name: str):
+    """The float64 ``TetMesh`` of the HexMe parameter file ``DATA_DIR/hexme/meta/<name>.yaml``
+    (meshed by gmsh); the test is skipped, with the reason, without gmsh or the shared data."""
+    pytest.importorskip("gmsh", reason="CAD input needs gmsh (pip install 'torchconn[cad]')")
+    path = DATA_DIR / "hexme" / "meta" / f"{name}.yaml"
+    if not path.is_file():
+        pytest.skip(f"HexMe parameter file {path} not found (the shared data folder is absent)")
+    from torchconn.mesh.cad import load_hexme
+
+    return load_hexme(path, dtype=torch.float64)
+
+
 
 def assert_hvp_matches_fd(f, w: torch.Tensor, v: torch.Tensor, h: float = 1e-5, tol: float = 1e-6) -> None:
     """The Hessian-vector product of the scalar ``f`` at ``w`` along ``v`` (double backward) equals the

@@ -278,17 +278,11 @@ def test_a_hexme_model_gets_a_valid_seamless_map_and_an_injectively_rounded_igm(
     """s03c (the pentagon) with the SH field: a valid seamless map (untangled by the foldover-free
     solve where the least squares fold: with the matching search's boundary moves they no longer
     do on this model) and the injective rounding keeps it valid."""
-    from pathlib import Path
-
-    pytest.importorskip("gmsh", reason="CAD input needs gmsh (pip install 'torchconn[cad]')")
-    p = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hexme" / "meta" / "s03c_pentagon.yaml"
-    if not p.exists():
-        pytest.skip(f"HexMe parameter file {p} not found (the shared data folder is absent)")
+    from conftest import hexme_mesh
     from torchconn.frames import design
     from torchconn.hexmesh import integer_grid_map
-    from torchconn.mesh.cad import load_hexme
 
-    mesh = load_hexme(p, dtype=torch.float64)
+    mesh = hexme_mesh("s03c_pentagon")
     frames = design(mesh, "sh_baseline").vertex_frames
     m = integer_grid_map(mesh, frames)
     inj = m.stats["seamless"]["injective"]

@@ -257,16 +257,10 @@ def test_a_hexme_model_agrees_with_the_conditions_at_its_zipper_nodes():
     """s04c (the tetrahedron) with the SH field and its best matchings: LMFF's conditions find two
     zipper nodes; the one-ring test fails there too (and at one more arc vertex, whose ring the
     constraints flatten: two constrained curves on one line, which the map's splits would open)."""
-    from pathlib import Path
-
-    pytest.importorskip("gmsh", reason="CAD input needs gmsh (pip install 'torchconn[cad]')")
-    p = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hexme" / "meta" / "s04c_tetrahedron.yaml"
-    if not p.exists():
-        pytest.skip(f"HexMe parameter file {p} not found (the shared data folder is absent)")
+    from conftest import hexme_mesh
     from torchconn.frames import design
-    from torchconn.mesh.cad import load_hexme
 
-    mesh = load_hexme(p, dtype=torch.float64)
+    mesh = hexme_mesh("s04c_tetrahedron")
     F = design(mesh, "sh").tet_frames
     m = meshability_report(mesh, F)
     r = one_ring_test(mesh, F, meshability=m)

@@ -24,11 +24,9 @@ from torchconn.hexmesh.repair import (MeshLookup, SingularGraph, cone_disk, deta
                                       slide_touching_end, solve_disk, spanning_disk, zip_zipper)
 from torchconn.hexmesh.repair.graph import _TYP
 
-from conftest import DATA_DIR
+from conftest import hexme_mesh
 from test_hexmesh_map import axis_prism
 from test_hexmesh_meshability import hairpin
-
-HEXME = DATA_DIR / "hexme" / "meta"
 
 
 def _identity(mesh):
@@ -168,16 +166,11 @@ def test_retract_hook_through_the_floor_and_the_least_area_disk():
 
 
 def _hexme_case(name):
-    pytest.importorskip("gmsh", reason="the HexMe meshes are made by gmsh (torchconn[cad])")
-    path = HEXME / f"{name}.yaml"
-    if not path.is_file():
-        pytest.skip(f"HexMe parameter file {path} not found (the shared data is missing)")
     from torchconn.frames.design import design
     from torchconn.hexmesh.inputs import tet_frames_of
     from torchconn.hexmesh.straighten import straighten_singular_edges
-    from torchconn.mesh.cad import load_hexme
 
-    mesh = load_hexme(path, dtype=torch.float64)
+    mesh = hexme_mesh(name)
     Fr = tet_frames_of(mesh, design(mesh, "sh_baseline").vertex_frames)
     fm, _ = straighten_singular_edges(mesh, Fr, boundary_moves=True)
     return mesh, Fr, fm
