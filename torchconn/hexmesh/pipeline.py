@@ -220,8 +220,7 @@ def add_one_ring(result: HexMeshResult, *, features: bool = True, feature_max_de
     t0 = time.perf_counter()
     ring = one_ring_test(m.mesh, None, charts=m.charts, meshability=m.meshability, edge_length=m.edge_length,
                          features=features, feature_max_deg=feature_max_deg, backend=backend)
-    record_one_ring(m.gates["structure"], ring)
-    result.gates["structure"] = m.gates["structure"]
+    record_one_ring(m.gates["structure"], ring)  # the Gate that result.gates holds too
     m.stats.setdefault("timings", {})["one_ring_s"] = time.perf_counter() - t0
     return result
 
