@@ -336,6 +336,16 @@ def test_benchmark_default_loss_is_the_loss_design_builds(monkeypatch):
     assert not seen["kw"].get("extra_terms")  # design()'s default: no extra term
 
 
+def test_loss_dtypes_benchmark_runs_on_every_device(device):
+    """``benchmarks.loss_dtypes`` times the default loss on the device asked for, both dtypes."""
+    from benchmarks.loss_dtypes import main
+
+    rows = main(["--tets", "200", "--repeats", "1", "--threads", "1", "--device", str(device)])
+    assert [r["dtype"] for r in rows] == ["float32", "float64"]
+    assert all(r["device"].startswith(device.type) and r["median_s"] > 0 for r in rows)
+    assert all(("peak_device_gb" in r) == (device.type == "cuda") for r in rows)
+
+
 # ----------------------------------------------------------------------------- propagation
 def _reference_propagation(edge_rot, mesh, tree, root_frames):
     """Slow per-vertex reference: walk up to the root for every vertex."""
