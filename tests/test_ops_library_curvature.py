@@ -200,6 +200,20 @@ def test_curvature_torch_compile_fullgraph(mesh):
     torch.testing.assert_close(g, g_ref, atol=1e-12, rtol=0)
 
 
+def test_torch_compile_on_an_old_torch_names_the_version(mesh, monkeypatch):
+    """Where this torch's dynamo cannot take the mesh's tables as constants (torch 2.11), tracing
+    stops with a message naming the version needed, not dynamo's internal error."""
+    from torchconn.ops import _cache
+
+    monkeypatch.setattr(_cache, "COMPILE_SUPPORTED", False)
+    w = torch.randn(mesh.edges.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    compiled = torch.compile(lambda w: ops_curvature.face_curvature(so3.exp(w), mesh).sum(), fullgraph=True,
+                             backend="eager")
+    with pytest.raises(Exception, match=r"torch.compile needs torch >= 2\.13"):
+        compiled(w)
+    assert _cache.COMPILE_SUPPORTED is False and ops_curvature.face_curvature(so3.exp(w), mesh).isfinite().all()
+
+
 # ------------------------------------------------------------------------- √R torsion
 
 

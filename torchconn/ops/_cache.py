@@ -25,6 +25,12 @@ from .backend import _plain
 
 __all__ = ["require", "traced_constant", "edge_ends", "edge_index", "edge_vectors"]
 
+#: Whether this torch's dynamo passes an object (the mesh) to an ``assume_constant_result``
+#: function: torch 2.13 does (guarded on its identity); torch 2.11 does not ("MeshBuffers is not a
+#: constant", seen on an H100 machine with torch 2.11, 2026-11-27), so :func:`traced_constant`
+#: then stops the trace with a message that names the version instead of dynamo's internal error.
+COMPILE_SUPPORTED = tuple(int(x) for x in torch.__version__.split("+")[0].split(".")[:2]) >= (2, 13)
+
 _FALLBACK: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
 
 
@@ -67,6 +73,10 @@ def traced_constant(fn):
     @functools.wraps(fn)
     def call(mesh, *args):
         if torch.compiler.is_compiling():
+            if not COMPILE_SUPPORTED:
+                raise RuntimeError(
+                    f"torchconn under torch.compile needs torch >= 2.13 (this is torch {torch.__version__}, "
+                    f"whose dynamo cannot take the mesh's tables as constants); call it eagerly or upgrade torch")
             return constant(mesh, *args)
         return fn(mesh, *args)
 
