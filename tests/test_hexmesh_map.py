@@ -284,6 +284,8 @@ def test_complex_singularity_gives_an_invalid_map_with_that_reason():
     assert not r.validity.valid
     assert r.validity.counts["unmeshable_singular_edges"] >= 1
     assert any("complex" in s for s in r.validity.reasons)
+    # a failed structure gate: no valid map exists, the least-squares map is kept (no untangling)
+    assert not r.gates["structure"].passed and r.map.stats["seamless"]["injective"] is None
     # whatever was extracted is positively oriented and never claimed good
     if r.hexes.shape[0]:
         assert r.quality is not None and not r.good
