@@ -26,7 +26,8 @@ def main(argv=None) -> list[dict]:
     torch.set_num_threads(args.threads)
     from torchconn import so3
 
-    from .run import _box, loss_cases
+    from .references import loss_cases
+    from .run import _box
 
     device = torch.device(args.device)
     cuda = device.type == "cuda"

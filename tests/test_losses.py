@@ -272,10 +272,10 @@ def test_fused_kernel_equals_the_modules(gen, dtype, power, align_kind):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_benchmark_reference_agrees_with_the_loss(dtype):
-    """Issue 30: the eager reference of ``benchmarks.run`` (the library's single-term functions and the
+    """Issue 30: the eager reference of ``benchmarks.references`` (the library's single-term functions and the
     generic operators) computes the loss rows' losses -- every term and the total to
     ``LOSS_AGREEMENT_RTOL`` relative, and the gradients -- so the benchmark cannot drift from the loss."""
-    from benchmarks.run import LOSS_AGREEMENT_RTOL, _ref_exp_matrix, loss_agreement, loss_cases, ref_frame_loss_terms
+    from benchmarks.references import LOSS_AGREEMENT_RTOL, _ref_exp_matrix, loss_agreement, loss_cases, ref_frame_loss_terms
 
     mesh = tio.box(3).to(dtype=dtype)
     g = torch.Generator().manual_seed(2)
@@ -305,11 +305,11 @@ def test_benchmark_reference_agrees_with_the_loss(dtype):
 
 
 def test_benchmark_default_loss_is_the_loss_design_builds(monkeypatch):
-    """``benchmarks.run.loss_cases``' default row has the weights and options of the FrameFieldLoss
+    """``benchmarks.references.loss_cases``' default row has the weights and options of the FrameFieldLoss
     ``design()`` constructs with its defaults (captured at construction, the run stopped there)."""
     import importlib
 
-    from benchmarks.run import loss_cases
+    from benchmarks.references import loss_cases
 
     design_mod = importlib.import_module("torchconn.frames.design")  # the module (frames.design is the function)
 
