@@ -125,6 +125,27 @@ def test_cone_move_detaches_the_prism_arc_from_a_vertex():
     assert solve_disk(g, faces[1:], int(faces[0]), e1, 0, inside) is None
 
 
+def test_candidate_moves_never_repeat_a_singular_graph():
+    """A move over the reversed pair of arc edges (or another path) that makes a singular graph an
+    earlier move made is not yielded again: the candidates are distinct graphs (a chain's few
+    branches are then distinct too)."""
+    from torchconn.hexmesh.repair.ops import candidate_moves
+
+    mesh, F = axis_prism(turns=4.0)
+    X = mesh.vertices.numpy()
+    g = SingularGraph(mesh, F)
+    L = MeshLookup(mesh)
+    axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
+    v = int(axis_v[np.argsort(X[axis_v, 2])][1])
+    keys = []
+    for mv in candidate_moves(g, L, v):
+        tok = g.set_matchings(mv.faces, mv.values)
+        es = np.unique(g.face_edges[mv.faces])
+        keys.append((tuple(es.tolist()), tuple(g.prod[es].tolist())))
+        g.undo(tok)
+    assert len(keys) >= 2 and len(set(keys)) == len(keys)
+
+
 # ----------------------------------------------------------------------------- the operations
 def test_zip_zipper_removes_the_hairpin():
     mesh, F, (p, q, v) = hairpin()

@@ -174,8 +174,8 @@ def candidate_moves(g: SingularGraph, lookup: MeshLookup, v: int, kinds=None, n_
                 if k >= 0:
                     axis = g.frames[g.walks.start[e1]][:, k]
             paths = _link_paths(g, lookup, v, a, b, axis, n_paths, PATH_MODES if axis is not None else PATH_MODES[:1])
-            seen = set()
-            paths = [p for p in paths if not (tuple(p.tolist()) in seen or seen.add(tuple(p.tolist())))]
+            kept = set()  # paths found twice (two weightings) tried once
+            paths = [p for p in paths if not (tuple(p.tolist()) in kept or kept.add(tuple(p.tolist())))]
             for path in paths:
                 cone = cone_disk(lookup, v, path)
                 if cone is None:
