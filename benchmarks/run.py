@@ -415,7 +415,6 @@ def bench_loss(tets: int, dtype, repeats: int, rows: list) -> None:
                     loss(so3.exp(w), so3.exp(phi))["total"].backward()
 
             with torch.no_grad(), torchconn.ops.compiled(False):
-                c = loss(so3.exp(w), so3.exp(phi))
                 rel_m, _ = loss_agreement(loss, so3.exp(w), so3.exp(phi))
             t2, tr2 = _side_by_side(fast_fn, modules_fn, repeats)
             rows.append(_row(name + "_vs_modules", T, dname, t2, tr2, None, unit="tets", max_rel_diff=rel_m,
