@@ -366,3 +366,38 @@ def test_build_problem_counts_and_corner_pairs():
 
     y = factorize(A).solve(b)
     assert (param_volumes(p.corner_params(y)) > 0).all()
+
+
+def test_default_resolution_goes_finer_only_where_the_hexes_are_too_far_from_the_input(monkeypatch):
+    """Without ``edge_length``, a valid map whose hex mesh fails the good bounds by its distance to
+    the input alone is run again at h/√2 (at most CLOSER_STEPS times); a given edge length, an
+    invalid map or another failing figure is returned as it is."""
+    from types import SimpleNamespace as NS
+
+    from torchconn.hexmesh import pipeline
+
+    calls = []
+
+    def fake(far_until, valid=True, irregular=0.01):
+        def stage(mesh, frames, extract, untangle, quality, progress, opts):
+            h = opts.get("edge_length") or 1.0
+            calls.append(h)
+            q = NS(valid=True, hausdorff_rel=0.02 if h > far_until else 0.005, irregular_fraction=irregular,
+                   volume_ratio=1.0)
+            return NS(validity=NS(valid=valid), quality=q, map=NS(edge_length=h, stats={}), timings={"total_s": 1.0})
+        return stage
+
+    mesh = io.box(1)
+    for far_until, n_runs in ((0.8, 2), (0.6, 3), (0.1, 3)):  # h: 1, 0.707, 0.5 at most
+        calls.clear()
+        monkeypatch.setattr(pipeline, "_stage", fake(far_until))
+        r = pipeline.hex_mesh(mesh, None)
+        assert len(calls) == n_runs and calls == pytest.approx([2 ** (-k / 2) for k in range(n_runs)])
+        assert [c["edge_length"] for c in r.map.stats["closer"]] == pytest.approx(calls)
+        assert r.timings["closer_s"] == n_runs - 1 and r.timings["total_s"] == n_runs
+    for kw, stage in (({"edge_length": 1.0}, fake(0.1)), ({}, fake(0.1, valid=False)), ({}, fake(0.1, irregular=0.2))):
+        calls.clear()
+        monkeypatch.setattr(pipeline, "_stage", stage)
+        r = pipeline.hex_mesh(mesh, None, **kw)
+        assert calls == [1.0] and "closer" not in r.map.stats and "closer_s" not in r.timings
+    assert pipeline.CLOSER_STEPS == 2

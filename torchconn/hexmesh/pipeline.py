@@ -17,6 +17,7 @@ into a valid hex mesh). :attr:`HexMeshResult.first_failed` names the first stage
 from __future__ import annotations
 
 import inspect
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,13 +28,16 @@ from .extract import extract_hexes
 from .igm import IntegerGridMap, integer_grid_map
 from .validity import STAGES, Gate, MapValidity
 
-__all__ = ["HexMeshResult", "hex_mesh", "add_one_ring", "extraction_gate", "MAP_OPTIONS"]
+__all__ = ["HexMeshResult", "hex_mesh", "add_one_ring", "extraction_gate", "MAP_OPTIONS", "CLOSER_STEPS"]
 
 MAP_OPTIONS = ("edge_length", "face_match", "straighten", "straighten_boundary", "touch_rounds", "repair",
                "repair_rounds", "split", "collapse", "features", "feature_max_deg", "flat_rounds", "one_ring", "fixed_holonomy", "injective",
                "fit_weight", "sd_weight", "refine_limit", "integrable", "batch_error", "stiffening_iters", "stiffening_factor",
                "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""
+#: At most this many runs at ``h / √2`` after the default edge length's, where the hex mesh of a
+#: valid map is too far from the input alone (:func:`hex_mesh`).
+CLOSER_STEPS = 2
 #: The extraction's lattice-point limit per tet (``extract_hexes``' default, which
 #: :func:`hex_mesh` uses): a map whose tets exceed it has an edge length too small for the mesh.
 _EXTRACT_MAX_TET_POINTS = inspect.signature(extract_hexes).parameters["max_tet_points"].default
@@ -148,6 +152,14 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
             (``edge_length``, the hex edge length ``h``, defaults to
             :func:`~.seamless.default_edge_length`: half the mean edge length of ``mesh``).
 
+    The default resolution: without ``edge_length``, where the map is valid and its hex mesh fails
+    only the distance to the input (valid, irregular edges and volume ratio within the good
+    bounds, Hausdorff distance over :data:`~.quality.GOOD_HAUSDORFF_MAX_REL`: the hexes are too
+    coarse for a thin or curved part), the stage runs again at ``h / √2``, at most
+    :data:`CLOSER_STEPS` times, and returns the last run (``timings["closer_s"]``: the seconds of
+    the runs before it; ``map.stats["closer"]``: each run's edge length and distance). A given
+    ``edge_length`` is kept as it is.
+
     Returns:
         :class:`HexMeshResult`. An invalid map is a result (``validity.valid`` false, with its
         reasons), not an error; so is a map without hexes (``result.verdict()`` says why: the
@@ -170,6 +182,34 @@ def hex_mesh(mesh, frames, *, extract: bool = True, untangle: bool = True, quali
 
     if mesh.vertices.dtype != torch.float64 or mesh.vertices.device.type != "cpu":
         mesh = mesh.to(device="cpu", dtype=torch.float64)
+    res = _stage(mesh, frames, extract, untangle, quality, progress, map_options)
+    if map_options.get("edge_length") is not None:
+        return res
+    runs, spent = [], 0.0
+    while _only_too_far(res) and len(runs) < CLOSER_STEPS:
+        runs.append({"edge_length": res.map.edge_length, "hausdorff_rel": res.quality.hausdorff_rel})
+        spent += res.timings["total_s"]
+        res = _stage(mesh, frames, extract, untangle, quality, progress,
+                     {**map_options, "edge_length": res.map.edge_length / math.sqrt(2.0)})
+    if runs:
+        res.map.stats["closer"] = runs + [{"edge_length": res.map.edge_length,
+                                           "hausdorff_rel": res.quality.hausdorff_rel if res.quality else None}]
+        res.timings["closer_s"] = spent
+        res.timings["total_s"] += spent
+    return res
+
+
+def _only_too_far(res: HexMeshResult) -> bool:
+    """A valid map whose hex mesh fails the good bounds by its distance to the input alone."""
+    from .quality import GOOD_HAUSDORFF_MAX_REL, GOOD_IRREGULAR_MAX, GOOD_VOLUME_RATIO_TOL
+
+    q = res.quality
+    return bool(res.validity.valid and q is not None and q.valid and q.hausdorff_rel > GOOD_HAUSDORFF_MAX_REL
+                and q.irregular_fraction <= GOOD_IRREGULAR_MAX and abs(q.volume_ratio - 1.0) <= GOOD_VOLUME_RATIO_TOL)
+
+
+def _stage(mesh, frames, extract, untangle, quality, progress, map_options) -> HexMeshResult:
+    """One run of the stage at the options given (:func:`hex_mesh`)."""
     timings = {}
     t_all = time.perf_counter()
     t0 = time.perf_counter()
