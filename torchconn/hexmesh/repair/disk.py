@@ -242,13 +242,24 @@ def spanning_disk(g, lookup: MeshLookup, loop: np.ndarray, rings: int = 2):
     dual-path search found by area instead of by a walk.
 
     Returns ``(faces (m,), inside edges (k,), rim edges (r,))`` or ``None`` (no such chain in the
-    region, or a fractional optimum).
+    region, or a fractional optimum). The answer depends on the mesh alone (not on the
+    matchings), so it is kept per graph and loop: the repair's chains ask for the same loops
+    again and again (n01c: 1,260 LPs, 47 s of one hex stage before this cache).
     """
-    from scipy.optimize import linprog
-
     loop = np.asarray(loop, np.int64)
     if loop.size < 4 or loop[0] != loop[-1]:
         return None
+    cache = g.__dict__.setdefault("_spanning_disks", {})
+    key = (tuple(loop.tolist()), int(rings))
+    if key not in cache:
+        cache[key] = _spanning_disk(g, lookup, loop, rings)
+    return cache[key]
+
+
+def _spanning_disk(g, lookup: MeshLookup, loop: np.ndarray, rings: int):
+    """:func:`spanning_disk` computed (its LP)."""
+    from scipy.optimize import linprog
+
     rim = lookup.edge_id(loop[:-1], loop[1:])
     if (rim < 0).any():
         return None
