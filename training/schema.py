@@ -82,7 +82,8 @@ class HexStage:
     The defaults are that function's (a test checks it)."""
 
     #: the hex edge length h in the mesh's units; null: half the mean edge length of the tet mesh
-    #: (torchconn.hexmesh.seamless.default_edge_length)
+    #: (torchconn.hexmesh.seamless.default_edge_length), then h/sqrt(2) at most twice where a valid
+    #: map's hexes are too far from the input alone (torchconn.hexmesh.hex_mesh)
     edge_length: float | None = option(None, lo=0, lo_open=True)
     #: repair the face matchings so singular edges run along their turn axis
     straighten: bool = option(True)
