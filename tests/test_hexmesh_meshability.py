@@ -471,3 +471,11 @@ def test_group_element_helper():
     for i in (0, 5, 17):
         assert _element(G[i]) == i
     assert GROUP_MUL[_element(np.diag([1, -1, -1])), _element(np.diag([1, -1, -1]))] == 0
+
+
+def test_boundary_edge_quarters_inverts_boundary_edge_class():
+    from torchconn.hexmesh.meshability import boundary_edge_class, boundary_edge_quarters
+
+    q = np.array([0, 1, 2, 3, 4])
+    assert boundary_edge_quarters(boundary_edge_class(q)).tolist() == q.tolist()
+    assert boundary_edge_quarters(np.array([-1, 0, 4])).tolist() == [2, 2, 2]  # regular / interior classes: flat

@@ -87,7 +87,7 @@ import torch
 from .cut import GROUP_INV, TetCharts, edge_walks, group_matrices, tet_charts
 
 __all__ = ["Meshability", "meshability_report", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
-           "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class",
+           "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class", "boundary_edge_quarters",
            "interior_class_table", "BoundaryFans", "boundary_fans", "fan_quarters", "fan_quarter_table",
            "field_turn", "sharp_edges", "tangent_axes", "walk_products"]
 
@@ -205,6 +205,12 @@ def boundary_edge_class(q: np.ndarray) -> np.ndarray:
     for k, c in lut.items():
         out[q == k] = c
     return out
+
+
+def boundary_edge_quarters(cls: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`boundary_edge_class`: a boundary edge's fan angle in quarter turns from
+    its class (``q0``..``q4`` -> 0, 1, 3, 4; anything else, a flat fan, -> 2)."""
+    return np.select([cls == 5, cls == 6, cls == 7, cls == 8], [0, 1, 3, 4], 2)
 
 
 # ----------------------------------------------------------------------------- boundary fans

@@ -34,8 +34,8 @@ import torch
 
 from ...frames.singular import classify_holonomy
 from ..cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
-from ..meshability import (INVALID, VERTEX_CLASSES, ZIPPER, boundary_edge_class, boundary_fans, classify_vertices,
-                           edge_class_counts, fan_quarters, sharp_edges, tangent_axes)
+from ..meshability import (INVALID, VERTEX_CLASSES, ZIPPER, boundary_edge_class, boundary_edge_quarters, boundary_fans,
+                           classify_vertices, edge_class_counts, fan_quarters, sharp_edges, tangent_axes)
 
 __all__ = ["SingularGraph", "REPAIR_WEIGHTS"]
 
@@ -244,7 +244,7 @@ class SingularGraph:
         along = np.abs(self.dpar[e_ids]).argmax(1)
         out += (turn & (ax != along)) * w["across"]
         out += (turn & self.tang[e_ids, ax]) * w["touching"]
-        q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+        q = boundary_edge_quarters(c)
         sharp = self.sharp[e_ids]
         out += (bnd & ~sharp & ((q == 0) | (q == 4))) * w["fold"]
         out += (bnd & ~sharp & ((q == 1) | (q == 3))) * w["crease"]
@@ -320,7 +320,7 @@ class SingularGraph:
         """Counts of LMFF's conditions and the information lists (the keys of
         :meth:`~torchconn.hexmesh.meshability.Meshability.counts` that this state tracks)."""
         b, c = self.boundary, self.cls
-        q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+        q = boundary_edge_quarters(c)
         turn = ~b & (c >= 0) & (c != 4)
         ax = np.maximum(_AXIS[self.prod], 0)
         out = {
@@ -340,7 +340,7 @@ class SingularGraph:
     def bad_vertices_mask(self) -> np.ndarray:
         """``(V,)`` bool: the vertices the repair works on (:meth:`bad_vertices`)."""
         b, c = self.boundary, self.cls
-        q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+        q = boundary_edge_quarters(c)
         turn = ~b & (c >= 0) & (c != 4)
         ax = np.maximum(_AXIS[self.prod], 0)
         E = c.size

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..meshability import INVALID, ZIPPER, fan_quarters
+from ..meshability import INVALID, ZIPPER, boundary_edge_quarters, fan_quarters
 from .disk import MeshLookup, cone_disk, link_path, solve_disk, spanning_disk
 from .graph import _AXIS, SingularGraph
 
@@ -83,7 +83,7 @@ def special_edges(g: SingularGraph, lookup: MeshLookup, v: int) -> np.ndarray:
     a non-flat fan off sharp features, sharp boundary edges whose fan angle is not the feature's."""
     es = lookup.vertex_edges(v)
     c = g.cls[es]
-    q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+    q = boundary_edge_quarters(c)
     mism = g.boundary[es] & g.sharp[es] & (q != g.expected[es])
     return es[(c >= 0) | mism]
 
@@ -216,7 +216,7 @@ def slide_moves(g: SingularGraph, lookup: MeshLookup, v: int, n_paths: int = 2):
         return
     es = lookup.vertex_edges(v)
     c = g.cls[es]
-    q = np.select([c == 5, c == 6, c == 7, c == 8], [0, 1, 3, 4], 2)
+    q = boundary_edge_quarters(c)
     bnd = g.boundary[es]
     other = (~bnd & (c >= 0)).sum() > 1 or (bnd & ~g.sharp[es] & (q != 2)).any() or \
         (bnd & g.sharp[es] & (q != g.expected[es])).any()
