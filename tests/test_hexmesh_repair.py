@@ -95,14 +95,19 @@ def test_state_on_the_hairpin_and_bad_input():
 
 
 # ----------------------------------------------------------------------------- the disk re-solve
-def test_cone_move_detaches_the_prism_arc_from_a_vertex():
-    mesh, F = axis_prism(turns=4.0)  # a valence-3 chain on the z-axis, z = 0, 1/3, 2/3, 1
-    X, E = mesh.vertices.numpy(), mesh.edges.numpy()
-    g = SingularGraph(mesh, F)
-    L = MeshLookup(mesh)
+def _prism_axis():
+    """The valence-3 prism (a chain on the z-axis, z = 0, 1/3, 2/3, 1), its state and lookup, and
+    the axis vertices ordered by height."""
+    mesh, F = axis_prism(turns=4.0)
+    X = mesh.vertices.numpy()
     axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
-    v = int(axis_v[np.argsort(X[axis_v, 2])][1])  # z = 1/3
-    a, b = (int(x) for x in axis_v[np.argsort(X[axis_v, 2])][[0, 2]])
+    return mesh, F, SingularGraph(mesh, F), MeshLookup(mesh), axis_v[np.argsort(X[axis_v, 2])]
+
+
+def test_cone_move_detaches_the_prism_arc_from_a_vertex():
+    mesh, F, g, L, axis_v = _prism_axis()
+    v = int(axis_v[1])  # z = 1/3
+    a, b = int(axis_v[0]), int(axis_v[2])
     e1, e2 = int(L.edge_id(v, a)[0]), int(L.edge_id(v, b)[0])
     assert g.cls[e1] == g.cls[e2] == 0  # valence 3
     path = link_path(g, L, v, a, b, np.array([0.0, 0.0, 1.0]))
@@ -131,12 +136,8 @@ def test_candidate_moves_never_repeat_a_singular_graph():
     branches are then distinct too)."""
     from torchconn.hexmesh.repair.ops import candidate_moves
 
-    mesh, F = axis_prism(turns=4.0)
-    X = mesh.vertices.numpy()
-    g = SingularGraph(mesh, F)
-    L = MeshLookup(mesh)
-    axis_v = np.nonzero(np.abs(X[:, :2]).max(1) < 1e-12)[0]
-    v = int(axis_v[np.argsort(X[axis_v, 2])][1])
+    _, _, g, L, axis_v = _prism_axis()
+    v = int(axis_v[1])
     keys = []
     for mv in candidate_moves(g, L, v):
         tok = g.set_matchings(mv.faces, mv.values)
