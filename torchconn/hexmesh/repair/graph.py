@@ -29,6 +29,8 @@ depart from the frames' best matches (``misfit``, radians).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -137,6 +139,13 @@ class SingularGraph:
         self.feature, self.expected = sharp_edges(mesh, fans, features)
         self.sharp = self.boundary & (self.expected != 2)
         self.tang = tangent_axes(mesh, self.frames[walks.start], self.edges, self.boundary)  # (E, 3)
+        # the fan angle q of every boundary edge for every fan transport P, with the fan's own angle
+        # as the estimate: exact for every P but a folded one (a0 = -a1: 0 or 4 by the field's turn)
+        bdpar = np.einsum("eji,ej->ei", self.frames[fans.first_tet], d[eb])
+        self.fan_opp = (self.a0[:, None, :] == -self.a1).all(-1)  # (Eb, 24)
+        self.fan_q = fan_quarters(np.broadcast_to(self.a0[:, None, :], self.a1.shape), self.a1,
+                                  np.broadcast_to(bdpar[:, None, :], self.a1.shape),
+                                  np.broadcast_to(fans.dihedral[:, None], self.a1.shape[:2]))
         # misfit of every face for every matching: the angle between F_t0 g and F_t1 (radians)
         fi = np.nonzero(self.interior_face)[0]
         self.misfit_tab = np.zeros((F, 24))
@@ -215,15 +224,11 @@ class SingularGraph:
         if bi.size:
             e, Pb = e_ids[bi], P[bi]
             r = self.bpos[e]
-            a0, a1 = self.a0[r], self.a1[r, Pb]
-            dpar = np.einsum("eji,ej->ei", self.frames[self.fans.first_tet[r]], self.X[self.edges[e, 1]]
-                             - self.X[self.edges[e, 0]])
-            est = self.fans.dihedral[r]
-            opp = (a0 == -a1).all(1)
+            q = self.fan_q[r, Pb]
+            opp = self.fan_opp[r, Pb]
             if opp.any():  # a folded fan: 0 or 4 by the fan's angle plus the field's turn
-                est = est.copy()
-                est[opp] = est[opp] + self.field_turn(e[opp])
-            q = fan_quarters(a0, a1, dpar, est)
+                q = q.copy()
+                q[opp] = np.where(self.fans.dihedral[r[opp]] + self.field_turn(e[opp]) < math.pi, 0, 4)
             out[bi] = boundary_edge_class(q)
         return out
 

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..meshability import INVALID, ZIPPER, boundary_edge_quarters, fan_quarters
+from ..meshability import INVALID, ZIPPER, boundary_edge_quarters
 from .disk import MeshLookup, cone_disk, link_path, solve_disk, spanning_disk
 from .graph import _AXIS, SingularGraph
 
@@ -93,10 +93,7 @@ def _targets(g: SingularGraph, e: int) -> list[int]:
     whose angle is the one the geometry asks for (boundary; at most 4)."""
     if not g.boundary[e]:
         return [0]
-    r = g.bpos[e]
-    a0 = np.broadcast_to(g.a0[r], (24, 3))
-    dpar = np.einsum("ji,j->i", g.frames[g.fans.first_tet[r]], g.X[g.edges[e, 1]] - g.X[g.edges[e, 0]])
-    q = fan_quarters(a0, g.a1[r], np.broadcast_to(dpar, (24, 3)), np.full(24, g.fans.dihedral[r]))
+    q = g.fan_q[g.bpos[e]]  # (24,): q for every transport, the fan's angle as the estimate
     want = g.expected[e]
     return [int(P) for P in np.nonzero(q == want)[0] if P != g.prod[e]][:4]
 
