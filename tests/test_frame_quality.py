@@ -149,7 +149,7 @@ def test_connection_candidates_from_an_optimized_field(cyl):
     ref = frame_metrics(F0, m)
     R0 = matched_connection(F0, m.edges)
     kw = {"dirichlet_weights": (4.0, 1.0), "rounds": 1, "iters": 15}
-    cands, info = connection_candidates(m, {"sh": (F0, R0)}, ref, **kw)
+    cands, info = connection_candidates(m, {"sh": (F0, R0)}, ref, paths=("soft", "tangent"), **kw)
     # the optimized field first (with its connection), then one checkpoint per (path, weight) from it
     assert [(c.kind, c.start, c.dirichlet_weight) for c in cands] == [
         ("optimized", "sh", None), ("soft", "sh", 4.0), ("soft", "sh", 1.0), ("tangent", "sh", 4.0),

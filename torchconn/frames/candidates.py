@@ -109,7 +109,7 @@ class CandidateStack:
         info: ``{"stages": [names made], "seconds": ...}``.
     """
 
-    def __init__(self, mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = PATH_KINDS,
+    def __init__(self, mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = ("soft",),
                  dirichlet_weights: Sequence[float] = DIRICHLET_WEIGHTS, rounds: int = 2, iters: int = 20,
                  feature_weight: float = 1.0, tangent_weight: float = 0.25, complex_weight: float = 0.0,
                  score_dirichlet: float = 1.0, score_complex: float = 0.1, eps: float = 1e-3,

@@ -92,8 +92,12 @@ class Quality:
     Quality paths (:mod:`torchconn.frames.quality_paths`) from every optimized field: L-BFGS on the
     frames minimizing mean angle / SH's + lambda x Dirichlet energy / SH's (+ feature terms), lambda
     over ``dirichlet_weights`` (one checkpoint each), ``rounds`` re-matchings of ``iters`` iterations
-    per lambda; ``paths``: ``soft`` (feature curves soft) and ``tangent`` (curve tangents held exactly
-    except at vertices of singular faces, where ``tangent_weight`` pulls them). The optimized fields
+    per lambda; ``paths``: ``soft`` (feature curves soft; the default) and ``tangent`` (curve tangents
+    held exactly except at vertices of singular faces, where ``tangent_weight`` pulls them; not run by
+    default since 2026-11-27: on the 35 HexMe ``c`` models no tangent checkpoint gave the first good
+    hex mesh of the jobs' chooser, every good mesh came from an optimized field or a soft
+    checkpoint, and on the models with no good mesh the two tangent candidates were two more hex
+    stages of a failing field; docs/results/hexmesh.md). The optimized fields
     and every checkpoint are the candidates; the returned one is chosen by the proxies (log mean-angle
     ratio + ``score_dirichlet`` x log Dirichlet ratio + ``score_complex`` x log complex-face ratio,
     those within ``feature_curve_bound`` first) or, in the jobs with ``select=hex``, by the hex meshes
@@ -104,7 +108,7 @@ class Quality:
     """
 
     enabled: bool = option(True)
-    paths: list[str] = option(["soft", "tangent"], choices=PATH_KINDS)
+    paths: list[str] = option(["soft"], choices=PATH_KINDS)
     dirichlet_weights: list[float] = option([8.0, 4.0, 2.0, 1.0, 0.5, 0.25], lo=0)
     rounds: int = option(2, lo=1)
     #: L-BFGS iterations per round
