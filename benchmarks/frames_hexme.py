@@ -186,7 +186,8 @@ def run_method(method: str, mesh, options: dict | None = None, hex_options: dict
     For ``connection`` (the hex chooser), the chosen field's hex mesh, made while choosing with
     ``hex_options``, is kept in :data:`LAST_HEX` for :func:`hex_stage`, and the choice (the
     winner's label, why meshing stopped, the stages made, each meshed candidate's label / good /
-    valid, ``design()``'s timings) for the row's ``chosen`` column.
+    valid / first failing gate / hex-stage seconds, ``design()``'s timings) for the row's
+    ``chosen`` column.
     """
     options = dict(options or {})
     LAST_HEX.clear()
@@ -207,7 +208,8 @@ def run_method(method: str, mesh, options: dict | None = None, hex_options: dict
         c = res.metrics.get("chosen") or {}
         LAST_HEX["chosen"] = {"label": c.get("label"), "by": c.get("by"), "stopped": c.get("stopped"),
                               "stages": (res.metrics.get("quality") or {}).get("stages"),
-                              "meshed": [(r["label"], r["good"], r["valid"]) for r in c.get("meshed", [])],
+                              "meshed": [(r["label"], r["good"], r["valid"], r.get("first_failed"),
+                                          round(float(r["seconds"]), 1)) for r in c.get("meshed", [])],
                               "timings": {k: v for k, v in res.timings.items() if k.endswith("_s")}}
         return res.vertex_frames
     if method == "mbo":

@@ -39,6 +39,9 @@ def test_the_chooser_picks_the_good_hex_mesh_and_keeps_it(monkeypatch):
     assert len(tested) == 1  # two candidates meshed, the one-ring test run on the chosen one only
     assert idx == 1 and info["by"] == "hex" and info["reason"] == "a valid map and a good hex mesh"
     assert [r["good"] for r in info["meshed"]] == [False, True]
+    # each row names the first gate that failed (none for the good one) and its hex stage's seconds
+    assert info["meshed"][0]["first_failed"] in ("structure", "seamless", "quantization", "extraction")
+    assert info["meshed"][1]["first_failed"] is None and all(r["seconds"] > 0 for r in info["meshed"])
     frames, kept = choose.chosen
     assert frames is cands[1].frames and kept.good
     # what it keeps is the hex mesh of that field with those options: no need to mesh it again

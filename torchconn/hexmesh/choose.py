@@ -98,9 +98,10 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
     ``candidates`` is a sequence of :class:`~torchconn.frames.candidates.Candidate` s or a
     :class:`~torchconn.frames.candidates.CandidateStack`, whose stages are made one at a time: after
     each, the candidates :func:`preselect` puts first among those made and not yet meshed are meshed.
-    The ``info`` lists, per meshed candidate, its label, the map's validity and first reasons,
-    the hexes, the scaled Jacobian, the irregular fraction, the Hausdorff distance, ``good`` and
-    the seconds; ``"by": "hex"``; ``"stopped"``: why meshing stopped. After a call,
+    The ``info`` lists, per meshed candidate, its label, the map's validity, the first gate that
+    failed (``first_failed``, ``None`` when none did) and the first reasons, the hexes, the scaled
+    Jacobian, the irregular fraction, the Hausdorff distance, ``good`` and the seconds of its hex
+    stage; ``"by": "hex"``; ``"stopped"``: why meshing stopped. After a call,
     ``choose.chosen`` is ``(frames, HexMeshResult)`` of the chosen candidate
     (:func:`design_for_hex` hands it on as ``FrameFieldResult.hex``).
     """
@@ -128,6 +129,7 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
                 r = hex_mesh(mesh, c.frames, **{**hex_options, "one_ring": False})
                 q = r.quality
                 rows.append({"label": c.label, "valid": bool(r.validity.valid), "good": bool(r.good),
+                             "first_failed": r.first_failed,
                              "reasons": list(r.validity.reasons)[:3], "hexes": int(r.hexes.shape[0]),
                              "sj_min": None if q is None else q.sj_min,
                              "irregular": None if q is None else q.irregular_fraction,
