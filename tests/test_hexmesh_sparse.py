@@ -14,7 +14,9 @@ Cost: about 2 s (matrices of order <= 12).
 """
 from __future__ import annotations
 
+import numpy as np
 import pytest
+import scipy.sparse as sp
 import torch
 
 from torchconn.hexmesh import solver as solver_mod
@@ -231,3 +233,21 @@ def test_indefinite_matrix_with_positive_diagonal_is_refused():
     val = torch.tensor([1.0, 2.0, 2.0, 1.0], dtype=torch.float64)
     with pytest.raises(NotPositiveDefinite, match="not positive definite"):
         sparse_spd_solve(idx, val, torch.ones(2, dtype=torch.float64), backend="cholmod")
+
+
+@pytest.mark.skipif("pardiso" not in BACKENDS, reason="pypardiso is not installed (an optional backend)")
+def test_pardiso_refuses_an_indefinite_matrix_and_matches_cholmod_on_a_laplacian():
+    from torchconn.hexmesh.solver import SPDFactor
+
+    # [[1, 2], [2, 1]] has eigenvalues 3 and -1: PARDISO's SPD factorization finds a bad pivot
+    idx = torch.tensor([[0, 0, 1, 1], [0, 1, 0, 1]])
+    val = torch.tensor([1.0, 2.0, 2.0, 1.0], dtype=torch.float64)
+    with pytest.raises(NotPositiveDefinite, match="PARDISO"):
+        sparse_spd_solve(idx, val, torch.ones(2, dtype=torch.float64), backend="pardiso")
+    # a shifted 1D Laplacian: the same solution as the default backend, one and several right-hand sides
+    n = 40
+    A = sp.diags([-np.ones(n - 1), 2.01 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    b = np.random.default_rng(0).standard_normal((n, 3))
+    x, ref = SPDFactor(A, "pardiso").solve(b), SPDFactor(A, BACKENDS[0]).solve(b)
+    assert x.shape == (n, 3) and np.allclose(x, ref, rtol=1e-10, atol=1e-12)
+    assert np.allclose(SPDFactor(A, "pardiso").solve(b[:, 0]), ref[:, 0], rtol=1e-10, atol=1e-12)

@@ -226,7 +226,7 @@ def test_the_jobs_checks_keep_their_ranges():
     assert tf["quality.dirichlet_weights"].describe() == "a non-empty list, each element a finite number >= 0"
     assert tf["method"].choices == ("connection", "sh_baseline") and "mbo" in hx["method"].choices
     assert hx["hex.feature_max_deg"].describe() == "a finite number >= 0 and <= 90"
-    assert hx["hex.backend"].describe() == "one of ['auto', 'cholmod', 'superlu']"
+    assert hx["hex.backend"].describe() == "one of ['auto', 'cholmod', 'superlu', 'pardiso']"
     assert set(hx) - set(tf) == {"frames", "debug"} | {k for k in hx if k.startswith("hex.")}
 
 

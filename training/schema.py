@@ -111,8 +111,9 @@ class HexStage:
     #: re-solves that raise the weight of inverted tets (after the greedy rounding)
     stiffening_iters: int = option(10, lo=0)
     stiffening_factor: float = option(4.0, lo=1)
-    #: sparse Cholesky: auto (CHOLMOD through cholespy if installed), cholmod or superlu
-    backend: str = option("auto", choices=("auto", "cholmod", "superlu"))
+    #: sparse Cholesky: auto (CHOLMOD through cholespy if installed, else SuperLU), cholmod, superlu
+    #: or pardiso (MKL PARDISO through pypardiso, if installed: much faster on large maps)
+    backend: str = option("auto", choices=("auto", "cholmod", "superlu", "pardiso"))
 
 
 @dataclass
