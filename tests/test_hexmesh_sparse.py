@@ -237,8 +237,7 @@ def test_indefinite_matrix_with_positive_diagonal_is_refused():
 
 @pytest.mark.skipif("pardiso" not in BACKENDS, reason="pypardiso is not installed (an optional backend)")
 def test_pardiso_refuses_an_indefinite_matrix_and_matches_cholmod_on_a_laplacian():
-    from torchconn.hexmesh.solver import SPDFactor
-
+    SPDFactor = solver_mod.SPDFactor
     # [[1, 2], [2, 1]] has eigenvalues 3 and -1: PARDISO's SPD factorization finds a bad pivot
     idx = torch.tensor([[0, 0, 1, 1], [0, 1, 0, 1]])
     val = torch.tensor([1.0, 2.0, 2.0, 1.0], dtype=torch.float64)

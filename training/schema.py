@@ -22,6 +22,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from torchconn.frames.options import FrameOptions, group, option
+from torchconn.hexmesh.solver import BACKENDS
 
 __all__ = ["DemoConfig", "HexMeshConfig", "HexStage", "TrainFramesConfig", "defaults", "register"]
 
@@ -113,7 +114,7 @@ class HexStage:
     stiffening_factor: float = option(4.0, lo=1)
     #: sparse Cholesky: auto (CHOLMOD through cholespy if installed, else SuperLU), cholmod, superlu
     #: or pardiso (MKL PARDISO through pypardiso, if installed: much faster on large maps)
-    backend: str = option("auto", choices=("auto", "cholmod", "superlu", "pardiso"))
+    backend: str = option("auto", choices=("auto",) + BACKENDS)
 
 
 @dataclass

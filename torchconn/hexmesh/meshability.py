@@ -88,7 +88,7 @@ from .cut import GROUP_INV, TetCharts, edge_walks, group_matrices, tet_charts
 
 __all__ = ["Meshability", "meshability_report", "VERTEX_CLASSES", "EDGE_CLASSES", "INTERIOR_NODES", "BOUNDARY_CONFIGS",
            "classify_vertices", "edge_class_counts", "interior_edge_class", "boundary_edge_class", "boundary_edge_quarters",
-           "interior_class_table", "BoundaryFans", "boundary_fans", "fan_quarters", "fan_quarter_table",
+           "interior_class_table", "BoundaryFans", "boundary_fans", "fan_quarters", "folded_fan_quarters", "fan_quarter_table",
            "field_turn", "sharp_edges", "tangent_axes", "walk_products"]
 
 VERTEX_CLASSES = ("regular", "arc", "node", "zipper", "invalid", "complex")
@@ -323,8 +323,14 @@ def fan_quarters(a0: np.ndarray, a1: np.ndarray, dpar: np.ndarray, estimate: np.
     ang = np.arctan2((e * np.cross(t0, t1)).sum(-1), (t0 * t1).sum(-1)) % (2 * math.pi)
     q = np.rint(ang / (math.pi / 2)).astype(np.int64)
     q = np.where(same, 2, q)
-    q = np.where(opp, np.where(estimate < math.pi, 0, 4), q)
+    q = np.where(opp, folded_fan_quarters(estimate), q)
     return q
+
+
+def folded_fan_quarters(estimate: np.ndarray) -> np.ndarray:
+    """``q`` of a folded fan (first and last normals opposite): 0 or 4 quarter turns, by whether the
+    fan's angle ``estimate`` (radians, ``phi + A``) is below or above pi (:func:`fan_quarters`)."""
+    return np.where(np.asarray(estimate) < math.pi, 0, 4)
 
 
 def fan_quarter_table(frames: np.ndarray, fans: BoundaryFans, edge_dir: np.ndarray, estimate: np.ndarray) -> np.ndarray:

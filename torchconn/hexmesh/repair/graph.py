@@ -29,15 +29,14 @@ depart from the frames' best matches (``misfit``, radians).
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from ...frames.singular import classify_holonomy
 from ..cut import GROUP_INV, GROUP_MUL, edge_walks, face_matchings, group_matrices
 from ..meshability import (INVALID, VERTEX_CLASSES, ZIPPER, boundary_edge_class, boundary_edge_quarters, boundary_fans,
-                           classify_vertices, edge_class_counts, fan_quarters, sharp_edges, tangent_axes)
+                           classify_vertices, edge_class_counts, fan_quarters, folded_fan_quarters, sharp_edges,
+                           tangent_axes)
 
 __all__ = ["SingularGraph", "REPAIR_WEIGHTS"]
 
@@ -228,7 +227,7 @@ class SingularGraph:
             opp = self.fan_opp[r, Pb]
             if opp.any():  # a folded fan: 0 or 4 by the fan's angle plus the field's turn
                 q = q.copy()
-                q[opp] = np.where(self.fans.dihedral[r[opp]] + self.field_turn(e[opp]) < math.pi, 0, 4)
+                q[opp] = folded_fan_quarters(self.fans.dihedral[r[opp]] + self.field_turn(e[opp]))
             out[bi] = boundary_edge_class(q)
         return out
 
