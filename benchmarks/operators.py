@@ -17,8 +17,13 @@ generic torch kernels (``torchconn.ops.compiled(False)``), side by side.
 
 Rows (loss = sum of squares, backward to the skew parameters of a ``ConnectionField``):
 
-* ``curvature``: ``Curvature(mesh)``; ``averaged_dnabla``: ``AveragedCovariantD(mesh)``;
-  ``pair``: both on one connection (the design card's modules);
+* ``curvature``: ``Curvature(mesh)``; ``averaged_dnabla``: ``AveragedCovariantD(mesh)``: the
+  modules' tensor outputs, squared and summed in torch;
+* ``pair``: both on one connection (the design card's modules) as a loss computes them, through
+  the modules' ``sqnorm`` (``Curvature.sqnorm`` + ``AveragedCovariantD.sqnorm``: the value and
+  the gradient of each in one fused sweep, no ``(F, 3, 3)`` / ``(T, 3)`` tensors; issue 30);
+  ``pair_tensors``: the same loss from the modules' tensor outputs (``C.square().sum() +
+  D.square().sum()``), beside it;
 * ``tet_op``: the op ``torchconn::tet_dd`` alone on given ``R (E,3,3)`` and ``θ̃ (E,2,3)``
   (both requiring grad): the tet kernel's own figure;
 * ``tet_b8`` / ``tet_loop8``: ``ops.tet_solder.tet_dd_solder`` on a batch of 8 connections ``(8, E, 3, 3)``
@@ -40,7 +45,7 @@ from pathlib import Path
 import torch
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-ROWS = ("curvature", "averaged_dnabla", "pair", "tet_op", "tet_b8", "tet_loop8", "tet_hvp", "tet_grad")
+ROWS = ("curvature", "averaged_dnabla", "pair", "pair_tensors", "tet_op", "tet_b8", "tet_loop8", "tet_hvp", "tet_grad")
 
 
 def _status(key: str) -> float:
@@ -94,6 +99,11 @@ def _make(row: str, mesh, dtype: torch.dtype):
             field.zero_grad()
             dd(field).square().sum().backward()
     elif row == "pair":
+        def fn():
+            field.zero_grad()
+            conn = field()
+            (curv.sqnorm(conn) + dd.sqnorm(conn)).backward()
+    elif row == "pair_tensors":
         def fn():
             field.zero_grad()
             conn = field()
@@ -161,7 +171,7 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
-    ap.add_argument("--rows", nargs="+", default=["curvature", "averaged_dnabla", "pair", "tet_op"], choices=ROWS)
+    ap.add_argument("--rows", nargs="+", default=["curvature", "averaged_dnabla", "pair", "pair_tensors", "tet_op"], choices=ROWS)
     ap.add_argument("--switch", nargs="+", default=["on", "off"], choices=["on", "off"])
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

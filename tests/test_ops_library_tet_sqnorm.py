@@ -171,3 +171,36 @@ def test_meta_and_shape_errors():
         ops_sqn.tet_dd_frames_sqnorm(R, F, w[:-1], mesh)
     with pytest.raises(ValueError, match="edge_rot must have shape"):
         ops_sqn.tet_dd_frames_sqnorm(R[:-1], F, w, mesh)
+
+
+@pytest.mark.parametrize("on", SWITCH)
+def test_without_frames_is_the_global_frame(on):
+    """``frames=None`` (rows-free frames ``(*B, 0, 3, 3)`` at the op): the composition with
+    ``tet_dd_rot`` (``θ̃ = √R v``) and the identity frames, values and gradients; chunks of 5 tets,
+    a batch of 2, zero weights; opcheck; gradcheck and gradgradcheck."""
+    mesh = io.box(3)
+    k = ops_tet.TetKernel(mesh, chunk=5)
+    R, _, w = _data(mesh, seed=17, batch=(2,))
+    vec, e = edge_vectors(mesh, "cpu", DT), edge_index(mesh, "cpu")
+    eye = torch.eye(3, dtype=DT).expand(2, mesh.n_vertices, 3, 3)
+    with _switch(on):
+        got = []
+        for fn in (lambda A: ops_sqn.tet_dd_frames_sqnorm(A, None, w, mesh),
+                   lambda A: ops_sqn.tet_dd_frames_sqnorm(A, eye, w, mesh),
+                   lambda A: (w * ops_tet_solder.tet_dd_rot(A, vec, k).square().sum(-1)).sum(-1)):
+            Rr = R.clone().requires_grad_()
+            v = fn(Rr)
+            got.append((v.detach(), torch.autograd.grad(v.sum(), Rr)[0]))
+        for other in got[1:]:
+            for a, b in zip(got[0], other):
+                torch.testing.assert_close(a, b, atol=1e-12 * max(1.0, float(b.abs().max())), rtol=0)
+        none = R.new_empty(2, 0, 3, 3)
+        for with_grad in (True, False):
+            torch.library.opcheck(ops_sqn._sqnorm_op, (R.clone().requires_grad_(), none, vec, e, w, *k.tables(),
+                                                       with_grad), test_utils=_FAST_UTILS)
+        small = _two_tets()
+        Rs, _, ws = _data(small, seed=19)
+        f = lambda A, c: ops_sqn.tet_dd_frames_sqnorm(A, None, c, small)  # noqa: E731
+        args = (Rs.clone().requires_grad_(), (ws + 0.5).requires_grad_())
+        assert gradcheck(f, args)
+        assert gradgradcheck(f, args, fast_mode=True)

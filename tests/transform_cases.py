@@ -103,6 +103,18 @@ def _module_case(name: str, make_module, frames: str | None = None):
     return build
 
 
+def _sqnorm_case(name: str, make_module, frames: bool = False):
+    """A module's fused ``sqnorm`` (a 0-dim value: the value and gradient of one C sweep) on edge
+    rotations ``x (E, 3, 3)``, with fixed frames when ``frames``."""
+    def build(dtype):
+        mesh = _mesh()
+        mod = make_module(mesh)
+        E, V = mesh.edges.shape[0], mesh.vertices.shape[0]
+        args = (_rotations(V, dtype, 7),) if frames else ()
+        return Case(name, _rotations(E, dtype, 1), _rotations(E, dtype, 2), lambda x: mod.sqnorm(x, *args))
+    return build
+
+
 def _bianchi_case(dtype):
     mesh = _mesh()
     check = tc.BianchiCheck(mesh)
@@ -238,6 +250,11 @@ CASES: dict[str, Callable] = {
                                                frames="fixed"),
     "AveragedCovariantD(d/dframes)": _module_case("AveragedCovariantD(d/dframes)", tc.AveragedCovariantD,
                                                   frames="input"),
+    "Curvature.sqnorm": _sqnorm_case("Curvature.sqnorm", tc.Curvature),
+    "Curvature(holonomy).sqnorm": _sqnorm_case("Curvature(holonomy).sqnorm", lambda m: tc.Curvature(m, kind="holonomy")),
+    "AveragedCovariantD.sqnorm": _sqnorm_case("AveragedCovariantD.sqnorm", tc.AveragedCovariantD),
+    "AveragedCovariantD(frames).sqnorm": _sqnorm_case("AveragedCovariantD(frames).sqnorm", tc.AveragedCovariantD,
+                                                      frames=True),
     "BianchiCheck": _bianchi_case,
     "ConnectionField": _field_case,
     "FrameFieldLoss(edge_rot)": _frame_loss_case("rot"),

@@ -138,8 +138,9 @@ class FrameFieldLoss(nn.Module):
     :func:`torchconn.ops.compiled` on, plain tensors; :func:`~torchconn.frames.kernels.frame_loss.frame_loss_terms`)
     the ``smooth``, ``tie``, ``flat``, ``torsion`` and ``dirichlet`` terms and the regular faces of
     ``dnabla`` come from one sweep of ``torchconn::frame_loss`` (``csrc/frame_loss.c``) instead of
-    the modules, and ``dnabla`` itself from ``torchconn::tet_dd_frames_sqnorm`` (its gradient in
-    the same sweep; :class:`~torchconn.frames.terms.RegularCovariantD`): the same values and
+    the modules, and ``dnabla`` itself from the module's fused
+    :meth:`AveragedCovariantD.sqnorm <torchconn.nn.CovariantD.sqnorm>` (``torchconn::tet_dd_frames_sqnorm``,
+    its gradient in the same sweep; :class:`~torchconn.frames.terms.RegularCovariantD`): the same values and
     gradients to round-off (``tests/test_losses.py``), gradients of every order exact. Everywhere else (other devices, the ``torch.func`` transforms, the switch
     off) the modules run, each through its own operators' kernels.
 

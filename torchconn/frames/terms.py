@@ -40,7 +40,6 @@ from torch import nn
 
 from ..nn import AveragedCovariantD, Curvature, MeshBuffers, Torsion, edge_rotations
 from ..ops import can_use_compiled
-from ..ops.tet_sqnorm import tet_dd_frames_sqnorm
 from . import octahedral
 
 __all__ = [
@@ -292,8 +291,9 @@ class RegularCovariantD(nn.Module):
     the geometry, which ``flat`` (per face, without geometry) does not see. 0 when no tet is regular.
 
     Where the compiled kernel serves (unbatched plain CPU tensors, float32/float64, the switch
-    :func:`torchconn.ops.compiled` on, no ``torch.compile`` trace) the term is
-    :func:`torchconn.ops.tet_sqnorm.tet_dd_frames_sqnorm` with ``w_t = [t regular] / (vol_t^{2/3} #regular)``:
+    :func:`torchconn.ops.compiled` on, no ``torch.compile`` trace) the term is the module's
+    :meth:`~torchconn.nn.CovariantD.sqnorm` (the op :func:`torchconn.ops.tet_sqnorm.tet_dd_frames_sqnorm`)
+    with ``w_t = [t regular] / (vol_t^{2/3} #regular)``:
     the same value to round-off, its gradient computed in the forward sweep, irregular tets skipped;
     elsewhere :class:`~torchconn.nn.AveragedCovariantD`'s ``(T, 3)`` output is reduced in torch.
 
@@ -336,7 +336,7 @@ class RegularCovariantD(nn.Module):
             # dim of 4 (at 1M tets 10 ms -> 2 ms); a bool times a float is one pass, where() three.
             regular = four.view(torch.int32) == 0x01010101
             w = self.tet_inv_scale.to(device=R.device, dtype=R.dtype) * regular
-            return tet_dd_frames_sqnorm(R, frames, w, self.dd.mesh) / regular.sum().clamp_min(1)
+            return self.dd.sqnorm(R, frames, weight=w) / regular.sum().clamp_min(1)
         regular = four.reshape(*face_regular.shape[:-1], *tf.shape).all(-1)  # (T,)
         dd = self.dd(R, frames)  # (T, 3)
         per = (dd**2).sum(-1) / self.tet_scale.to(device=dd.device, dtype=dd.dtype)

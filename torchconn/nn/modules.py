@@ -59,6 +59,8 @@ from ..dec import dnabla as _dnabla
 from ..dec import torsion as _torsion
 from ..mesh import CellComplex, FaceGroup, TetMesh
 from ..mesh.cells import face_groups_from_buffers
+from ..ops.curvature_sqnorm import face_curvature_sqnorm as _face_curvature_sqnorm
+from ..ops.tet_sqnorm import tet_dd_frames_sqnorm as _tet_dd_frames_sqnorm
 
 __all__ = [
     "edge_rotations",
@@ -182,6 +184,21 @@ def _frames(frames: Any, R: torch.Tensor, mesh: MeshBuffers, who: str) -> torch.
     return frames.to(dtype=R.dtype, device=R.device)
 
 
+def _weight(weight: Any, R: torch.Tensor, n: int, what: str, who: str) -> torch.Tensor | None:
+    """Per-cell weights ``(n,)`` or ``(*batch, n)`` of :meth:`Curvature.sqnorm` /
+    :meth:`CovariantD.sqnorm`, checked and cast to the dtype and device of ``R (*batch, E, 3, 3)``."""
+    if weight is None:
+        return None
+    if not isinstance(weight, torch.Tensor) or not weight.is_floating_point():
+        got = f"dtype {weight.dtype}" if isinstance(weight, torch.Tensor) else type(weight).__name__
+        raise TypeError(f"{who}.sqnorm: weight must be None or a floating-point tensor, got {got}")
+    batch = tuple(R.shape[:-3])
+    if tuple(weight.shape) not in ((n,), (*batch, n)):
+        alt = f" or {(*batch, n)}" if batch else ""
+        raise ValueError(f"{who}.sqnorm: weight must have shape {(n,)} (one per {what}){alt}, got {tuple(weight.shape)}")
+    return weight.to(dtype=R.dtype, device=R.device)
+
+
 class Curvature(nn.Module):
     """Per-face discrete curvature of a connection (report Sec. 3.2; docs/conventions.md §1).
 
@@ -217,6 +234,30 @@ class Curvature(nn.Module):
         """
         R = _rotations(connection, self.mesh, "Curvature")
         return _curvature.face_curvature(R, self.mesh, cut=self.cut, kind=self.kind)
+
+    def sqnorm(self, connection: Any, weight: torch.Tensor | None = None) -> torch.Tensor:
+        """``Σ_f w_f |C_f|_F²`` per batch item, ``C = self(connection)``: ``(*batch,)``.
+
+        The value and gradient of a curvature loss without the ``(*batch, F, n, n)`` tensor: on a
+        tet mesh with ``n = 3`` the op ``torchconn::face_curvature_sqnorm``
+        (:mod:`torchconn.ops.curvature_sqnorm`: one C sweep over the edges gives the value and
+        ``∂/∂R``; same values and gradients as the reduction of :meth:`forward` to round-off,
+        differentiable to any order, under every ``torch.func`` transform and ``torch.compile``);
+        elsewhere :meth:`forward` reduced in torch.
+
+        Args:
+            connection: as :meth:`forward`.
+            weight: ``None`` (1) or per-face weights ``(F,)`` / ``(*batch, F)``, global face order.
+        """
+        R = _rotations(connection, self.mesh, "Curvature")
+        if _is_tet_mesh(self.mesh):
+            w = _weight(weight, R, self.mesh.faces.shape[0], "face", "Curvature")
+            out = _face_curvature_sqnorm(R, self.mesh, w, cut=self.cut, kind=self.kind)
+            if out is not None:
+                return out
+        per = _curvature.face_curvature(R, self.mesh, cut=self.cut, kind=self.kind).square().sum((-1, -2))
+        w = _weight(weight, R, per.shape[-1], "face", "Curvature")
+        return (per if w is None else w * per).sum(-1)
 
 
 class Torsion(nn.Module):
@@ -304,6 +345,34 @@ class CovariantD(nn.Module):
         who = type(self).__name__
         R = _rotations(connection, self.mesh, who, n3=True)
         return self._FUNCS[self.variant](R, self.mesh, _frames(frames, R, self.mesh, who))
+
+    def sqnorm(self, connection: Any, frames: torch.Tensor | None = None,
+               weight: torch.Tensor | None = None) -> torch.Tensor:
+        """``Σ_t w_t |d∇d∇θ_t|²`` per batch item, ``d∇d∇θ = self(connection, frames)``: ``(*batch,)``.
+
+        The value and gradient of a loss on it without the ``(*batch, T, 3)`` tensor: for the
+        averaged variant the op ``torchconn::tet_dd_frames_sqnorm``
+        (:mod:`torchconn.ops.tet_sqnorm`: one C sweep gives the value and the gradients in the
+        rotations and the frames, tets with ``w_t = 0`` skipped; ``frames=None``: the global
+        frame, no frame products; same values and gradients as the reduction of :meth:`forward` to
+        round-off, differentiable to any order, under every ``torch.func`` transform and
+        ``torch.compile``); the other variants reduce :meth:`forward` in torch.
+
+        Args:
+            connection, frames: as :meth:`forward`.
+            weight: ``None`` (1) or per-tet weights ``(T,)`` / ``(*batch, T)``.
+        """
+        who = type(self).__name__
+        R = _rotations(connection, self.mesh, who, n3=True)
+        F = _frames(frames, R, self.mesh, who)
+        T = self.mesh.tets.shape[0]
+        w = _weight(weight, R, T, "tet", who)
+        if self.variant == "averaged" and _is_tet_mesh(self.mesh):
+            if F is not None:
+                F = F.expand(*R.shape[:-3], *F.shape[-3:])
+            return _tet_dd_frames_sqnorm(R, F, R.new_ones(T) if w is None else w, self.mesh)
+        per = self._FUNCS[self.variant](R, self.mesh, F).square().sum(-1)
+        return (per if w is None else w * per).sum(-1)
 
 
 class AveragedCovariantD(CovariantD):

@@ -10,6 +10,8 @@ backward, ``create_graph``, Hessian-vector products), and a vmap rule (native le
 * :mod:`.so3`: ``so3_exp``, ``so3_log``, ``so3_log_checked``, ``so3_sqrt`` (+ backward ops;
   ``csrc/so3.c``; generic formulas in ``_so3_formulas``);
 * :mod:`.curvature`: ``face_curvature`` of sorted-triangle meshes (``csrc/curvature.c``);
+* :mod:`.curvature_sqnorm`: ``face_curvature_sqnorm``, the weighted squared norm ``Σ_f w_f |H_f|²``
+  of the face curvature per item, its gradient computed in the same C sweep over the edges;
 * :mod:`.torsion`: ``face_torsion_sqrt``, the √R torsion (``csrc/torsion.c``: roots and solder forms
   per edge, a race-free backward over the edges' incident faces);
 * :mod:`.tet`: ``tet_dd``, the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃`` per tet (``csrc/tet.c``; generic SoA
@@ -34,7 +36,7 @@ module keep mesh objects out of the ops (index tables built once per mesh are op
 some return ``None`` where they do not apply, and their caller evaluates its generic formula.
 This package imports nothing of torchconn but :mod:`torchconn.tolerances`.
 """
-from . import backend, curvature, native, so3, tet, tet_solder, tet_sqnorm, torsion
+from . import backend, curvature, curvature_sqnorm, native, so3, tet, tet_solder, tet_sqnorm, torsion
 from .backend import can_use_compiled, compiled, compiled_enabled, set_compiled
 
 __all__ = [
@@ -42,6 +44,7 @@ __all__ = [
     "native",
     "so3",
     "curvature",
+    "curvature_sqnorm",
     "torsion",
     "tet",
     "tet_solder",

@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import torch
 
-__all__ = ["NAMESPACE", "qualname", "leading_vmap"]
+__all__ = ["NAMESPACE", "qualname", "leading_vmap", "scale_saved"]
 
 #: The ``torch.library`` namespace of every torchconn op (``torch.ops.torchconn.<name>``).
 NAMESPACE = "torchconn"
@@ -97,3 +97,20 @@ def jvp(f: Callable, primals: Sequence[torch.Tensor], tangents: Sequence[torch.T
                                                allow_unused=True))
     res = tuple(torch.zeros_like(o) if r is None else r for r, o in zip(res, outs))
     return res if isinstance(out, tuple) else res[0]
+
+
+def scale_saved(saved: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """A gradient computed in an op's forward (``saved (*B, ...)``) times the incoming gradient
+    ``g (*B,)`` of the op's scalar output: the first-order backward of the fused sqnorm ops.
+
+    When ``g`` is a plain CPU scalar equal to 1 (the backward of a loss, ``loss.backward()``) the
+    saved tensor itself is returned: no pass over it and no fresh allocation (two of each per
+    training step at 1M tets, ~17 ms each on a 2-core VM). Autograd never writes into a gradient
+    it does not own (it accumulates in place only into a buffer nothing else references), so the
+    saved tensor stays intact for a second backward. Under a ``torch.func`` transform, a
+    ``torch.compile`` trace or on another device (where reading ``g`` would synchronize) it multiplies.
+    """
+    if (type(g) is torch.Tensor and g.device.type == "cpu" and g.numel() == 1 and not torch.compiler.is_compiling()
+            and not torch._C._functorch.is_functorch_wrapped_tensor(g) and g.item() == 1.0):
+        return saved
+    return saved * g.reshape(*g.shape, *(1,) * (saved.dim() - g.dim()))

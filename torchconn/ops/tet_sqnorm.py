@@ -3,7 +3,9 @@
 ``torchconn::tet_dd_frames_sqnorm``: per batch item the scalar
 
     ``s = Σ_t w_t |dd_t|²``,  ``dd = tet_dd_frames(R, F)`` (:func:`torchconn.ops.tet_solder.tet_dd_frames`,
-    the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃'`` with ``θ̃'_ij = F_iᵀ √(F_i R_ij F_jᵀ) (v_j - v_i)``),
+    the averaged ``𝔡∇ Alt 𝔡∇ Alt θ̃'`` with ``θ̃'_ij = F_iᵀ √(F_i R_ij F_jᵀ) (v_j - v_i)``; frames
+    ``(*B, 0, 3, 3)`` — no rows — stand for the global frame ``F_i = I``, ``θ̃ = √R v``:
+    :func:`torchconn.ops.tet_solder.tet_dd_rot`, without the frame products),
 
 with per-tet weights ``w (*B, T)`` (not differentiated by the C kernel; a tet with ``w_t = 0`` is
 not computed at all). It is the loss term of a squared ``d∇d∇θ``
@@ -32,9 +34,10 @@ from ._cache import edge_index as _edge_index
 from ._cache import edge_vectors as _edge_vectors
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
+from ._library import scale_saved as _scale_saved
 from .backend import can_use_compiled
 from .tet import _I64, _P, _tables, tet_kernel
-from .tet_solder import _generic_frames_bwd, _generic_frames_fwd
+from .tet_solder import _generic_frames_bwd, _generic_frames_fwd, _generic_rot_bwd, _generic_rot_fwd
 from ..tolerances import get_eps
 
 __all__ = ["tet_dd_frames_sqnorm"]
@@ -45,9 +48,17 @@ _SQN = {dt: _native.declare("tet", f"tet_ddf_sqn_{sfx}",
         for dt, sfx in ((torch.float32, "f32"), (torch.float64, "f64"))}
 
 
+def _framed(frames: torch.Tensor) -> bool:
+    """Frames with rows (``(*B, V, 3, 3)``); ``(*B, 0, 3, 3)`` is the global frame, ``F_i = I``."""
+    return frames.shape[-3] > 0
+
+
 def _generic_value(edge_rot, frames, edge_vec, edges, weight, rot_index, theta_index):
     """``(s (*B,), dd (*B, T, 3))`` in torch operations (differentiable)."""
-    dd = _generic_frames_fwd(edge_rot, frames, edge_vec, edges, rot_index, theta_index)
+    if _framed(frames):
+        dd = _generic_frames_fwd(edge_rot, frames, edge_vec, edges, rot_index, theta_index)
+    else:
+        dd = _generic_rot_fwd(edge_rot, edge_vec, rot_index, theta_index)
     return (weight * (dd * dd).sum(-1)).sum(-1), dd
 
 
@@ -56,6 +67,9 @@ def _generic(edge_rot, frames, edge_vec, edges, weight, rot_index, theta_index, 
     if not with_grad:
         return value, _empty(edge_rot), _empty(edge_rot)
     g = 2.0 * weight.unsqueeze(-1) * dd
+    if not _framed(frames):
+        g_rot, _ = _generic_rot_bwd(edge_rot, edge_vec, g, rot_index, theta_index)
+        return value, g_rot, torch.zeros_like(frames, memory_format=torch.contiguous_format)
     g_rot, g_fr, _ = _generic_frames_bwd(edge_rot, frames, edge_vec, g, edges, rot_index, theta_index)
     return value, g_rot, g_fr
 
@@ -83,14 +97,16 @@ def _(edge_rot, frames, edge_vec, edges, weight, rot_index, theta_index, order, 
     R, Fr, v, e, w = (t.contiguous() for t in (edge_rot, frames, edge_vec, edges, weight))
     tabs = [t.contiguous() for t in (rot_index, theta_index, order, chunk_start, color_start)]
     batch, E, V, T = edge_rot.shape[:-3], R.shape[-3], Fr.shape[-3], rot_index.shape[0]
+    framed = _framed(frames)
     nb = batch.numel()
     value = torch.zeros(nb, dtype=torch.float64)
     g_rot = _native.empty(*R.shape, dtype=R.dtype) if with_grad else _empty(R)
     g_fr = _native.empty(*Fr.shape, dtype=R.dtype) if with_grad else _empty(R)
     if nb and E and T:
-        status = _SQN[R.dtype](_native.ptr(R), _native.ptr(Fr), _native.ptr(v), _native.ptr(e), _native.ptr(w),
+        status = _SQN[R.dtype](_native.ptr(R), _native.ptr(Fr) if framed else None, _native.ptr(v), _native.ptr(e), _native.ptr(w),
                                *(_native.ptr(t) for t in tabs), _I64(tabs[-1].shape[0] - 1), _native.ptr(value),
-                               _native.ptr(g_rot) if with_grad else None, _native.ptr(g_fr) if with_grad else None,
+                               _native.ptr(g_rot) if with_grad else None,
+                               _native.ptr(g_fr) if with_grad and framed else None,
                                _I64(nb), _I64(E), _I64(V), _I64(T), torch.get_num_threads(),
                                get_eps("small_angle", R.dtype), int(with_grad))
         if status != 0:
@@ -121,10 +137,12 @@ def _backward(ctx, g_value, _g_rot, _g_fr):
     ``edge_vec`` / ``weight``: ``torch.func.vjp`` of the generic formula (exact, differentiable)."""
     R, Fr, vec, edges, w, ri, ti, saved_rot, saved_fr = ctx.saved_tensors
     need = ctx.needs_input_grad
+    if g_value is None:  # no gradient came in (grads are not materialized: _Fn)
+        return (None,) * 11
     if (saved_rot is not None and saved_rot.numel() and not torch.is_grad_enabled()
             and not (need[2] or need[4])):
-        s = g_value.reshape(*g_value.shape, 1, 1, 1)
-        return (saved_rot * s if need[0] else None, saved_fr * s if need[1] else None) + (None,) * 9
+        return (_scale_saved(saved_rot, g_value) if need[0] else None,
+                _scale_saved(saved_fr, g_value) if need[1] else None) + (None,) * 9
     _, pullback = torch.func.vjp(lambda a, b, c, d: _generic_value(a, b, c, edges, d, ri, ti)[0], R, Fr, vec, w)
     gR, gF, gv, gw = pullback(g_value)
     return (gR if need[0] else None, gF if need[1] else None, gv if need[2] else None, None,
@@ -151,6 +169,7 @@ class _Fn(torch.autograd.Function):
     def setup_context(ctx, inputs, output):
         _setup(ctx, inputs, output)
         ctx.save_for_forward(*inputs[:7])
+        ctx.set_materialize_grads(False)  # no zero tensors for the unused gradient outputs
 
     @staticmethod
     def backward(ctx, g_value, g_rot, g_fr):
@@ -165,14 +184,17 @@ class _Fn(torch.autograd.Function):
         return t, None, None
 
 
-def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor, weight: torch.Tensor, mesh) -> torch.Tensor:
+def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor | None, weight: torch.Tensor, mesh
+                         ) -> torch.Tensor:
     """``Σ_t w_t |dd_t|²`` per batch item: ``(*B,)``, with ``dd (*B, T, 3)`` the averaged ``d∇d∇θ`` of
     ``edge_rot`` with the solder form in ``frames`` (:func:`torchconn.dec.dnabla.averaged_dd_solder`
     with ``frames``; :func:`torchconn.ops.tet_solder.tet_dd_frames`), without the ``(T, 3)`` tensor.
 
     Args:
         edge_rot: ``(*B, E, 3, 3)`` ``R_ij`` of the canonical edges of ``mesh`` (a ``TetMesh``).
-        frames: ``(*B, V, 3, 3)``, axes as columns (the batch dims of ``edge_rot``).
+        frames: ``(*B, V, 3, 3)``, axes as columns (the batch dims of ``edge_rot``), or ``None``: the
+            global frame (``F_i = I``, ``θ̃ = √R v``; the kernel then forms no frame products and
+            no frame gradient).
         weight: ``(*B, T)`` per-tet weights (or ``(T,)``, broadcast), dtype of ``edge_rot``.
 
     Differentiable to any order in ``edge_rot``, ``frames`` and ``weight`` (module doc). Shapes are
@@ -184,7 +206,9 @@ def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor, weight: t
         raise ValueError(f"tet_dd_frames_sqnorm: edge_rot must have shape (*B, {E}, 3, 3), got {tuple(edge_rot.shape)}")
     batch = edge_rot.shape[:-3]
     V = mesh.vertices.shape[0]
-    if frames.shape != (*batch, V, 3, 3):
+    if frames is None:
+        frames = edge_rot.new_empty(*batch, 0, 3, 3)
+    elif frames.shape != (*batch, V, 3, 3):
         raise ValueError(f"tet_dd_frames_sqnorm: frames must have shape {(*batch, V, 3, 3)}, got {tuple(frames.shape)}")
     if weight.shape[-1:] != (T,):
         raise ValueError(f"tet_dd_frames_sqnorm: weight must have shape (*B, {T}), got {tuple(weight.shape)}")

@@ -21,14 +21,29 @@
  * (3F slot terms in all, as a face loop would), each edge is written once, and the sum over a
  * given edge is in a fixed order: results do not depend on the number of threads.
  *
- * Leading batch dims: edge_rot (B, E, 9), grad/out (B, F, 9); the batch is looped inside.
+ * The weighted squared norm (curv_sqn_*, issue 30): per batch item s = sum_f w_f |H_f|_F^2 and,
+ * with a gradient buffer, ds/dR: a face pass forms H_f once, adds w_f |H_f|^2 to its task's sum and
+ * writes G_f = 2 w_f H_f to a scratch (freed before return; no (F, 3, 3) tensor, square or
+ * backward tensor of torch), and the backward edge pass above turns G into ds/dR. Faces with
+ * w_f = 0 are not computed. Sums per task in double, added in task order (the value does not
+ * depend on the number of threads).
+ *
+ * Leading batch dims: edge_rot (B, E, 9), grad/out (B, F, 9), w (B, F); the batch is looped inside.
  * Exported: curv_fwd_{f32,f64}(const T* edge_rot, const long* face_index, T* out, long B,
  *                              long E, long F, int kind, int nthreads)
  *           curv_bwd_{f32,f64}(const T* edge_rot, const T* grad, const long* face_index,
  *                              const int* inc_ptr, const int* inc, T* grad_edge, long B,
  *                              long E, long F, int kind, int nthreads)
+ *           int curv_sqn_{f32,f64}(const T* edge_rot, const T* w, const long* face_index,
+ *                              const int* inc_ptr, const int* inc, double* value,
+ *                              T* grad_edge (NULL: the value only), long B, long E, long F,
+ *                              int kind, int nthreads) -> 0, or -1 when its task sums cannot be
+ *                              allocated
  */
 #ifndef CURV_T
+
+#define _DEFAULT_SOURCE /* mmap's MAP_ANONYMOUS (tc_scratch of pool.c) */
+#include <stddef.h> /* NULL */
 
 #define CURV_CAT_(a, b) a##b
 #define CURV_CAT(a, b) CURV_CAT_(a, b)
@@ -41,6 +56,7 @@
 #define CURV_TASK 2048L
 
 #define TC_POOL_CLIENT
+#define TC_POOL_SCRATCH /* tc_scratch */
 #include "pool.c" /* tc_parallel */
 
 #define CURV_T float
@@ -82,12 +98,32 @@ static inline void FN(mtm)(const T *A, const T *B, T *C)
             C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
 }
 
+/* h = H of the face with rotations ab, bc, ac (the formulas of the header, kind 0 with the - I) */
+static inline void FN(face_h)(int kind, const T *ab, const T *bc, const T *ac, T *h)
+{
+    T P[9];
+    if (kind == 2) {
+        FN(mm)(ab, bc, P);
+        for (int q = 0; q < 9; ++q)
+            h[q] = P[q] - ac[q];
+    } else if (kind == 1) {
+        FN(mmt)(ac, bc, P);
+        for (int q = 0; q < 9; ++q)
+            h[q] = ab[q] - P[q];
+    } else {
+        FN(mm)(ab, bc, P);
+        FN(mmt)(P, ac, h);
+        h[0] -= (T)1; h[4] -= (T)1; h[8] -= (T)1;
+    }
+}
+
 /* the arguments of one item of a curvature loop (a task covers CURV_TASK faces or edges) */
 typedef struct {
-    const T *R, *G;
+    const T *R, *G, *w;
     const long *face_index;
     const int *inc_ptr, *inc;
     T *out;
+    double *part;
     long E, F;
     int kind;
 } FN(curv_t);
@@ -99,23 +135,8 @@ static void FN(fwd_task)(void *vc, long task)
     const long *iab = c->face_index, *ibc = c->face_index + F, *iac = c->face_index + 2 * F;
     const T *R = c->R;
     const int kind = c->kind;
-    for (long f = task * CURV_TASK; f < f1; ++f) {
-        const T *ab = R + iab[f] * 9, *bc = R + ibc[f] * 9, *ac = R + iac[f] * 9;
-        T *h = c->out + f * 9, P[9];
-        if (kind == 2) {
-            FN(mm)(ab, bc, P);
-            for (int q = 0; q < 9; ++q)
-                h[q] = P[q] - ac[q];
-        } else if (kind == 1) {
-            FN(mmt)(ac, bc, P);
-            for (int q = 0; q < 9; ++q)
-                h[q] = ab[q] - P[q];
-        } else {
-            FN(mm)(ab, bc, P);
-            FN(mmt)(P, ac, h);
-            h[0] -= (T)1; h[4] -= (T)1; h[8] -= (T)1;
-        }
-    }
+    for (long f = task * CURV_TASK; f < f1; ++f)
+        FN(face_h)(kind, R + iab[f] * 9, R + ibc[f] * 9, R + iac[f] * 9, c->out + f * 9);
 }
 
 void FN(curv_fwd)(const T *edge_rot, const long *face_index, T *out, long B, long E, long F, int kind,
@@ -179,6 +200,68 @@ void FN(curv_bwd)(const T *edge_rot, const T *grad, const long *face_index, cons
                         .kind = kind};
         tc_parallel(tc_tasks(E, CURV_TASK), E >= CURV_PAR_MIN ? nt : 1, FN(bwd_task), &c);
     }
+}
+
+/* curv_sqn: the faces of a task: the value and, with a gradient buffer G, G_f = 2 w_f H_f */
+static void FN(sqn_task)(void *vc, long task)
+{
+    const FN(curv_t) *c = (const FN(curv_t) *)vc;
+    const long F = c->F, f1 = (task + 1) * CURV_TASK < F ? (task + 1) * CURV_TASK : F;
+    const long *fi = c->face_index;
+    T *G = c->out;
+    double s = 0;
+    for (long f = task * CURV_TASK; f < f1; ++f) {
+        const T wf = c->w[f];
+        T h[9];
+        if (wf == 0) {
+            if (G)
+                for (int q = 0; q < 9; ++q)
+                    G[f * 9 + q] = 0;
+            continue;
+        }
+        FN(face_h)(c->kind, c->R + fi[f] * 9, c->R + fi[F + f] * 9, c->R + fi[2 * F + f] * 9, h);
+        double n2 = 0;
+        for (int q = 0; q < 9; ++q)
+            n2 += (double)h[q] * h[q];
+        s += (double)wf * n2;
+        if (G)
+            for (int q = 0; q < 9; ++q)
+                G[f * 9 + q] = 2 * wf * h[q];
+    }
+    c->part[task] = s;
+}
+
+int FN(curv_sqn)(const T *edge_rot, const T *w, const long *face_index, const int *inc_ptr, const int *inc,
+                 double *value, T *grad_edge, long B, long E, long F, int kind, int nt)
+{
+    /* pass 1 (faces): the value and, with a gradient, G = 2 w H into a scratch (F, 9); pass 2
+     * (edges, bwd_task): the gradient from G, race-free. Recomputing H per incident face in the
+     * edge pass instead (no scratch) reads three rotations and three index rows per incidence,
+     * scattered: 0.21 s at 1M tets against 0.07 s for the two passes */
+    const long tasks = tc_tasks(F, CURV_TASK);
+    const size_t bytes = sizeof(double) * (size_t)(tasks > 0 ? tasks : 1)
+                       + (grad_edge ? sizeof(T) * 9 * (size_t)F : 0);
+    double *part = tc_scratch(bytes);
+    if (!part)
+        return -1;
+    T *G = grad_edge ? (T *)(part + (tasks > 0 ? tasks : 1)) : NULL;
+    for (long b = 0; b < B; ++b) {
+        FN(curv_t) c = {.R = edge_rot + b * E * 9, .w = w + b * F, .face_index = face_index,
+                        .inc_ptr = inc_ptr, .inc = inc, .out = G, .part = part, .E = E, .F = F,
+                        .kind = kind};
+        tc_parallel(tasks, F >= CURV_PAR_MIN ? nt : 1, FN(sqn_task), &c);
+        double s = 0;
+        for (long k = 0; k < tasks; ++k)
+            s += part[k];
+        value[b] = s;
+        if (grad_edge) {
+            c.G = G;
+            c.out = grad_edge + b * E * 9;
+            tc_parallel(tc_tasks(E, CURV_TASK), E >= CURV_PAR_MIN ? nt : 1, FN(bwd_task), &c);
+        }
+    }
+    tc_scratch_free(part, bytes);
+    return 0;
 }
 
 #undef T

@@ -71,6 +71,7 @@ static inline void tc_parallel(long n, int nt, tc_task_fn fn, void *ctx)
         fn(ctx, i);
 }
 
+
 /* the number of tasks of `chunk` items each that cover n items */
 static inline long tc_tasks(long n, long chunk)
 {
@@ -267,3 +268,33 @@ int tc_pool_workers(void)
 
 #endif /* TC_POOL_CLIENT */
 #endif /* TC_POOL_C */
+
+#if defined(TC_POOL_SCRATCH) && !defined(TC_POOL_SCRATCH_C)
+#define TC_POOL_SCRATCH_C /* once, outside the guard of the rest: a client may include this file
+                           * first through another (so3.c) without TC_POOL_SCRATCH */
+/* (a client that defines TC_POOL_SCRATCH defines _DEFAULT_SOURCE before its first include: mmap's
+ * MAP_ANONYMOUS under -std=c99) */
+#include <sys/mman.h>
+
+/* Zeroed scratch of `bytes`, mapped for the call and unmapped after it (tc_scratch_free): a
+ * malloc'd block of this size (tens of MB) would come from the heap once glibc has raised its
+ * mmap threshold to it, and stay resident after free (measured: +0.1 GB of peak RSS in the
+ * curvature + d∇ pair at 1M tets). Fresh anonymous pages are zero (no clearing pass); huge pages
+ * advised (one fault per 2 MiB: a 72 MB first fill 28 -> 7 ms on a 2-core KVM guest). NULL when
+ * the mapping fails. */
+static inline void *tc_scratch(size_t bytes)
+{
+    void *p = mmap(NULL, bytes ? bytes : 1, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (p == MAP_FAILED)
+        return NULL;
+#ifdef MADV_HUGEPAGE
+    madvise(p, bytes ? bytes : 1, MADV_HUGEPAGE);
+#endif
+    return p;
+}
+
+static inline void tc_scratch_free(void *p, size_t bytes)
+{
+    munmap(p, bytes ? bytes : 1);
+}
+#endif /* TC_POOL_SCRATCH */

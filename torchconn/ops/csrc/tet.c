@@ -26,7 +26,7 @@
  * edge is in a fixed order, whatever the number of threads), and the colors one after the other.
  *
  * The √R variant (tet_dds_*) forms θ̃_ij = H_e v_e, θ̃_ji = -H_e^T v_e once per *edge* in a
- * first pass (parallel over edges) into a scratch it maps itself (tet_scratch), then runs the
+ * first pass (parallel over edges) into a scratch it maps itself (tc_scratch, pool.c), then runs the
  * kernels above; its backward turns the gradient of every directed θ̃ into those of H and v in
  * a last pass over edges. The fused variant (tet_ddr_*) also forms H = √R_e in those passes.
  *
@@ -64,21 +64,6 @@
 #include "so3.c"
 #undef SO3_KERNELS_ONLY
 
-/* Zeroed scratch of `bytes`, mapped for the call and unmapped after it: a malloc'd block of this
- * size (tens of MB) would come from the heap once glibc has raised its mmap threshold to it,
- * and stay resident after free (measured: +0.1 GB of peak RSS in the curvature + d∇ pair at
- * 1M tets). Fresh anonymous pages are zero (no clearing pass); huge pages advised. */
-static void *tet_scratch(size_t bytes)
-{
-    void *p = mmap(NULL, bytes ? bytes : 1, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    if (p == MAP_FAILED)
-        return NULL;
-#ifdef MADV_HUGEPAGE
-    madvise(p, bytes ? bytes : 1, MADV_HUGEPAGE);
-#endif
-    return p;
-}
-
 #define TET_CAT_(a, b) a##b
 #define TET_CAT(a, b) TET_CAT_(a, b)
 /* tets per lane block: one 512-bit register of float32 lanes */
@@ -93,6 +78,7 @@ static void *tet_scratch(size_t bytes)
 #define TET_TASK_SO3 16L
 
 #define TC_POOL_CLIENT
+#define TC_POOL_SCRATCH /* tc_scratch */
 #include "pool.c" /* tc_parallel */
 
 #if defined(__AVX512F__)
@@ -523,12 +509,12 @@ int FN(tet_dds_fwd)(const T_ *rot, const T_ *half, const T_ *vec, const int64_t 
                     const int64_t *tidx, T_ *out, int64_t nb, int64_t E, int64_t T, int threads)
 {
     const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     FN(theta_sqrt)(half, vec, theta, nb, E, threads);
     FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
@@ -556,7 +542,7 @@ int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
                     T_ *grot, T_ *ghalf, T_ *gvec, int64_t nb, int64_t E, int64_t T, int threads)
 {
     const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
-    T_ *gth = tet_scratch(bytes); /* ∂L/∂θ̃ (nb, E, 2, 3), zeroed */
+    T_ *gth = tc_scratch(bytes); /* ∂L/∂θ̃ (nb, E, 2, 3), zeroed */
     if (!gth)
         return -1;
     /* pass 0 (edges): θ̃ into ghalf's first 6E entries of each item (ghalf has 9E per item and
@@ -575,7 +561,7 @@ int FN(tet_dds_bwd)(const T_ *rot, const T_ *half, const T_ *vec, const T_ *gin,
                         .ghalf = ghalf + bi * 9 * E, .gvec = gvec + bi * 3 * E, .E = E};
         tc_parallel(tc_tasks(E, TET_TASK_EDGES), E >= TET_PAR_MIN ? threads : 1, FN(dds_grad_task), &c);
     }
-    munmap(gth, bytes ? bytes : 1);
+    tc_scratch_free(gth, bytes);
     return 0;
 }
 
@@ -625,12 +611,12 @@ int FN(tet_ddr_fwd)(const T_ *rot, const T_ *vec, const int64_t *ridx, const int
                     int64_t nb, int64_t E, int64_t T, int threads, double eps)
 {
     const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     FN(theta_rot)(rot, vec, theta, nb, E, threads, (T_)(eps * eps));
     FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
@@ -648,16 +634,18 @@ static void FN(ddr_grad_task)(void *vc, long task)
         for (int j = 0; j < m; j++)
             for (int q = 0; q < 9; q++)
                 A[q][j] = c->rot[9 * (e0 + j) + q];
-        SO3FN(sqrt_fwd_block)(A, O, m, c->eps2); /* H = √R */
+        if (c->gvec) /* H = √R, for ∂L/∂v only: the root's backward below recomputes what it needs */
+            SO3FN(sqrt_fwd_block)(A, O, m, c->eps2);
         for (int j = 0; j < m; j++) {
             const T_ *v = c->vec + 3 * (e0 + j), *gp = c->gth + 6 * (e0 + j), *gm = gp + 3;
             /* θ̃_ij = H v: dH += gp v^T, dv += H^T gp; θ̃_ji = -H^T v: dH -= v gm^T, dv -= H gm */
             for (int i = 0; i < 3; i++)
                 for (int k = 0; k < 3; k++)
                     G[3 * i + k][j] = gp[i] * v[k] - v[i] * gm[k];
-            for (int i = 0; i < 3; i++)
-                c->gvec[3 * (e0 + j) + i] = (O[i][j] * gp[0] + O[3 + i][j] * gp[1] + O[6 + i][j] * gp[2])
-                                          - (O[3 * i][j] * gm[0] + O[3 * i + 1][j] * gm[1] + O[3 * i + 2][j] * gm[2]);
+            if (c->gvec) /* NULL: ∂L/∂v not wanted (tet_ddf_sqn without frames) */
+                for (int i = 0; i < 3; i++)
+                    c->gvec[3 * (e0 + j) + i] = (O[i][j] * gp[0] + O[3 + i][j] * gp[1] + O[6 + i][j] * gp[2])
+                                              - (O[3 * i][j] * gm[0] + O[3 * i + 1][j] * gm[1] + O[3 * i + 2][j] * gm[2]);
         }
         SO3FN(sqrt_bwd_block)(A, G, O, m, c->eps2); /* ∂L/∂R through √R */
         for (int j = 0; j < m; j++)
@@ -676,7 +664,7 @@ int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *
      * from gth, and grot += the root's backward */
     const T_ eps2 = (T_)(eps * eps);
     const size_t bytes = sizeof(T_) * 12 * (size_t)(E * nb);
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     T_ *gth = theta + 6 * E * nb;
@@ -692,7 +680,7 @@ int FN(tet_ddr_bwd)(const T_ *rot, const T_ *vec, const T_ *gin, const int64_t *
                         .grot = grot + bi * 9 * E, .gvec = gvec + bi * 3 * E, .E = E, .eps2 = eps2};
         tc_parallel(tc_tasks(nblk, TET_TASK_SO3), E >= TET_PAR_MIN ? threads : 1, FN(ddr_grad_task), &c);
     }
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
@@ -768,7 +756,7 @@ int FN(tet_ddf_fwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
                     double eps)
 {
     const size_t bytes = sizeof(T_) * 6 * (size_t)(E * nb);
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     for (int64_t bi = 0; bi < nb; bi++) {
@@ -778,7 +766,7 @@ int FN(tet_ddf_fwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
         FN(theta_frames)(&c, threads);
     }
     FN(tet_dd_fwd)(rot, theta, ridx, tidx, out, nb, E, T, threads);
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
@@ -887,7 +875,7 @@ int FN(tet_ddf_bwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
     if (E < TET_PAR_MIN)
         nt = 1;
     const size_t bytes = sizeof(T_) * ((size_t)12 * (size_t)(E * nb) + (size_t)9 * (size_t)V * (size_t)(nt - 1));
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     T_ *gth = theta + 6 * E * nb, *fbuf = gth + 6 * E * nb;
@@ -916,14 +904,15 @@ int FN(tet_ddf_bwd)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
             tc_parallel(tc_tasks(9 * V, TET_ZERO_STEP), nt, FN(sumf_task), &s);
         }
     }
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
 /* ---- the weighted squared norm of tet_ddf (tet_ddf_sqn_*): per item the value
  * s = sum_t w_t |dd_t|^2 (w (nb, T), dd_t the tet_ddf output) and, with grad, its gradient in the same
  * sweep: the tet pass forms dd_t, adds w_t |dd_t|^2 to its chunk's sum and back-propagates
- * 2 w_t dd_t at once (no (T, 3) output, no separate forward tet pass, θ̃' formed once); tets with
+ * 2 w_t dd_t at once (no (T, 3) output, no separate forward tet pass, θ̃' formed once); frames
+ * NULL: the global frame (θ̃ = √R v, as tet_ddr_*; no frame products, no frame gradient); tets with
  * w_t = 0 are neither gathered nor computed. Sums per chunk (grad) or per task (no grad), in
  * double, added in chunk / task order: the value does not depend on the threads. */
 typedef struct {
@@ -1028,10 +1017,10 @@ int FN(tet_ddf_sqn)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
         nt = 1;
     const int64_t n_chunks = color_start[n_colors], n_tasks = tc_tasks(T, TET_TASK_BLOCKS * LANES);
     const int64_t n_part = grad ? n_chunks : n_tasks;
-    const size_t n_fbuf = grad ? (size_t)9 * (size_t)V * (size_t)(nt - 1) : 0;
+    const size_t n_fbuf = grad && frames ? (size_t)9 * (size_t)V * (size_t)(nt - 1) : 0;
     const size_t bytes = sizeof(T_) * ((size_t)(grad ? 12 : 6) * (size_t)E + n_fbuf)
                        + sizeof(double) * (size_t)(n_part > 0 ? n_part : 1);
-    T_ *theta = tet_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     T_ *gth = theta + 6 * E, *fbuf = gth + 6 * E;
@@ -1039,10 +1028,13 @@ int FN(tet_ddf_sqn)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
     const T_ eps2 = (T_)(eps * eps);
     const int64_t nblk = (E + SO3_B - 1) / SO3_B;
     for (int64_t bi = 0; bi < nb; bi++) {
-        const T_ *rb = rot + bi * 9 * E, *fb = frames + bi * 9 * V;
+        const T_ *rb = rot + bi * 9 * E, *fb = frames ? frames + bi * 9 * V : NULL;
         FN(fr_t) f = {.rot = rb, .fr = fb, .vec = vec, .edges = edges, .out = theta, .E = E, .V = V,
                       .nblk = nblk, .eps2 = eps2};
-        FN(theta_frames)(&f, threads);
+        if (fb)
+            FN(theta_frames)(&f, threads);
+        else
+            FN(theta_rot)(rb, vec, theta, 1, E, threads, eps2);
         FN(sqn_t) c = {.rot = rb, .th = theta, .w = w + bi * T, .ridx = ridx, .tidx = tidx, .order = order,
                        .chunk_start = chunk_start, .part = part, .T = T};
         double s = 0;
@@ -1067,6 +1059,11 @@ int FN(tet_ddf_sqn)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
         for (int64_t k = 0; k < n_chunks; k++)
             s += part[k];
         value[bi] = s;
+        if (!fb) { /* the chain to R through √R only (as tet_ddr_bwd's pass 2, without ∂L/∂v) */
+            FN(args_t) a = {.rot = rb, .vec = vec, .gth = gth, .grot = c.grot, .gvec = NULL, .E = E, .eps2 = eps2};
+            tc_parallel(tc_tasks(nblk, TET_TASK_SO3), E >= TET_PAR_MIN ? threads : 1, FN(ddr_grad_task), &a);
+            continue;
+        }
         f.gth = gth;
         f.grot = c.grot;
         f.gvec = NULL;
@@ -1081,7 +1078,7 @@ int FN(tet_ddf_sqn)(const T_ *rot, const T_ *frames, const T_ *vec, const int64_
             tc_parallel(tc_tasks(9 * V, TET_ZERO_STEP), nt, FN(sumf_task), &su);
         }
     }
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 

@@ -46,14 +46,8 @@
 #define TOR_TASK_BLOCKS 16L
 
 #define TC_POOL_CLIENT
+#define TC_POOL_SCRATCH /* tc_scratch */
 #include "pool.c" /* tc_parallel */
-
-/* zeroed scratch of `bytes` (fresh anonymous pages), unmapped by the caller */
-static void *tor_scratch(size_t bytes)
-{
-    void *p = mmap(NULL, bytes ? bytes : 1, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    return p == MAP_FAILED ? NULL : p;
-}
 
 #define TOR_T float
 #define TOR_SUF _f32
@@ -127,7 +121,7 @@ int FN(tor_fwd)(const T_ *rot, const T_ *vec, const int64_t *fi, T_ *out, int64_
                 int threads, double eps)
 {
     const size_t bytes = sizeof(T_) * 3 * (size_t)E;
-    T_ *theta = tor_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     for (int64_t b = 0; b < B; b++) {
@@ -136,7 +130,7 @@ int FN(tor_fwd)(const T_ *rot, const T_ *vec, const int64_t *fi, T_ *out, int64_
         FN(theta)(&c, threads);
         tc_parallel(tc_tasks(F, TOR_TASK_FACES), F >= TOR_PAR_MIN ? threads : 1, FN(face_task), &c);
     }
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
@@ -205,7 +199,7 @@ int FN(tor_bwd)(const T_ *rot, const T_ *vec, const int64_t *fi, const int32_t *
 {
     /* θ̃ (E, 3), read by the ab slots of other edges (their θ̃_bc), and gθ (E, 3) */
     const size_t bytes = sizeof(T_) * 6 * (size_t)E;
-    T_ *theta = tor_scratch(bytes);
+    T_ *theta = tc_scratch(bytes);
     if (!theta)
         return -1;
     for (int64_t b = 0; b < B; b++) {
@@ -216,7 +210,7 @@ int FN(tor_bwd)(const T_ *rot, const T_ *vec, const int64_t *fi, const int32_t *
         FN(theta)(&c, threads);
         tc_parallel(tc_tasks(c.nblk, TOR_TASK_BLOCKS), E >= TOR_PAR_MIN ? threads : 1, FN(bwd_task), &c);
     }
-    munmap(theta, bytes ? bytes : 1);
+    tc_scratch_free(theta, bytes);
     return 0;
 }
 
