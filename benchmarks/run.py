@@ -29,6 +29,9 @@ Cases
    ``Σ‖Ω_f‖² + Σ‖d∇d∇θ̃_t‖²``, backward to the params. Reference: the generic path (dense
    per-tet tables ``dnabla.tet_transports`` / ``tet_solder_sqrt`` / ``averaged_dd_tet``, loop
    curvature ``orient`` + ``curvature.two_prong``, matrix-route ``exp`` / ``sqrt``).
+   ``curvature+averaged_dnabla(sqnorm)``: the same loss through the modules' fused
+   ``Curvature.sqnorm`` + ``AveragedCovariantD.sqnorm`` (value and gradient in one sweep each, no
+   ``(F, 3, 3)`` / ``(T, 3)`` tensors: the form a loss runs; issue 30's target row).
 3. The frame-field loss (:class:`torchconn.frames.loss.FrameFieldLoss`) at the same sizes, forward +
    backward to connection params and per-vertex frame params: ``frame_field_loss(default)``, the
    loss ``design()`` runs by default (:func:`loss_cases`: its weights and options; torsion through
@@ -96,6 +99,7 @@ from torchconn import curvature, dnabla, io, so3
 import torchconn.ops
 from torchconn.ops import so3 as ops_so3
 from torchconn import torsion as _torsion
+from torchconn.nn import AveragedCovariantD, Curvature
 
 from .references import (LOSS_AGREEMENT_RTOL, _ref_dd, _ref_exp_matrix, _ref_face_curvature,
                          _ref_face_torsion, _ref_log, _ref_sqrt, loss_agreement, loss_cases, ref_frame_loss_terms)
@@ -337,6 +341,13 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
         (curvature.face_curvature(R, mesh).square().sum()
          + dnabla.averaged_dd_solder(R, mesh).square().sum()).backward()
 
+    curv_mod, dd_mod = Curvature(mesh), AveragedCovariantD(mesh)
+
+    def fast_cd_sqnorm():
+        w.grad = None
+        R = so3.exp(w)
+        (curv_mod.sqnorm(R) + dd_mod.sqnorm(R)).backward()
+
     def ref_cd():
         w.grad = None
         R = _ref_exp_matrix(w)
@@ -355,6 +366,8 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
         d_cd = max(float((curvature.face_curvature(R, mesh) - _ref_face_curvature(R, mesh)).abs().max()),
                    float((dnabla.averaged_dd_solder(R, mesh) - _ref_dd(R, mesh)).abs().max()))
         d_tor = float((_torsion.face_torsion(R, mesh) - _ref_face_torsion(R, mesh)).abs().max())
+        ref_sum = _ref_face_curvature(R, mesh).square().sum() + _ref_dd(R, mesh).square().sum()
+        d_sqn = float(((curv_mod.sqnorm(R) + dd_mod.sqnorm(R)) - ref_sum).abs() / ref_sum.abs())
     ref_name = "generic dense dnabla + loop curvature, matrix_exp"
     note = "reference: 1 run after warm-up" if big else ""
     t, tr = _side_by_side(fast_cd, ref_cd, repeats, ref_rep)
@@ -365,6 +378,11 @@ def bench_operators(tets: int, dtype, repeats: int, rows: list) -> None:
     rows.append(_row("curvature+averaged_dnabla(sqrt)", T, dname, t2, tr, _peak_mb(fast_cd_sqrt),
                      cpu_seconds=_LAST_CPU["fast"],
                      reference=ref_name, unit="tets", note=("√R = so3.sqrt(R); " + note).strip("; ")))
+    t4, _ = _side_by_side(fast_cd_sqnorm, None, repeats)
+    rows.append(_row("curvature+averaged_dnabla(sqnorm)", T, dname, t4, tr, _peak_mb(fast_cd_sqnorm),
+                     cpu_seconds=_LAST_CPU["fast"], reference=ref_name, unit="tets",
+                     note=(f"Curvature.sqnorm + AveragedCovariantD.sqnorm (the loss's fused form; value "
+                           f"{d_sqn:.1e} relative to the reference's sum); " + note).strip("; ")))
     t3, tr3 = _side_by_side(fast_tor, ref_tor, repeats, ref_rep)
     rows.append(_row("torsion(sqrt)", T, dname, t3, tr3, _peak_mb(fast_tor), reference="generic loop torsion",
                      cpu_seconds=_LAST_CPU["fast"],
