@@ -652,8 +652,8 @@ void FN(so3_exp_fwd)(const T *w, T *R, long n, int nt, double eps)
 
 void FN(so3_exp_bwd)(const T *w, const T *gR, T *gw, long n, int nt, double eps, long gs_elem, long gs_comp)
 {
-    FN(loop_t) c = {.a = w, .b = gR, .out = gw, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .b_strided = 1, .na = 3, .nb = 9,
-                    .nout = 3, .flag = -1,
+    FN(loop_t) c = {.a = w, .b = gR, .out = gw, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .na = 3, .nb = 9,
+                    .nout = 3, .flag = -1, .b_strided = 1,
                     .kern = FN(exp_bwd_lm_run), .fast = FN(exp_bwd_vm_run), .fast_if = FN(trig_ok),
                     .eps2 = (T)(eps * eps)};
     FN(loop)(&c, nt);
@@ -862,8 +862,8 @@ long FN(so3_log_fwd_checked)(const T *R, T *w, long n, int nt, double eps, doubl
 
 void FN(so3_log_bwd)(const T *R, const T *gw, T *gR, long n, int nt, double eps, long gs_elem, long gs_comp)
 {
-    FN(loop_t) c = {.a = R, .b = gw, .out = gR, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .b_strided = 1, .na = 9, .nb = 3,
-                    .nout = 9, .flag = -1,
+    FN(loop_t) c = {.a = R, .b = gw, .out = gR, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .na = 9, .nb = 3,
+                    .nout = 9, .flag = -1, .b_strided = 1,
                     .kern = FN(log_bwd_run), .eps2 = (T)(eps * eps)};
     FN(loop)(&c, nt);
 }
@@ -1025,8 +1025,8 @@ void FN(so3_sqrt_fwd)(const T *R, T *S, long n, int nt, double eps)
 
 void FN(so3_sqrt_bwd)(const T *R, const T *gS, T *gR, long n, int nt, double eps, long gs_elem, long gs_comp)
 {
-    FN(loop_t) c = {.a = R, .b = gS, .out = gR, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .b_strided = 1, .na = 9, .nb = 9,
-                    .nout = 9, .flag = -1,
+    FN(loop_t) c = {.a = R, .b = gS, .out = gR, .n = n, .b_es = gs_elem, .b_cs = gs_comp, .na = 9, .nb = 9,
+                    .nout = 9, .flag = -1, .b_strided = 1,
                     .kern = FN(sqrt_bwd_run), .fast = FN(sqrt_bwd_pos_run),
                     .fast_if = FN(sqrt_block_pos), .eps2 = (T)(eps * eps)};
     FN(loop)(&c, nt);
