@@ -51,6 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..frames.kernels.tet_frames import relabel_tables, smooth_tet_frames_op
 from .cut import group_matrices, tet_charts
 from .seamless import build_problem, default_edge_length
 from .solver import NotPositiveDefinite
@@ -58,7 +59,6 @@ from .sparse import SPDSolve
 
 __all__ = ["MapEnergy", "smooth_tet_frames"]
 
-_POLAR_ITERS = 12
 _COMPILE_REASON = ("MapEnergy applies scipy sparse matrices and a CHOLMOD factorization built once, so torch.compile "
                    "runs it outside the graph")
 
@@ -92,92 +92,15 @@ def _check_rotations(frames: torch.Tensor, what: str, who: str) -> None:
                          f"||F^T F - I|| up to {float(err.max()):.2e}); project them with so3.project_to_rotation")
 
 
-def _polar(X: torch.Tensor) -> torch.Tensor:
-    """Orthogonal polar factor ``R`` of ``X (..., 3, 3)``, ``det X > 0``, differentiable to every order.
-
-    The value by :func:`_polar_newton` (no autograd graph through its iterations); the derivative in
-    closed form (:class:`_Polar`): with ``S = R^T X`` (symmetric positive definite),
-    ``dR = R [w]_x``, ``w = (tr(S) I - S)^{-1} v(R^T dX)``, ``v(A) = (A_32 - A_23, A_13 - A_31, A_21 - A_12)``
-    (the skew part of ``R^T dX = [w]_x S + dS`` is ``[(tr(S) I - S) w]_x / 2``); so the VJP of ``G`` is
-    ``R [(tr(S) I - S)^{-1} v(R^T G)]_x``, written in torch operations of ``X`` and the output ``R``,
-    so that its own derivative is exact.
-    """
-    return _Polar.apply(X)
-
-
-def _axial(A: torch.Tensor) -> torch.Tensor:
-    """``v(A) (..., 3)`` of ``A (..., 3, 3)``: ``(A_32 - A_23, A_13 - A_31, A_21 - A_12)``."""
-    return torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1)
-
-
-def _hat(w: torch.Tensor) -> torch.Tensor:
-    """``[w]_x (..., 3, 3)`` of ``w (..., 3)``."""
-    z = torch.zeros_like(w[..., 0])
-    w1, w2, w3 = w.unbind(-1)
-    return torch.stack([z, -w3, w2, w3, z, -w1, -w2, w1, z], -1).reshape(*w.shape[:-1], 3, 3)
-
-
-class _Polar(torch.autograd.Function):
-    """The polar factor with its closed-form derivative (:func:`_polar`)."""
-
-    @staticmethod
-    def forward(X):
-        return _polar_newton(X)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        ctx.save_for_backward(inputs[0], output)
-
-    @staticmethod
-    def backward(ctx, G):
-        X, R = ctx.saved_tensors
-        Rt = R.transpose(-1, -2)
-        S = Rt @ X
-        S = 0.5 * (S + S.transpose(-1, -2))
-        P = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=S.dtype,
-                                                                                       device=S.device) - S
-        w = torch.linalg.solve(P, _axial(Rt @ G).unsqueeze(-1)).squeeze(-1)
-        return R @ _hat(w)
-
-
-def _polar_newton(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tensor:
-    """Orthogonal polar factor of ``X (..., 3, 3)`` with ``det X > 0`` by the scaled Newton iteration
-    ``X <- (z X + (z X)^{-T}) / 2``, ``z = sqrt(|X^{-1}|_F / |X|_F)`` (Higham).
-
-    ``X^{-T}`` is the cofactor matrix over the determinant, written out entry by entry (the nine
-    entries as rows of a ``(9, N)`` array: elementwise and vectorized). Smooth where ``X`` is
-    invertible, ``X = I`` included (the SVD route of ``so3.project_to_rotation`` has no derivative
-    at repeated singular values). The iteration converges quadratically: it stops one step after
-    the largest change falls below ``sqrt(eps)`` (so the last step leaves an error at round-off),
-    after at most ``max_iters`` steps (one host sync per step).
-    """
-    shape = X.shape
-    x = X.reshape(-1, 9).T.contiguous()  # (9, N): entries a b c / d e f / g h i, each row contiguous
-    tol = torch.finfo(X.dtype).eps ** 0.5
-    last = False
-    for _ in range(max_iters):
-        a, b, c, d, e, f, g, h, i = x.unbind(0)
-        cof = torch.stack([e * i - f * h, f * g - d * i, d * h - e * g,
-                           c * h - b * i, a * i - c * g, b * g - a * h,
-                           b * f - c * e, c * d - a * f, a * e - b * d])
-        inv_t = cof / (a * cof[0] + b * cof[1] + c * cof[2])  # X^{-T}
-        z = (inv_t.square().sum(0) / x.square().sum(0)) ** 0.25
-        x_new = 0.5 * (z * x + inv_t / z)
-        if last:
-            x = x_new
-            break
-        last = bool((x_new - x).abs().max() < tol) if x.numel() else True
-        x = x_new
-    return x.T.reshape(shape)
-
-
 def smooth_tet_frames(vertex_frames: torch.Tensor, mesh, matchings: torch.Tensor) -> torch.Tensor:
     """Per-tet frames ``(T, 3, 3)`` from per-vertex ``vertex_frames (V, 3, 3)``, differentiable everywhere.
 
     The rule of :func:`torchconn.frames.octahedral.tet_frames` (tet ``t`` with lowest vertex ``a``:
     ``F_a polar(F_a^T M)``, ``M`` the mean of its four vertex frames relabeled into ``F_a``'s labels
     through the edge ``matchings (E,)``), with the polar factor by a Newton iteration
-    (scaled, stopped at convergence) instead of an SVD. Same values to round-off; but ``octahedral.tet_frames`` is
+    (scaled, stopped at convergence) instead of an SVD: the op ``torchconn::smooth_tet_frames``
+    (:mod:`torchconn.frames.kernels.tet_frames`; a C kernel on CPU, its first-order backward in closed
+    form over the tets and then the vertices). Same values to round-off; but ``octahedral.tet_frames`` is
     not differentiable where a tet's four relabeled frames agree exactly (it returns ``F_a`` there,
     whose gradient ignores the other three vertices; e.g. a constant field), and its SVD's
     derivative loses accuracy as singular values meet, while this one is smooth there.
@@ -190,31 +113,17 @@ def smooth_tet_frames(vertex_frames: torch.Tensor, mesh, matchings: torch.Tensor
 
 
 def _relabel_tables(mesh, matchings: torch.Tensor, dtype: torch.dtype):
-    """``(a (T,), others (T, 3), g (T, 3, 3, 3))``: each tet's lowest vertex, its other three and the
-    matchings ``F_a g ~ F_v`` of the edges ``(a, v)`` (as :func:`torchconn.frames.octahedral.tet_frames`)."""
+    """The tables of :func:`torchconn.frames.kernels.tet_frames.relabel_tables` for ``mesh`` and the
+    edge ``matchings (E,)`` (each tet's lowest vertex, its other three, their matchings, the
+    per-vertex incidence)."""
     from ..frames import octahedral
 
-    tets = mesh.tets
-    a = tets.min(dim=1).values
-    others = tets.sort(dim=1).values[:, 1:]
-    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)
-    g = octahedral.group(dtype, tets.device)[matchings[eid]]
-    return a, others, g
+    return relabel_tables(mesh.tets, mesh.edge_index, matchings, octahedral.group(dtype, mesh.tets.device),
+                          mesh.n_vertices)
 
 
-def _smooth_tet_frames(vertex_frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor,
-                       g: torch.Tensor) -> torch.Tensor:
-    Fa = vertex_frames[a]
-    # sum_v F_v g_av^T (einsum: a batched matmul of 3T tiny matrices is several times slower)
-    M = (Fa + torch.einsum("tvij,tvkj->tik", vertex_frames[others], g.to(vertex_frames.dtype))) / 4.0
-    X = Fa.transpose(-1, -2) @ M
-    Xd = X.detach()
-    det = (Xd[..., 0, :] * torch.linalg.cross(Xd[..., 1, :], Xd[..., 2, :])).sum(-1)
-    if (det <= 0).any():
-        bad = torch.nonzero(det <= 0).flatten()
-        raise ValueError(f"smooth_tet_frames: {bad.numel()} tets (first {bad[:5].tolist()}) average their vertex "
-                         f"frames to a matrix with det <= 0: the frames disagree by more than a rotation can smooth")
-    return Fa @ _polar(X)
+def _smooth_tet_frames(vertex_frames: torch.Tensor, *tables) -> torch.Tensor:
+    return smooth_tet_frames_op(vertex_frames, *tables)
 
 
 class _SparseLinear(torch.autograd.Function):

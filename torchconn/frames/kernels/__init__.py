@@ -10,13 +10,17 @@ rule); their C sources live in ``csrc/`` next to this file and are built by
   ``tie``, ``flat``, ``torsion``, ``dirichlet`` (:class:`torchconn.frames.loss.FrameFieldLoss`;
   ``csrc/frame_loss.c``; generic terms in ``_frame_loss_torch``);
 * :mod:`.edge_terms`: ``matched_edge_terms``, the angle + Dirichlet objective of the frame-field
-  quality paths with fixed matchings (``csrc/edge_terms.c``).
+  quality paths with fixed matchings (``csrc/edge_terms.c``);
+* :mod:`.tet_frames`: ``smooth_tet_frames``, per-tet frames from per-vertex frames by a
+  differentiable polar factor (the frames the seamless map's energy term reads;
+  :func:`torchconn.hexmesh.energy.smooth_tet_frames`; ``csrc/tet_frames.c``; no vmap rule: no batch
+  dimensions).
 """
 from pathlib import Path
 
-from . import edge_terms, frame_loss
+from . import edge_terms, frame_loss, tet_frames
 
 #: Folder of the C sources of the frame-field kernels (each op module registers its own file).
 CSRC = Path(__file__).resolve().parent / "csrc"
 
-__all__ = ["CSRC", "frame_loss", "edge_terms"]
+__all__ = ["CSRC", "frame_loss", "edge_terms", "tet_frames"]
