@@ -272,6 +272,9 @@ class MapEnergy:
             raise ValueError("MapEnergy.of_vertex_frames needs the edge matchings of a start field: build the energy "
                              "with MapEnergy.from_vertex_frames")
         vf = _check_frames(vertex_frames, self.mesh.n_vertices, "vertex_frames", "MapEnergy.of_vertex_frames")
+        if vf.dtype != self._relabel[2].dtype:  # the matchings in the frames' dtype, converted once
+            a, others, g, inc_ptr, inc = self._relabel
+            self._relabel = (a, others, g.to(vf.dtype), inc_ptr, inc)
         return self(_smooth_tet_frames(vf, *self._relabel))
 
     # ------------------------------------------------------------------ evaluation
