@@ -18,16 +18,15 @@ from torchconn.frames import octahedral
 from torchconn.frames.kernels import tet_frames as tf
 from torchconn.ops import compiled, native
 
+from kernel_cases import SWITCH, switch
+
 DT = torch.float64
-SWITCH = [pytest.param(True, id="compiled"), pytest.param(False, id="generic")]
 _has_c = native.library("tet_frames") is not None
 _FAST_UTILS = ("test_schema", "test_autograd_registration", "test_faketensor")
 
 
 def _switch(on: bool):
-    if on and not _has_c:
-        pytest.skip("no C compiler (or TORCHCONN_NATIVE=0): csrc/tet_frames.c cannot be built")
-    return compiled(on)
+    return switch(on, "tet_frames", "csrc/tet_frames.c")
 
 
 def _field(mesh, seed=0, scale=0.2, dtype=DT):

@@ -17,14 +17,15 @@ import torch
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchconn import io, so3
-from torchconn.mesh import CellComplex, TetMesh
+from torchconn.mesh import CellComplex
 from torchconn.nn import AveragedCovariantD, CovariantD, Curvature
 from torchconn.ops import compiled, native
 from torchconn.ops import curvature as ops_curv
 from torchconn.ops import curvature_sqnorm as ops_csq
 
+from kernel_cases import SWITCH, switch, two_tets
+
 DT = torch.float64
-SWITCH = [pytest.param(True, id="compiled"), pytest.param(False, id="generic")]
 KINDS = [pytest.param(2, id="cut_c"), pytest.param(1, id="cut_b"), pytest.param(0, id="holonomy")]
 _has_c = native.library("curvature") is not None
 _FAST_UTILS = ("test_schema", "test_autograd_registration", "test_faketensor")
@@ -32,14 +33,10 @@ _CUT_KIND = {2: (-1, "two_prong"), 1: (1, "two_prong"), 0: (-1, "holonomy")}
 
 
 def _switch(on: bool):
-    if on and not _has_c:
-        pytest.skip("no C compiler (or TORCHCONN_NATIVE=0): csrc/curvature.c cannot be built")
-    return compiled(on)
+    return switch(on, "curvature", "csrc/curvature.c")
 
 
-def _two_tets():
-    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.2]], dtype=DT)
-    return TetMesh(v, [[0, 1, 2, 3], [1, 2, 3, 4]], reorient=True)
+_two_tets = two_tets
 
 
 def _data(mesh, dtype=DT, seed=0, batch=()):

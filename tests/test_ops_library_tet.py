@@ -15,26 +15,21 @@ import torch
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchconn import dnabla, io, so3
-from torchconn.mesh import TetMesh
 from torchconn.ops import compiled, native
 from torchconn.ops import tet as ops_tet
 from torchconn.ops import tet_solder as ops_tet_solder
 
+from kernel_cases import SWITCH, switch, two_tets
+
 DT = torch.float64
-SWITCH = [pytest.param(True, id="compiled"), pytest.param(False, id="generic")]
 _has_c = native.library("tet") is not None
 
 
 def _switch(on: bool):
-    if on and not _has_c:
-        pytest.skip("no C compiler (or TORCHCONN_NATIVE=0): csrc/tet.c cannot be built")
-    return compiled(on)
+    return switch(on, "tet", "csrc/tet.c")
 
 
-def _two_tets():
-    """Two tets sharing a face: the smallest mesh where tets share edges (fast gradgradcheck)."""
-    v = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.2]], dtype=DT)
-    return TetMesh(v, [[0, 1, 2, 3], [1, 2, 3, 4]], reorient=True)
+_two_tets = two_tets
 
 
 def _data(mesh, dtype=DT, seed=0, batch=()):

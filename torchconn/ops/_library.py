@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import torch
 
-__all__ = ["NAMESPACE", "qualname", "leading_vmap", "scale_saved"]
+__all__ = ["NAMESPACE", "qualname", "leading_vmap", "scale_saved", "eager_function"]
 
 #: The ``torch.library`` namespace of every torchconn op (``torch.ops.torchconn.<name>``).
 NAMESPACE = "torchconn"
@@ -114,3 +114,29 @@ def scale_saved(saved: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
             and not torch._C._functorch.is_functorch_wrapped_tensor(g) and g.item() == 1.0):
         return saved
     return saved * g.reshape(*g.shape, *(1,) * (saved.dim() - g.dim()))
+
+
+def eager_function(name: str, op: Callable, setup: Callable, backward: Callable, jvp: Callable,
+                   n_forward: int, vmap: bool = True) -> type:
+    """The ``torch.autograd.Function`` through which a fused op with gradient outputs runs eagerly
+    and under the ``torch.func`` transforms (the autograd that ``register_autograd`` generates has
+    no ``setup_context``, which ``torch.func.grad`` refuses, and no forward mode).
+
+    ``forward`` calls ``op``; ``setup_context`` runs the op's ``setup(ctx, inputs, output)``, keeps
+    the first ``n_forward`` inputs for forward mode and leaves unused gradients ``None`` (no zero
+    tensors for the op's gradient outputs); ``backward`` is the op's ``backward(ctx, *grads)``;
+    ``jvp(ctx, *tangents)`` gets the kept inputs as ``ctx.saved_tensors`` (forward mode only);
+    ``vmap``: a generated vmap rule (it reaches the op's own vmap rule).
+    """
+    def setup_context(ctx, inputs, output):
+        setup(ctx, inputs, output)
+        ctx.save_for_forward(*inputs[:n_forward])
+        ctx.set_materialize_grads(False)
+
+    attrs = {"generate_vmap_rule": vmap,
+             "forward": staticmethod(lambda *args: op(*args)),
+             "setup_context": staticmethod(setup_context),
+             "backward": staticmethod(backward),
+             "jvp": staticmethod(jvp),
+             "__doc__": f"``{name}`` for eager calls and the ``torch.func`` transforms (:func:`eager_function`)."}
+    return type(name, (torch.autograd.Function,), attrs)

@@ -29,6 +29,7 @@ import torch
 from . import native as _native
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
+from ._library import eager_function as _eager_function
 from ._library import scale_saved as _scale_saved
 from .backend import can_use_compiled
 from .curvature import _curvature_bwd_generic, _curvature_generic, _sorted_triangles, _tables
@@ -120,32 +121,15 @@ _sqnorm_op.register_autograd(_backward, setup_context=_setup)
 _sqnorm_op.register_vmap(leading_vmap(_sqnorm_op, "face_curvature_sqnorm", batched=(0, 1), n_out=2))
 
 
-class _Fn(torch.autograd.Function):
-    """The op for eager calls and the ``torch.func`` transforms (as :mod:`.tet_sqnorm`'s): the same
-    forward and backward; ``jvp`` differentiates the generic formula; vmap generated."""
+def _jvp(ctx, t_rot, t_w, *_):
+    """Forward mode: the generic formula's, by :func:`~._library.jvp`."""
+    R, w, fi = ctx.saved_tensors[:3]
+    tangents = (torch.zeros_like(R) if t_rot is None else t_rot, torch.zeros_like(w) if t_w is None else t_w)
+    t = _library_jvp(lambda a, b: _generic_value(a, b, fi, ctx.kind)[0], (R, w), tangents)
+    return t, None
 
-    generate_vmap_rule = True
 
-    @staticmethod
-    def forward(*args):
-        return _sqnorm_op(*args)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        _setup(ctx, inputs, output)
-        ctx.save_for_forward(inputs[0], inputs[1], inputs[2])
-        ctx.set_materialize_grads(False)  # no zero tensor for the unused gradient output
-
-    @staticmethod
-    def backward(ctx, g_value, g_grad):
-        return _backward(ctx, g_value, g_grad)
-
-    @staticmethod
-    def jvp(ctx, t_rot, t_w, *_):
-        R, w, fi = ctx.saved_tensors[:3]
-        tangents = (torch.zeros_like(R) if t_rot is None else t_rot, torch.zeros_like(w) if t_w is None else t_w)
-        t = _library_jvp(lambda a, b: _generic_value(a, b, fi, ctx.kind)[0], (R, w), tangents)
-        return t, None
+_Fn = _eager_function("FaceCurvatureSqnorm", _sqnorm_op, _setup, _backward, _jvp, n_forward=3)
 
 
 def face_curvature_sqnorm(edge_rot: torch.Tensor, mesh, weight: torch.Tensor | None = None, cut=-1,

@@ -34,6 +34,7 @@ from ._cache import edge_index as _edge_index
 from ._cache import edge_vectors as _edge_vectors
 from ._library import jvp as _library_jvp
 from ._library import leading_vmap, qualname
+from ._library import eager_function as _eager_function
 from ._library import scale_saved as _scale_saved
 from .backend import can_use_compiled
 from .tet import _I64, _P, _tables, tet_kernel
@@ -153,35 +154,16 @@ _sqnorm_op.register_autograd(_backward, setup_context=_setup)
 _sqnorm_op.register_vmap(leading_vmap(_sqnorm_op, "tet_dd_frames_sqnorm", batched=(0, 1, 4), n_out=3))
 
 
-class _Fn(torch.autograd.Function):
-    """The op for eager calls and the ``torch.func`` transforms (the autograd that ``register_autograd``
-    generates has no ``setup_context``, which ``torch.func.grad`` refuses, and no forward mode): the
-    same forward and backward; ``jvp`` differentiates the generic formula; vmap generated (it
-    reaches the op's vmap rule)."""
+def _jvp(ctx, t_rot, t_fr, t_vec, _t_edges, t_w, *_):
+    """Forward mode: the generic formula's, by :func:`~._library.jvp`."""
+    R, Fr, vec, edges, w, ri, ti = ctx.saved_tensors[:7]
+    tangents = tuple(torch.zeros_like(x) if t is None else t for x, t in ((R, t_rot), (Fr, t_fr), (vec, t_vec),
+                                                                          (w, t_w)))
+    t = _library_jvp(lambda a, b, c, d: _generic_value(a, b, c, edges, d, ri, ti)[0], (R, Fr, vec, w), tangents)
+    return t, None, None
 
-    generate_vmap_rule = True
 
-    @staticmethod
-    def forward(*args):
-        return _sqnorm_op(*args)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        _setup(ctx, inputs, output)
-        ctx.save_for_forward(*inputs[:7])
-        ctx.set_materialize_grads(False)  # no zero tensors for the unused gradient outputs
-
-    @staticmethod
-    def backward(ctx, g_value, g_rot, g_fr):
-        return _backward(ctx, g_value, g_rot, g_fr)
-
-    @staticmethod
-    def jvp(ctx, t_rot, t_fr, t_vec, _t_edges, t_w, *_):
-        R, Fr, vec, edges, w, ri, ti = ctx.saved_tensors[:7]
-        tangents = tuple(torch.zeros_like(x) if t is None else t for x, t in ((R, t_rot), (Fr, t_fr), (vec, t_vec),
-                                                                              (w, t_w)))
-        t = _library_jvp(lambda a, b, c, d: _generic_value(a, b, c, edges, d, ri, ti)[0], (R, Fr, vec, w), tangents)
-        return t, None, None
+_Fn = _eager_function("TetDDFramesSqnorm", _sqnorm_op, _setup, _backward, _jvp, n_forward=7)
 
 
 def tet_dd_frames_sqnorm(edge_rot: torch.Tensor, frames: torch.Tensor | None, weight: torch.Tensor, mesh

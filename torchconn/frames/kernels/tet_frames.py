@@ -31,7 +31,7 @@ import torch
 
 from ...ops import native as _native
 from ...ops._library import jvp as _library_jvp
-from ...ops._library import qualname
+from ...ops._library import eager_function, qualname
 from ...ops.backend import can_use_compiled
 
 __all__ = ["smooth_tet_frames_op", "relabel_tables", "polar"]
@@ -248,29 +248,14 @@ def _backward(ctx, gY, _gM, _gR):
 _op.register_autograd(_backward, setup_context=_setup)
 
 
-class _Fn(torch.autograd.Function):
-    """The op for eager calls and ``torch.func`` (as the sqnorm ops'): the same forward and backward;
-    ``jvp`` differentiates the generic formula."""
+def _jvp(ctx, t_frames, *_):
+    """Forward mode: the generic formula's, by :func:`~torchconn.ops._library.jvp`."""
+    frames, a, others, g = ctx.saved_tensors[:4]
+    t = _library_jvp(lambda f: _generic(f, a, others, g, check=False)[0], (frames,), (t_frames,))
+    return t, None, None
 
-    @staticmethod
-    def forward(*args):
-        return _op(*args)
 
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        _setup(ctx, inputs, output)
-        ctx.save_for_forward(*inputs[:4])
-        ctx.set_materialize_grads(False)
-
-    @staticmethod
-    def backward(ctx, gY, gM, gR):
-        return _backward(ctx, gY, gM, gR)
-
-    @staticmethod
-    def jvp(ctx, t_frames, *_):
-        frames, a, others, g = ctx.saved_tensors[:4]
-        t = _library_jvp(lambda f: _generic(f, a, others, g, check=False)[0], (frames,), (t_frames,))
-        return t, None, None
+_Fn = eager_function("SmoothTetFrames", _op, _setup, _backward, _jvp, n_forward=4, vmap=False)
 
 
 def smooth_tet_frames_op(frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor, g: torch.Tensor,
