@@ -30,6 +30,9 @@ All modules compute exactly what the functional operators compute (they call the
   Defs. 5.1-5.2);
 * :class:`BianchiCheck` -- dict of max residuals; raises ``BianchiError`` (Sec. 2.4, 3.6, Ch. 5).
 
+:meth:`Curvature.sqnorm` and :meth:`CovariantD.sqnorm` give a loss's weighted sum of squares
+``(*batch,)`` directly, its gradient computed in the same fused sweep (no per-cell tensor).
+
 Inputs (checked at ``forward``, reading no data, so no device sync):
 
 * the connection must give a floating ``(*batch, E, n, n)`` tensor with ``E`` the mesh's edge
@@ -240,8 +243,8 @@ class Curvature(nn.Module):
 
         The value and gradient of a curvature loss without the ``(*batch, F, n, n)`` tensor: on a
         tet mesh with ``n = 3`` the op ``torchconn::face_curvature_sqnorm``
-        (:mod:`torchconn.ops.curvature_sqnorm`: one C sweep over the edges gives the value and
-        ``∂/∂R``; same values and gradients as the reduction of :meth:`forward` to round-off,
+        (:mod:`torchconn.ops.curvature_sqnorm`: a C pass over the faces and the race-free one over
+        the edges give the value and ``∂/∂R`` in the forward; same values and gradients as the reduction of :meth:`forward` to round-off,
         differentiable to any order, under every ``torch.func`` transform and ``torch.compile``);
         elsewhere :meth:`forward` reduced in torch.
 
