@@ -36,8 +36,8 @@ def _field(mesh, seed=0, scale=0.2, dtype=DT):
     base = so3.exp(scale * torch.randn(V, 3, generator=g, dtype=DT))
     F = base @ octahedral.group(DT)[torch.randint(0, 24, (V,), generator=g)]
     match = octahedral.match_edges(F, mesh.edges)[0]
-    tables = tf.relabel_tables(mesh.tets, mesh.edge_index, match, octahedral.group(DT), V)
-    return F.to(dtype), match, tables
+    a, others, g = octahedral.tet_relabeling(mesh, match, DT)
+    return F.to(dtype), match, (a, others, g, *tf.vertex_incidence(a, others, V))
 
 
 @pytest.mark.parametrize("on", SWITCH)

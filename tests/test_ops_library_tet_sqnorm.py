@@ -14,13 +14,13 @@ import torch
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchconn import io, so3
-from torchconn.ops import compiled, native
+from torchconn.ops import native
 from torchconn.ops import tet as ops_tet
 from torchconn.ops import tet_solder as ops_tet_solder
 from torchconn.ops import tet_sqnorm as ops_sqn
 from torchconn.ops._cache import edge_index, edge_vectors
 
-from kernel_cases import SWITCH, switch, two_tets
+from kernel_cases import SWITCH, assert_kernels_agree, switch, two_tets
 
 DT = torch.float64
 _has_c = native.library("tet") is not None
@@ -82,22 +82,13 @@ def test_compiled_equals_generic_and_the_composition(dtype):
     R, F, w = _data(mesh, dtype, seed=11, batch=(2,))
     assert bool((w == 0).any()) and bool((w != 0).any())
     vec, e = edge_vectors(mesh, "cpu", dtype), edge_index(mesh, "cpu")
-    res = {}
-    for on in (True, False):
-        for with_grad in (True, False):
-            with compiled(on):
-                res[on, with_grad] = ops_sqn._sqnorm_op(R, F, vec, e, w, *k.tables(), with_grad)
+    value, g_rot, g_fr = assert_kernels_agree(
+        lambda with_grad: ops_sqn._sqnorm_op(R, F, vec, e, w, *k.tables(), with_grad), dtype)
     tol = 2e-5 if dtype == torch.float32 else 1e-12
-    for with_grad in (True, False):
-        for a, b in zip(res[True, with_grad], res[False, with_grad]):
-            assert a.shape == b.shape
-            if b.numel():
-                torch.testing.assert_close(a, b, atol=tol * max(1.0, float(b.abs().max())), rtol=0)
     Rr, Fr = R.clone().requires_grad_(), F.clone().requires_grad_()
     ref = _composed(Rr, Fr, w, mesh)
     g_ref = torch.autograd.grad(ref.sum(), (Rr, Fr))
     ref = ref.detach()
-    value, g_rot, g_fr = res[True, True]
     torch.testing.assert_close(value, ref, atol=tol * float(ref.abs().max()), rtol=0)
     for a, b in zip((g_rot, g_fr), g_ref):
         torch.testing.assert_close(a, b, atol=tol * max(1.0, float(b.abs().max())), rtol=0)

@@ -38,6 +38,7 @@ __all__ = [
     "face_matched_holonomy",
     "singular_faces",
     "tets_with_one_singular_face",
+    "tet_relabeling",
     "tet_frames",
 ]
 
@@ -262,6 +263,18 @@ def tets_with_one_singular_face(mask: torch.Tensor, mesh) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- per-tet frames
+def tet_relabeling(mesh, matchings: torch.Tensor, dtype: torch.dtype | None = None):
+    """The relabeling of the rule of :func:`tet_frames`: ``(a (T,), others (T, 3), g (T, 3, 3, 3))``,
+    each tet's lowest vertex ``a``, its other three vertices (all ``> a``) and the matchings ``g`` of
+    the edges ``(a, v)`` (``F_a g ~ F_v``) from the edge ``matchings (E,)`` of :func:`match_edges`;
+    ``g`` in ``dtype``, on the mesh's device."""
+    tets = mesh.tets
+    a = tets.min(dim=1).values
+    others = tets.sort(dim=1).values[:, 1:]
+    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)
+    return a, others, group(dtype, tets.device)[matchings[eid]]
+
+
 def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None) -> torch.Tensor:
     """Per-tet frames ``(T, 3, 3)`` from per-vertex ``frames (V, 3, 3)`` (rule: module docstring).
 
@@ -276,11 +289,7 @@ def tet_frames(frames: torch.Tensor, mesh, matchings: torch.Tensor | None = None
     """
     if matchings is None:
         matchings = match_edges(frames, mesh.edges)[0]
-    tets = mesh.tets
-    a = tets.min(dim=1).values  # (T,)
-    others = tets.sort(dim=1).values[:, 1:]  # (T, 3), all > a
-    eid, _ = mesh.edge_index(a[:, None].expand_as(others), others)  # (T, 3), edges (a, v) with a < v
-    g = group(frames.dtype, frames.device)[matchings[eid]]  # (T, 3, 3, 3): F_a g ~ F_v
+    a, others, g = tet_relabeling(mesh, matchings, frames.dtype)
     Fa = frames[a]
     relabeled = frames[others] @ g.transpose(-1, -2)  # F_v g^T ~ F_a
     # mean of the deviations from F_a; where they all vanish the tet takes F_a itself (no SVD round-off)

@@ -51,7 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..frames.kernels.tet_frames import relabel_tables, smooth_tet_frames_op
+from ..frames.kernels.tet_frames import smooth_tet_frames_op, vertex_incidence
 from .cut import group_matrices, tet_charts
 from .seamless import build_problem, default_edge_length
 from .solver import NotPositiveDefinite
@@ -109,21 +109,17 @@ def smooth_tet_frames(vertex_frames: torch.Tensor, mesh, matchings: torch.Tensor
         ValueError: a tet whose averaged frame has ``det <= 0`` (its vertex frames more than about
             90 degrees apart under the matchings: no nearest rotation varies smoothly there).
     """
-    return _smooth_tet_frames(vertex_frames, *_relabel_tables(mesh, matchings, vertex_frames.dtype))
+    return smooth_tet_frames_op(vertex_frames, *_relabel_tables(mesh, matchings, vertex_frames.dtype))
 
 
 def _relabel_tables(mesh, matchings: torch.Tensor, dtype: torch.dtype):
-    """The tables of :func:`torchconn.frames.kernels.tet_frames.relabel_tables` for ``mesh`` and the
-    edge ``matchings (E,)`` (each tet's lowest vertex, its other three, their matchings, the
-    per-vertex incidence)."""
+    """The tables of :func:`~torchconn.frames.kernels.tet_frames.smooth_tet_frames_op` for ``mesh`` and the
+    edge ``matchings (E,)``: the relabeling of :func:`torchconn.frames.octahedral.tet_relabeling` (``g`` in
+    ``dtype``) and the per-vertex incidence."""
     from ..frames import octahedral
 
-    return relabel_tables(mesh.tets, mesh.edge_index, matchings, octahedral.group(dtype, mesh.tets.device),
-                          mesh.n_vertices)
-
-
-def _smooth_tet_frames(vertex_frames: torch.Tensor, *tables) -> torch.Tensor:
-    return smooth_tet_frames_op(vertex_frames, *tables)
+    a, others, g = octahedral.tet_relabeling(mesh, matchings, dtype)
+    return a, others, g, *vertex_incidence(a, others, mesh.n_vertices)
 
 
 class _SparseLinear(torch.autograd.Function):
@@ -260,7 +256,7 @@ class MapEnergy:
         vf0 = vf0.detach().to(torch.float64)
         matchings = octahedral.match_edges(vf0, mesh.edges)[0]
         tables = _relabel_tables(mesh, matchings, torch.float64)
-        energy = cls(mesh, _smooth_tet_frames(vf0, *tables), edge_length, **kwargs)
+        energy = cls(mesh, smooth_tet_frames_op(vf0, *tables), edge_length, **kwargs)
         energy.edge_matchings = matchings
         energy._relabel = tables
         return energy
@@ -275,7 +271,7 @@ class MapEnergy:
         if vf.dtype != self._relabel[2].dtype:  # the matchings in the frames' dtype, converted once
             a, others, g, inc_ptr, inc = self._relabel
             self._relabel = (a, others, g.to(vf.dtype), inc_ptr, inc)
-        return self(_smooth_tet_frames(vf, *self._relabel))
+        return self(smooth_tet_frames_op(vf, *self._relabel))
 
     # ------------------------------------------------------------------ evaluation
     @torch.compiler.disable(reason=_COMPILE_REASON)

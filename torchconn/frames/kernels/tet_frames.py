@@ -9,9 +9,10 @@ vertices ``others_t`` and the matchings ``g_tk`` of the edges ``(a_t, others_tk)
 (the rule of :func:`torchconn.frames.octahedral.tet_frames`, with the polar factor by a scaled
 Newton iteration instead of an SVD: smooth where the four relabeled frames agree, e.g. a constant
 field; :func:`torchconn.hexmesh.energy.smooth_tet_frames`). ``M`` and ``R`` are outputs for the
-backward (non-differentiable). ``inc_ptr``/``inc`` is the per-vertex CSR table of the incident
-``(tet, slot)`` pairs (``4 t + slot``, slot 0 the lowest vertex, ``k + 1`` the others;
-:func:`relabel_tables` builds every table once).
+backward (non-differentiable). ``a``, ``others``, ``g`` are the relabeling of
+:func:`torchconn.frames.octahedral.tet_relabeling`; ``inc_ptr``/``inc`` the per-vertex CSR table of the
+incident ``(tet, slot)`` pairs (``4 t + slot``, slot 0 the lowest vertex, ``k + 1`` the others;
+:func:`vertex_incidence`). Both are built once per mesh and matchings.
 
 Kernels: generic = the formulas below in torch operations (every device and dtype); CPU =
 ``csrc/tet_frames.c`` when :func:`~torchconn.ops.backend.can_use_compiled` allows: one pass over the
@@ -34,7 +35,7 @@ from ...ops._library import jvp as _library_jvp
 from ...ops._library import eager_function, qualname
 from ...ops.backend import can_use_compiled
 
-__all__ = ["smooth_tet_frames_op", "relabel_tables", "polar"]
+__all__ = ["smooth_tet_frames_op", "vertex_incidence", "polar"]
 
 _POLAR_ITERS = 12
 _vp, _long, _int = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
@@ -137,21 +138,16 @@ def _polar_newton(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tenso
     return x.T.reshape(shape)
 
 
-def relabel_tables(tets: torch.Tensor, edge_index, matchings: torch.Tensor, group: torch.Tensor, n_vertices: int):
-    """``(a (T,), others (T, 3), g (T, 3, 3, 3), inc_ptr (V + 1), inc (4T))``: each tet's lowest vertex,
-    its other three, the matchings ``g = group[matchings[edge (a, o)]]`` (``F_a g ~ F_o``, as
-    :func:`torchconn.frames.octahedral.tet_frames`) and the per-vertex CSR table of the incident
-    ``(tet, slot)`` pairs, ``4 t + slot`` in increasing order. ``edge_index(i, j) -> (ids, signs)`` is
-    the mesh's edge lookup. Built once per mesh and matchings (a sort)."""
-    a = tets.min(dim=1).values
-    others = tets.sort(dim=1).values[:, 1:]
-    eid, _ = edge_index(a[:, None].expand_as(others), others)
-    g = group[matchings[eid]]
+def vertex_incidence(a: torch.Tensor, others: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(inc_ptr (V + 1), inc (4T))``: the per-vertex CSR table of the incident ``(tet, slot)`` pairs,
+    ``4 t + slot`` in increasing order, of the lowest vertices ``a (T,)`` (slot 0) and the others
+    ``others (T, 3)`` (slots 1-3) of :func:`torchconn.frames.octahedral.tet_relabeling`. Built once per
+    mesh (a sort)."""
     owner = torch.cat((a[:, None], others), 1).reshape(-1)  # position 4 t + slot -> vertex
     inc = torch.sort(owner, stable=True).indices
-    inc_ptr = torch.zeros(n_vertices + 1, dtype=torch.int64, device=tets.device)
+    inc_ptr = torch.zeros(n_vertices + 1, dtype=torch.int64, device=a.device)
     inc_ptr[1:] = torch.cumsum(torch.bincount(owner, minlength=n_vertices), 0)
-    return a, others, g, inc_ptr, inc
+    return inc_ptr, inc
 
 
 def _generic(frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor, g: torch.Tensor, check: bool = True):
@@ -170,6 +166,11 @@ def _generic(frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor, g: tor
     return Fa @ R, M, R
 
 
+def _generic_outputs(frames, a, others, g):
+    """The generic kernel's outputs: detached, contiguous (the fake kernel's layout)."""
+    return tuple(t.detach().clone(memory_format=torch.contiguous_format) for t in _generic(frames, a, others, g))
+
+
 def _bad(count: int, first: list) -> None:
     raise ValueError(f"smooth_tet_frames: {count} tets (first {first}) average their vertex frames to a matrix "
                      f"with det <= 0: the frames disagree by more than a rotation can smooth")
@@ -184,13 +185,13 @@ def _use_c(frames, *index) -> bool:
 def _op(frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor, g: torch.Tensor, inc_ptr: torch.Tensor,
         inc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``torchconn::smooth_tet_frames`` (module doc; generic kernel)."""
-    return tuple(t.detach().clone(memory_format=torch.contiguous_format) for t in _generic(frames, a, others, g))
+    return _generic_outputs(frames, a, others, g)
 
 
 @_op.register_kernel("cpu")
 def _(frames, a, others, g, inc_ptr, inc):
     if not _use_c(frames, a, others, inc_ptr, inc):
-        return tuple(t.detach().clone(memory_format=torch.contiguous_format) for t in _generic(frames, a, others, g))
+        return _generic_outputs(frames, a, others, g)
     F, aa, oo, gg = frames.contiguous(), a.contiguous(), others.contiguous(), g.to(frames.dtype).contiguous()
     NT, V = int(aa.shape[0]), int(F.shape[0])
     Y, M, R = (torch.empty(NT, 3, 3, dtype=F.dtype) for _ in range(3))
@@ -234,11 +235,9 @@ def _setup(ctx, inputs, output):
 def _backward(ctx, gY, _gM, _gR):
     """First order: the C backward (module doc). Under ``create_graph``, or off the C kernel:
     ``torch.func.vjp`` of the generic formula (exact, differentiable)."""
-    if gY is None:
+    if gY is None or not ctx.needs_input_grad[0]:
         return (None,) * 6
     frames, a, others, g, inc_ptr, inc, M, R = ctx.saved_tensors
-    if not ctx.needs_input_grad[0]:
-        return (None,) * 6
     if not torch.is_grad_enabled() and _use_c(frames, a, others, inc_ptr, inc) and gY.device.type == "cpu":
         return (_backward_c(frames, a, others, g, inc_ptr, inc, M, R, gY),) + (None,) * 5
     _, pullback = torch.func.vjp(lambda f: _generic(f, a, others, g, check=False)[0], frames)
@@ -261,7 +260,7 @@ _Fn = eager_function("SmoothTetFrames", _op, _setup, _backward, _jvp, n_forward=
 def smooth_tet_frames_op(frames: torch.Tensor, a: torch.Tensor, others: torch.Tensor, g: torch.Tensor,
                          inc_ptr: torch.Tensor, inc: torch.Tensor) -> torch.Tensor:
     """``Y (T, 3, 3)``: the smoothed per-tet frames of ``frames (V, 3, 3)`` with the tables of
-    :func:`relabel_tables` (module doc). Differentiable to any order in ``frames``.
+    :func:`~torchconn.frames.octahedral.tet_relabeling` and :func:`vertex_incidence` (module doc). Differentiable to any order in ``frames``.
 
     Raises:
         ValueError: a tet whose averaged frame has ``det <= 0``.

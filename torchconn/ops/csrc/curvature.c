@@ -238,13 +238,12 @@ int FN(curv_sqn)(const T *edge_rot, const T *w, const long *face_index, const in
      * (edges, bwd_task): the gradient from G, race-free. Recomputing H per incident face in the
      * edge pass instead (no scratch) reads three rotations and three index rows per incidence,
      * scattered: 0.21 s at 1M tets against 0.07 s for the two passes */
-    const long tasks = tc_tasks(F, CURV_TASK);
-    const size_t bytes = sizeof(double) * (size_t)(tasks > 0 ? tasks : 1)
-                       + (grad_edge ? sizeof(T) * 9 * (size_t)F : 0);
+    const long tasks = tc_tasks(F, CURV_TASK), n_part = tasks > 0 ? tasks : 1;
+    const size_t bytes = sizeof(double) * (size_t)n_part + (grad_edge ? sizeof(T) * 9 * (size_t)F : 0);
     double *part = tc_scratch(bytes);
     if (!part)
         return -1;
-    T *G = grad_edge ? (T *)(part + (tasks > 0 ? tasks : 1)) : NULL;
+    T *G = grad_edge ? (T *)(part + n_part) : NULL;
     for (long b = 0; b < B; ++b) {
         FN(curv_t) c = {.R = edge_rot + b * E * 9, .w = w + b * F, .face_index = face_index,
                         .inc_ptr = inc_ptr, .inc = inc, .out = G, .part = part, .E = E, .F = F,

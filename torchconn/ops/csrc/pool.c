@@ -71,7 +71,6 @@ static inline void tc_parallel(long n, int nt, tc_task_fn fn, void *ctx)
         fn(ctx, i);
 }
 
-
 /* the number of tasks of `chunk` items each that cover n items */
 static inline long tc_tasks(long n, long chunk)
 {

@@ -53,10 +53,9 @@
  */
 #ifndef TET_T
 
-#define _DEFAULT_SOURCE /* mmap's MAP_ANONYMOUS, madvise */
+#define _DEFAULT_SOURCE /* mmap's MAP_ANONYMOUS, madvise (tc_scratch of pool.c) */
 #include <stdint.h>
 #include <string.h>
-#include <sys/mman.h>
 
 /* the SO(3) square root and its backward (element kernels and block helpers of so3.c, the one
  * home of those formulas) for the fused tet_ddr_* kernels */

@@ -6,7 +6,7 @@
  *   Θ_f = θ̃_ab + R_ab θ̃_bc - θ̃_ac,   θ̃_e = √R_e v_e  (v_e = v_j - v_i, report Def. 3.2)
  * with √R the SO(3) square root of so3.c (its element kernels, included below: every angle,
  * the same values as torchconn.ops.so3.sqrt). θ̃ is formed once per *edge* (pass A, blocks of
- * SO3_B edges, into a scratch this file maps itself), then every face reads three of them
+ * SO3_B edges, into a scratch mapped per call, tc_scratch of pool.c), then every face reads three of them
  * (pass B, a face loop writing its own row): no √R tensor, no (F, 3, 3) gather.
  *
  * Backward, with G_f = dL/dΘ_f: the gradient of θ̃_e sums the slots of the faces incident to e
@@ -26,10 +26,9 @@
  */
 #ifndef TOR_T
 
-#define _DEFAULT_SOURCE /* mmap's MAP_ANONYMOUS */
+#define _DEFAULT_SOURCE /* mmap's MAP_ANONYMOUS (tc_scratch of pool.c) */
 #include <stdint.h>
 #include <string.h>
-#include <sys/mman.h>
 
 /* the SO(3) square root and its backward, on blocks of SO3_B matrices (the one home of those
  * formulas) */
