@@ -6,7 +6,7 @@ import torch
 from torchconn import so3
 from torchconn.frames.candidates import Candidate
 from torchconn.hexmesh import hex_mesh
-from torchconn.hexmesh.choose import hex_chooser
+from torchconn.hexmesh.choose import NO_STRUCTURE, hex_chooser
 from torchconn.mesh.builtin import box
 
 
@@ -98,3 +98,50 @@ def test_the_chooser_without_first_good_makes_and_meshes_everything():
     assert stack[idx].start == "good" and info["stopped"] == "every candidate meshed" and len(info["meshed"]) == 2
     capped = hex_chooser(1, first_good=False, **HEX)(mesh, _stack(mesh, ("noisy", "good"), [], paths=()))[1]
     assert capped["stopped"] == "max_candidates=1 meshed" and len(capped["meshed"]) == 1
+
+
+
+def _fake_hex(monkeypatch, stack, gates: dict):
+    """``hex_mesh`` replaced by a stand-in whose result fails the gate ``gates[start]`` (``None``:
+    good) for the optimized field of ``start`` and ``"seamless"`` for every other field: the
+    chooser's logic on given outcomes, without meshing. Returns the list of the gates it gave."""
+    from types import SimpleNamespace
+
+    from torchconn.hexmesh import pipeline
+
+    made = []
+
+    def fake(mesh, frames, **options):
+        c = next(c for c in stack if c.frames.data_ptr() == frames.data_ptr())
+        ff = gates[c.start] if c.kind == "optimized" else "seamless"
+        made.append(ff)
+        return SimpleNamespace(first_failed=ff, good=ff is None, quality=None, extraction=None,
+                               hexes=torch.zeros(0, 8, dtype=torch.long),
+                               validity=SimpleNamespace(valid=ff in (None, "extraction"), reasons=[], counts={}))
+
+    monkeypatch.setattr(pipeline, "hex_mesh", fake)
+    return made
+
+
+def test_the_quality_paths_continue_only_fields_whose_structure_passed(monkeypatch):
+    mesh = box(1)
+    kw = dict(dirichlet_weights=(1.0, 0.5), rounds=1, iters=2)
+    # both optimized fields fail the structure gate: no quality path is made
+    stack = _stack(mesh, ("noisy", "good"), [], **kw)
+    made = _fake_hex(monkeypatch, stack, {"noisy": "structure", "good": "structure"})
+    idx, info = hex_chooser(one_ring=False)(mesh, stack)
+    assert made == ["structure", "structure"] and info["stopped"] == NO_STRUCTURE
+    assert stack.info["stages"] == ["optimized:noisy", "optimized:good"] and len(stack) == 2
+    # the second start's field passes the structure gate (and fails later): only its paths are made
+    stack = _stack(mesh, ("noisy", "good"), [], **kw)
+    made = _fake_hex(monkeypatch, stack, {"noisy": "structure", "good": "extraction"})
+    idx, info = hex_chooser(one_ring=False)(mesh, stack)
+    assert stack.done and stack.path_starts == {"good"} and len(stack) == 4
+    assert [c.start for c in stack] == ["noisy", "good", "good", "good"]
+    assert made == ["structure", "extraction", "seamless"]  # the best checkpoint of the one path kind
+    assert info["stopped"] == "every candidate meshed" and stack[idx].start == "good"
+    # and both pass: the paths of both
+    stack = _stack(mesh, ("noisy", "good"), [], **kw)
+    _fake_hex(monkeypatch, stack, {"noisy": "seamless", "good": "seamless"})
+    hex_chooser(one_ring=False)(mesh, stack)
+    assert stack.path_starts == {"noisy", "good"} and [c.start for c in stack[2:]].count("noisy") == 2

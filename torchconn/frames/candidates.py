@@ -94,7 +94,8 @@ class CandidateStack:
     1. ``"optimized:<start label>"``, one per start: the optimized field itself;
     2. ``"paths"``: the checkpoints of the quality paths
        (:func:`~torchconn.frames.quality_paths.quality_path`, ``paths`` x ``dirichlet_weights``)
-       started at each optimized field (all the optimized stages come first).
+       started at each optimized field (all the optimized stages come first), or at those of the
+       starts in :attr:`path_starts` when it is set.
 
     Each candidate is scored by :func:`quality_score` against ``reference`` (the SH field's
     :func:`frame_metrics`).
@@ -107,6 +108,9 @@ class CandidateStack:
     Attributes:
         candidates: the :class:`Candidate` s made so far, in the order they were made.
         info: ``{"stages": [names made], "seconds": ...}``.
+        path_starts: ``None`` (every start) or the start labels whose optimized fields the
+            ``"paths"`` stage continues; a chooser sets it before that stage is made (the hex
+            chooser: the starts whose optimized field passed the structure gate).
     """
 
     def __init__(self, mesh, optimized: dict, reference: dict, *, paths: Sequence[str] = ("soft",),
@@ -131,6 +135,7 @@ class CandidateStack:
         self.score_weights = (score_dirichlet, score_complex)
         self.candidates: list[Candidate] = []
         self.info: dict = {"stages": [], "seconds": 0.0}
+        self.path_starts: set | None = None
 
     # a read-only sequence of the candidates made so far
     def __len__(self) -> int:
@@ -147,11 +152,16 @@ class CandidateStack:
         """Whether every stage has been made."""
         return len(self.info["stages"]) == len(self.stages)
 
+    @property
+    def pending(self) -> str | None:
+        """The name of the stage :meth:`next_stage` makes next (``None`` when all are made)."""
+        return None if self.done else self.stages[len(self.info["stages"])]
+
     def next_stage(self) -> list[int] | None:
         """Make the next stage; the indices of its new candidates (maybe none), ``None`` when all are made."""
-        if self.done:
+        name = self.pending
+        if name is None:
             return None
-        name = self.stages[len(self.info["stages"])]
         t0 = time.perf_counter()
         n0 = len(self.candidates)
         if name.startswith("optimized:"):
@@ -187,7 +197,8 @@ class CandidateStack:
 
     def _stage_paths(self) -> None:
         for start, (F, _) in self._optimized.items():
-            self._run_paths(F.detach(), start, self.dirichlet_weights)
+            if self.path_starts is None or start in self.path_starts:
+                self._run_paths(F.detach(), start, self.dirichlet_weights)
 
 
 def connection_candidates(mesh, optimized: dict, reference: dict, **options) -> tuple[list[Candidate], dict]:

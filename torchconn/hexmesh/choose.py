@@ -8,7 +8,8 @@ then a valid map, then fewer inverted and flat tets in the map, fewer cubes drop
 minimum scaled Jacobian, fewer irregular interior edges; the proxies' score
 (:func:`~torchconn.frames.candidates.quality_score`) breaks ties. Only the most promising candidates are
 meshed (the cost is one hex stage each): each start's optimized field, then the best checkpoint
-by the proxies of each (start, path kind), up to ``max_candidates``.
+by the proxies of each (start, path kind), up to ``max_candidates`` — the quality paths only of
+the starts whose optimized field passed the structure gate.
 
 :func:`design_for_hex` is :func:`torchconn.frames.design` with this chooser and the seamless map's
 fitting energy (:class:`~.energy.MapEnergy`) as the loss term ``map``: the connection method as the
@@ -21,7 +22,7 @@ import time
 
 import torch
 
-__all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect", "map_energy_term"]
+__all__ = ["hex_chooser", "hex_key", "design_for_hex", "preselect", "map_energy_term", "NO_STRUCTURE"]
 
 
 def map_energy_term(edge_length: float | None = None):
@@ -80,6 +81,10 @@ def preselect(candidates, max_candidates: int) -> list[int]:
     return out[:max_candidates]
 
 
+NO_STRUCTURE = "no optimized field passed the structure gate: no quality path made"
+"""``info["stopped"]`` of :func:`hex_chooser` when the quality paths were not made (see there)."""
+
+
 def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options):
     """A ``choose(mesh, candidates) -> (index, info)`` for :func:`torchconn.frames.design`.
 
@@ -89,8 +94,15 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
             good: the set of inputs that get a good hex mesh is the same as meshing them all (only
             which good mesh is returned may differ), and with a
             :class:`~torchconn.frames.candidates.CandidateStack` (what :func:`~torchconn.frames.design`
-            passes) the later stages of candidates are then never made. ``False``: make every
-            candidate, mesh the ``max_candidates`` first and return the best by :func:`hex_key`.
+            passes) the later stages of candidates are then never made. With a stack, the quality
+            paths continue only the optimized fields whose hex mesh passed the structure gate
+            (:attr:`~torchconn.frames.candidates.CandidateStack.path_starts`), and are not made
+            when none did (``"stopped"``: :data:`NO_STRUCTURE`): they smooth a field whose
+            singular structure meshes, they do not repair one. Measured on the 35 HexMe ``c``
+            models (four runs of 2026-11-27, docs/results/hexmesh.md): every quality-path field
+            that gave a good hex mesh (s06, s07, n09) continued an optimized field that had passed
+            the structure gate. ``False``: make every candidate, mesh the ``max_candidates`` first
+            and return the best by :func:`hex_key`.
         **hex_options: options of :func:`~.pipeline.hex_mesh` (``edge_length``, ...). Its
             ``one_ring`` test (a report, deciding nothing) runs on the chosen candidate's hex
             mesh only (:func:`~.pipeline.add_one_ring`), not on every meshed candidate.
@@ -143,7 +155,14 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
             return f"max_candidates={max_candidates} meshed" if len(meshed) == max_candidates else None
 
         if lazy:
-            while stopped is None and candidates.next_stage() is not None:
+            while stopped is None and candidates.pending is not None:
+                if candidates.pending == "paths":
+                    candidates.path_starts = {candidates[i].start for i, r in zip(meshed, results)
+                                              if candidates[i].kind == "optimized" and r.first_failed != "structure"}
+                    if not candidates.path_starts:
+                        stopped = NO_STRUCTURE
+                        break
+                candidates.next_stage()
                 stopped = mesh_next()
         else:
             stopped = mesh_next()
