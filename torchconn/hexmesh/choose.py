@@ -99,7 +99,7 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
             (:attr:`~torchconn.frames.candidates.CandidateStack.path_starts`), and are not made
             when none did (``"stopped"``: :data:`NO_STRUCTURE`): they smooth a field whose
             singular structure meshes, they do not repair one. Measured on the 35 HexMe ``c``
-            models (four runs of 2026-11-27, docs/results/hexmesh.md): every quality-path field
+            models (three runs of 2026-11-27, docs/results/hexmesh.md): every quality-path field
             that gave a good hex mesh (s06, s07, n09) continued an optimized field that had passed
             the structure gate. ``False``: make every candidate, mesh the ``max_candidates`` first
             and return the best by :func:`hex_key`.
