@@ -391,7 +391,7 @@ def design(mesh, method: str = "connection", *, progress: bool = False,
             # 2. model, loss, optimizer of this start
             if starts_F[label] is None:  # the MBO start field, made when first needed
                 t1 = time.perf_counter()
-                starts_F[label] = mbo_frames(mesh, feature_angle_deg=angle).to(mesh.vertices.dtype)
+                starts_F[label] = mbo_frames(mesh, feature_angle_deg=angle, warm_start=True).to(mesh.vertices.dtype)
                 tally["init_s"] += time.perf_counter() - t1
             model = FrameFieldModel(mesh, starts_F[label], opts["formulation"], constraint).to(mesh.vertices.device)
             # the extra terms are built on the model's own (combed) start frames: their labels
