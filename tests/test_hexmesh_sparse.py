@@ -250,3 +250,22 @@ def test_pardiso_refuses_an_indefinite_matrix_and_matches_cholmod_on_a_laplacian
     x, ref = SPDFactor(A, "pardiso").solve(b), SPDFactor(A, BACKENDS[0]).solve(b)
     assert x.shape == (n, 3) and np.allclose(x, ref, rtol=1e-10, atol=1e-12)
     assert np.allclose(SPDFactor(A, "pardiso").solve(b[:, 0]), ref[:, 0], rtol=1e-10, atol=1e-12)
+
+
+def test_asking_which_backends_imports_none():
+    """``available_backends`` (what ``"auto"`` asks) finds the packages without importing them: a
+    fresh process that asks has neither cholespy nor pypardiso in ``sys.modules`` afterwards, and
+    lists exactly the ones installed."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    import ast
+
+    code = ("import sys; from torchconn.hexmesh.solver import available_backends as a; b = a(); "
+            "print(repr((b, 'cholespy' in sys.modules, 'pypardiso' in sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    want = (["cholmod"] if importlib.util.find_spec("cholespy") else []) + ["superlu"] + \
+        (["pardiso"] if importlib.util.find_spec("pypardiso") else [])
+    assert ast.literal_eval(out.stdout.strip().splitlines()[-1]) == (want, False, False)
