@@ -91,8 +91,8 @@ def hex_chooser(max_candidates: int = 8, first_good: bool = True, **hex_options)
     Args:
         max_candidates: how many candidates are meshed at most (:func:`preselect`).
         first_good: stop at the first candidate, in :func:`preselect`'s order, whose hex mesh is
-            good: the set of inputs that get a good hex mesh is the same as meshing them all (only
-            which good mesh is returned may differ), and with a
+            good: the set of inputs that get a good hex mesh is the same as meshing all the
+            candidates it makes (only which good mesh is returned may differ), and with a
             :class:`~torchconn.frames.candidates.CandidateStack` (what :func:`~torchconn.frames.design`
             passes) the later stages of candidates are then never made. With a stack, the quality
             paths continue only the optimized fields whose hex mesh passed the structure gate
