@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from ...lie import so3
 from ...ops import native as _native
 from ...ops._library import jvp as _library_jvp
 from ...ops._library import eager_function, qualname
@@ -58,18 +59,6 @@ def polar(X: torch.Tensor) -> torch.Tensor:
     so that its own derivative is exact.
     """
     return _Polar.apply(X)
-
-
-def _axial(A: torch.Tensor) -> torch.Tensor:
-    """``v(A) (..., 3)`` of ``A (..., 3, 3)``: ``(A_32 - A_23, A_13 - A_31, A_21 - A_12)``."""
-    return torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1)
-
-
-def _hat(w: torch.Tensor) -> torch.Tensor:
-    """``[w]_x (..., 3, 3)`` of ``w (..., 3)``."""
-    z = torch.zeros_like(w[..., 0])
-    w1, w2, w3 = w.unbind(-1)
-    return torch.stack([z, -w3, w2, w3, z, -w1, -w2, w1, z], -1).reshape(*w.shape[:-1], 3, 3)
 
 
 class _Polar(torch.autograd.Function):
@@ -103,8 +92,8 @@ def _polar_derivative(X: torch.Tensor, R: torch.Tensor, G: torch.Tensor) -> torc
     S = 0.5 * (S + S.transpose(-1, -2))
     P = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=S.dtype,
                                                                                    device=S.device) - S
-    w = torch.linalg.solve(P, _axial(Rt @ G).unsqueeze(-1)).squeeze(-1)
-    return R @ _hat(w)
+    w = torch.linalg.solve(P, 2.0 * so3.vee(Rt @ G).unsqueeze(-1)).squeeze(-1)  # 2 vee(A) = v(A)
+    return R @ so3.hat(w)
 
 
 def _polar_newton(X: torch.Tensor, max_iters: int = _POLAR_ITERS) -> torch.Tensor:
