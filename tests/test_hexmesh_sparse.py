@@ -196,6 +196,16 @@ def test_errors_are_clear():
     with pytest.raises(ValueError, match="pattern is not symmetric"):
         lower = idx[0] >= idx[1]
         sparse_spd_solve(idx[:, lower], v[lower], b)
+    # the first entry without its mirror (row-major) and their number, against a per-entry reference
+    full = torch.cartesian_prod(torch.arange(5), torch.arange(5)).T.contiguous()  # every entry of A
+    idx, v = full, A[full[0], full[1]]
+    keep = ~((idx[0] == 3) & (idx[1] == 1)) & ~((idx[0] == 4) & (idx[1] == 0))
+    rows, cols = idx[:, keep].tolist()
+    stored = set(zip(rows, cols))
+    lonely = sorted((i, j) for i, j in stored if (j, i) not in stored)
+    assert lonely == [(0, 4), (1, 3)]
+    with pytest.raises(ValueError, match=r"entry \(0, 4\) is stored but \(4, 0\) is not \(2 such entries\)"):
+        sparse_spd_solve(idx[:, keep], v[keep], b)
     with pytest.raises(ValueError, match="same dtype"):
         sparse_spd_solve(idx, v.float(), b)
     with pytest.raises(ValueError, match="float32 or float64"):

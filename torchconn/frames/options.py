@@ -22,7 +22,7 @@ from typing import Any
 
 from .loss import ALIGN_KINDS
 from .model import FORMULATIONS
-from .quality_paths import PATH_KINDS
+from .quality_paths import DIRICHLET_WEIGHTS, PATH_KINDS
 from .solver import LR_SCHEDULES, OPTIMIZERS
 
 __all__ = ["FrameOptions", "LBFGS", "Quality", "SH", "STARTS", "Weights", "option"]
@@ -109,7 +109,7 @@ class Quality:
 
     enabled: bool = option(True)
     paths: list[str] = option(["soft"], choices=PATH_KINDS)
-    dirichlet_weights: list[float] = option([8.0, 4.0, 2.0, 1.0, 0.5, 0.25], lo=0)
+    dirichlet_weights: list[float] = option(list(DIRICHLET_WEIGHTS), lo=0)
     rounds: int = option(2, lo=1)
     #: L-BFGS iterations per round
     iters: int = option(20, lo=1)
