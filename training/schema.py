@@ -22,6 +22,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from torchconn.frames.options import FrameOptions, group, option
+from torchconn.hexmesh.seamless import FEATURE_MAX_DEG
 from torchconn.hexmesh.solver import BACKENDS
 
 __all__ = ["DemoConfig", "HexMeshConfig", "HexStage", "TrainFramesConfig", "defaults", "register"]
@@ -103,7 +104,7 @@ class HexStage:
     #: CAD curves / sharp edges on integer lines, CAD corners on integer points
     features: bool = option(True)
     #: feature edges farther than this from every parameter axis stay free
-    feature_max_deg: float = option(30.0, lo=0, hi=90)
+    feature_max_deg: float = option(FEATURE_MAX_DEG, lo=0, hi=90)
     #: foldover-free seamless map and injective rounding (false: least squares, greedy rounding and
     #: stiffening, as CubeCover)
     injective: bool = option(True)

@@ -53,7 +53,7 @@ import torch
 
 from ..frames.kernels.tet_frames import smooth_tet_frames_op, vertex_incidence
 from .cut import group_matrices, tet_charts
-from .seamless import build_problem, default_edge_length
+from .seamless import FEATURE_MAX_DEG, build_problem, default_edge_length
 from .solver import NotPositiveDefinite
 from .sparse import SPDSolve
 
@@ -169,7 +169,7 @@ class MapEnergy:
     """
 
     def __init__(self, mesh, tet_frames0, edge_length: float | None = None, *, features: bool = True,
-                 feature_max_deg: float = 30.0, face_match=None, backend: str = "auto"):
+                 feature_max_deg: float = FEATURE_MAX_DEG, face_match=None, backend: str = "auto"):
         who = "MapEnergy"
         t_start = time.perf_counter()
         F0 = _check_frames(tet_frames0, mesh.n_tets, "tet_frames0", who)

@@ -40,7 +40,7 @@ import numpy as np
 from .cut import TetCharts, group_matrices
 from .inputs import tet_frames_of
 from .quantize import GRID_BITS, param_volumes, round_greedy, round_injective, snap, solve_fixed, stiffen
-from .seamless import SeamlessProblem, build_problem, default_edge_length
+from .seamless import FEATURE_MAX_DEG, SeamlessProblem, build_problem, default_edge_length
 from .structure import map_structure
 from .validity import Gate, MapValidity, check_map, check_seamless
 
@@ -123,7 +123,7 @@ class IntegerGridMap:
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_match=None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
                      repair_rounds: int = 30, split: bool = True, collapse: bool = True,
-                     features: bool = True, feature_max_deg: float = 30.0, flat_rounds: int = 8,
+                     features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG, flat_rounds: int = 8,
                      one_ring: bool = True, fixed_holonomy: bool = True, injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
                      stiffening_factor: float = 4.0,

@@ -44,6 +44,7 @@ import torch
 
 from .cut import GROUP_INV, tet_charts
 from .meshability import REGULAR, VERTEX_CLASSES, meshability_report
+from .seamless import FEATURE_MAX_DEG
 
 __all__ = ["OneRingReport", "one_ring_test", "ANGLE_TOL", "REASONS", "SOLVER_BUDGET"]
 
@@ -288,7 +289,7 @@ def _dihedral_sums(rings: _Rings, uvw: np.ndarray, skip: np.ndarray) -> np.ndarr
 
 # ----------------------------------------------------------------------------- the test
 def one_ring_test(mesh, tet_frames, face_match=None, *, vertices=None, charts=None, meshability=None,
-                  edge_length: float | None = None, features: bool = True, feature_max_deg: float = 30.0,
+                  edge_length: float | None = None, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
                   solve: bool = True, solver_options: dict | None = None, backend: str = "auto") -> OneRingReport:
     """LMFF's numeric one-ring test at the singular vertices of a field (module docstring).
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from .extract import extract_hexes
 from .igm import IntegerGridMap, integer_grid_map
+from .seamless import FEATURE_MAX_DEG
 from .validity import STAGES, Gate, MapValidity
 
 __all__ = ["HexMeshResult", "hex_mesh", "add_one_ring", "extraction_gate", "MAP_OPTIONS", "CLOSER_STEPS"]
@@ -245,7 +246,7 @@ def _stage(mesh, frames, extract, untangle, quality, progress, map_options) -> H
                          meshability=igm.meshability, input_mesh=mesh, gates=gates)
 
 
-def add_one_ring(result: HexMeshResult, *, features: bool = True, feature_max_deg: float = 30.0,
+def add_one_ring(result: HexMeshResult, *, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
                  backend: str = "auto") -> HexMeshResult:
     """LMFF's one-ring test (:func:`~.one_ring.one_ring_test`) on the structure of a result made
     with ``one_ring=False``, written into its structure gate (:func:`~.validity.record_one_ring`) and

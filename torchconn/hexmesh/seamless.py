@@ -46,7 +46,7 @@ import torch
 from .cut import TetCharts, face_corner_pairs, group_matrices
 from .elimination import ConstraintRows, Elimination, eliminate
 
-__all__ = ["SeamlessProblem", "build_problem", "default_edge_length", "INTEGER_KINDS"]
+__all__ = ["SeamlessProblem", "build_problem", "default_edge_length", "INTEGER_KINDS", "FEATURE_MAX_DEG"]
 
 INTEGER_KINDS = ("translation", "boundary", "singular", "feature", "corner")
 """What each integer unknown stands for (codes of :attr:`SeamlessProblem.var_kind` minus 1; 0 = continuous)."""
@@ -54,6 +54,10 @@ INTEGER_KINDS = ("translation", "boundary", "singular", "feature", "corner")
 
 DEFAULT_EDGE_LENGTH_FACTOR = 0.5
 """The default hex edge length is this times the mean edge length of the tet mesh."""
+
+FEATURE_MAX_DEG = 30.0
+"""Degrees: a feature edge whose parametric direction is farther than this from every parameter
+axis is left free (``feature_max_deg``; the default of every function and job option that takes it)."""
 
 
 def default_edge_length(mesh) -> float:
@@ -234,7 +238,7 @@ def _objective_rows(M: np.ndarray) -> sp.csr_matrix:
 
 
 def build_problem(mesh, charts: TetCharts, edge_length: float, *, features=True,
-                  feature_max_deg: float = 30.0, targets=None, plane_faces=None) -> SeamlessProblem:
+                  feature_max_deg: float = FEATURE_MAX_DEG, targets=None, plane_faces=None) -> SeamlessProblem:
     """Unknowns, constraints (eliminated) and objective of the seamless map (module docstring).
 
     Args:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from .cut import TetCharts, tet_charts
-from .seamless import SeamlessProblem, build_problem
+from .seamless import FEATURE_MAX_DEG, SeamlessProblem, build_problem
 from .validity import Gate, structure_gate
 
 __all__ = ["Structure", "map_structure", "check_face_match"]
@@ -102,7 +102,7 @@ def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np
 
 def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, straighten: bool = True,
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
-                  repair_rounds: int = 30, repair_slide: bool = False, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = 30.0,
+                  repair_rounds: int = 30, repair_slide: bool = False, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
                   flat_rounds: int = 8, one_ring: bool = True, progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 
