@@ -91,6 +91,9 @@ class HexStage:
     straighten: bool = option(True)
     #: repair LMFF's conditions on the singular graph (torchconn.hexmesh.repair)
     repair: bool = option(True)
+    #: the repair also slides the ends of arcs touching the boundary along the surface
+    #: (torchconn.hexmesh.repair.slide_moves; with feature_max_deg 15: more valid maps, more time)
+    repair_slide: bool = option(True)
     #: split edges that the map's constraints would collapse or flatten
     split: bool = option(True)
     #: collapse tet edges that the constraints send to one point (hexmesh.collapse)

@@ -122,7 +122,7 @@ class IntegerGridMap:
 
 def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_match=None, straighten: bool = True,
                      straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
-                     repair_rounds: int = 30, split: bool = True, collapse: bool = True,
+                     repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True,
                      features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG, flat_rounds: int = 8,
                      one_ring: bool = True, fixed_holonomy: bool = True, injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
@@ -149,6 +149,10 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
             ``stats["repair"]`` and the structure gate says what it left.
             On by default: on the 17 simple HexMe ``c`` models with the SH field it takes the good
             hex meshes from 8 to 10 (docs/results/hexmesh.md).
+        repair_slide: the repair also slides the ends of arcs that touch the boundary about a
+            tangent axis along the surface (:func:`~.repair.slide_moves`); on by default since
+            2026-11-27, with ``feature_max_deg`` 15 (:data:`~.seamless.FEATURE_MAX_DEG`: what the
+            two gain together, and what they cost).
         split: split the edges that would collapse or flatten (:func:`~.split.split_for_map`);
             the map is then of the refined mesh (``result.mesh``).
         collapse: collapse the tet edges that the constraints send to one point (collapsed tets,
@@ -216,7 +220,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     h = default_edge_length(mesh) if edge_length is None else float(edge_length)
     st = map_structure(mesh, Fr, h, face_match=face_match, straighten=straighten,
                        straighten_boundary=straighten_boundary, touch_rounds=touch_rounds, repair=repair,
-                       repair_rounds=repair_rounds, split=split, collapse=collapse, features=features,
+                       repair_rounds=repair_rounds, repair_slide=repair_slide, split=split, collapse=collapse,
+                       features=features,
                        feature_max_deg=feature_max_deg,
                        flat_rounds=flat_rounds, one_ring=one_ring, progress=progress)
     mesh, parent, charts, prob = st.mesh, st.parent_tet, st.charts, st.problem

@@ -102,7 +102,7 @@ def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np
 
 def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, straighten: bool = True,
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
-                  repair_rounds: int = 30, repair_slide: bool = False, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
+                  repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
                   flat_rounds: int = 8, one_ring: bool = True, progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 
@@ -113,7 +113,8 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
             (:func:`~.igm.integer_grid_map`).
         repair: after the search, repair LMFF's conditions (:func:`~.repair.repair_singular_graph`)
             with ``repair_rounds`` rounds at most; ``repair_slide``: its ``slide`` option (touching
-            arc ends slid along the surface; off: no map gained, docs/results/structures.md).
+            arc ends slid along the surface; on by default with ``feature_max_deg`` 15:
+            :data:`~.seamless.FEATURE_MAX_DEG`).
         split, features, feature_max_deg, flat_rounds: as :func:`~.igm.integer_grid_map`.
         collapse: in the flat-tet rounds, collapse the tet edges that the constraints send to one
             point (:func:`~.collapse.collapse_edges`; refused where it would invert a tet or move

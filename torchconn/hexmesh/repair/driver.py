@@ -165,9 +165,11 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
             then the returned matchings are on the input mesh).
         slide: also slide the ends of arcs that touch the boundary about a tangent axis along
             the surface (:func:`.ops.slide_moves`, single and in chains; chains also start at
-            touching ends). Off by default: on the 17 simple HexMe models (SH fields) it leaves
-            9 touching edges instead of 19 and no zipper node instead of 1, but no map becomes
-            valid and the repair takes about twice as long (docs/results/structures.md).
+            touching ends). On the 17 simple HexMe models (SH fields) it leaves 9 touching edges
+            instead of 19 and no zipper node instead of 1, and the repair takes about twice as
+            long (docs/results/structures.md); alone it made no map valid, with feature edges
+            constrained only within 15 degrees of an axis it does (s13c, n14c): the map stage
+            turns it on (``repair_slide``, :data:`~torchconn.hexmesh.seamless.FEATURE_MAX_DEG`).
         weights: overrides of :data:`.graph.REPAIR_WEIGHTS`.
         features: take sharp features from the mesh.
         progress: a tqdm bar over the rounds.
