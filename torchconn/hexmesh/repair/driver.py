@@ -26,7 +26,7 @@ import torch
 
 from .disk import MeshLookup
 from .graph import SingularGraph
-from .ops import MOVE_KINDS, best_move, candidate_moves, touching_ends
+from .ops import MOVE_KINDS, best_move, candidate_moves
 
 __all__ = ["RepairReport", "repair_singular_graph", "chain_move"]
 
@@ -164,8 +164,10 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
             vertices (:func:`room_edges`) and go on, at most this many times (0: never split;
             then the returned matchings are on the input mesh).
         slide: also slide the ends of arcs that touch the boundary about a tangent axis along
-            the surface (:func:`.ops.slide_moves`, single and in chains; chains also start at
-            touching ends). On the 17 simple HexMe models (SH fields) it leaves 9 touching edges
+            the surface (:func:`.ops.slide_moves`: single moves at touching ends, and within the
+            chains that start at a condition; no chain starts at a touching end — on the 35 HexMe
+            ``c`` models those chains took 14% of the jobs' time, 2,667 s against 2,295 s, and
+            changed no verdict, docs/results/hexmesh.md). On the 17 simple HexMe models (SH fields) it leaves 9 touching edges
             instead of 19 and no zipper node instead of 1, and the repair takes about twice as
             long (docs/results/structures.md); alone it made no map valid, with feature edges
             constrained only within 15 degrees of an axis it does (s13c, n14c): the map stage
@@ -218,9 +220,8 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                 if mv is not None:
                     g.set_matchings(mv.faces, mv.values)
                     kept = [mv]
-                elif chain_depth > 0 and (g.vertex_cost(np.array([v]))[0] > 0
-                                          or (slide and touching_ends(g, lookup, v).size)):
-                    kept = chain_move(g, lookup, v, chain_depth, kinds)  # chains start at conditions (and touching ends)
+                elif chain_depth > 0 and g.vertex_cost(np.array([v]))[0] > 0:
+                    kept = chain_move(g, lookup, v, chain_depth, kinds)  # chains start at conditions only
                 else:
                     kept = []
                 for mv in kept:
