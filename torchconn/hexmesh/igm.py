@@ -221,9 +221,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
     st = map_structure(mesh, Fr, h, face_match=face_match, straighten=straighten,
                        straighten_boundary=straighten_boundary, touch_rounds=touch_rounds, repair=repair,
                        repair_rounds=repair_rounds, repair_slide=repair_slide, split=split, collapse=collapse,
-                       features=features,
-                       feature_max_deg=feature_max_deg,
-                       flat_rounds=flat_rounds, one_ring=one_ring, progress=progress)
+                       features=features, feature_max_deg=feature_max_deg, flat_rounds=flat_rounds,
+                       one_ring=one_ring, progress=progress)
     mesh, parent, charts, prob = st.mesh, st.parent_tet, st.charts, st.problem
     flat, mesh_report = st.flat, st.meshability
     timings.update(st.timings)
