@@ -7,6 +7,8 @@ quantize.round_injective, SeamlessProblem.flat_tets, validity.check_seamless).
 * a box map folded on purpose becomes foldover-free and the identity again; a fixed unknown stays;
 * moving a boundary plane by one unit keeps the map injective; moving it onto the opposite plane
   fails and leaves the map as it was;
+* a tet no value of the unknowns opens: left out, the rest untangled; not left out, the shifted
+  rounds end once a round opens nothing, and it is reported inverted;
 * rounding a valid non-integral map keeps every tet positive and makes every integer exact;
 * the flat tets of a hand-built constraint system: coplanar and collapsed ones told apart;
 * the seamless check passes the identity map and catches a broken one.
@@ -238,6 +240,27 @@ def test_tets_no_map_can_open_are_left_out_and_the_rest_untangled():
     y0 = y + rng.normal(scale=0.4, size=y.size)
     r = minimize_barrier(jac, y0, ignore=np.array([k]))
     assert r.n_inverted == 0 and np.linalg.det(jac(r.y))[k] == 0.0
+    det = np.linalg.det(jac(r.y))
+    assert (np.delete(det, k) > DET_SAFE).all()
+
+
+def test_a_tet_no_map_opens_ends_the_shifted_rounds_once_a_round_opens_nothing():
+    # the same pinned tet, inverted and not left out: no round can open it, so the shifted rounds end
+    # at the second (the first that leaves as many inverted as the round before) instead of spending
+    # all four; the other tets are untangled and the pinned one is reported, not hidden
+    mesh, charts, prob, y = _box_problem(3)
+    jac = TetJacobians.of_problem(prob)
+    k = 7
+    GZ = jac.GZ.tolil()
+    GZ[9 * k:9 * k + 9, :] = 0
+    j0 = jac.j0.copy()
+    j0[9 * k:9 * k + 9] = np.diag([1.0, 1.0, -1.0]).reshape(9)
+    jac = TetJacobians(GZ=GZ.tocsr(), j0=j0, vol=jac.vol)
+    rng = np.random.default_rng(3)
+    y0 = y + rng.normal(scale=0.4, size=y.size)
+    r = minimize_barrier(jac, y0, rounds=4)
+    assert r.rounds == 2
+    assert r.inverted.tolist() == [k]
     det = np.linalg.det(jac(r.y))
     assert (np.delete(det, k) > DET_SAFE).all()
 

@@ -57,7 +57,7 @@ the ring's constraints flatten, a complex singular edge at the vertex."""
 
 SOLVER_BUDGET = {"untangle_rounds": 3, "rounds": 1, "max_iter": 20}
 """The foldover-free solve's budget per ring (:func:`~.injective.minimize_barrier`'s options;
-its defaults are 15 / 4 / 50). A ring that the solve untangles is untangled early (within the
+its defaults are 3 / 4 / 50). A ring that the solve untangles is untangled early (within the
 first untangling solve on the HexMe models tried); a ring it cannot untangle spends the whole
 budget, which is what the test costs."""
 
