@@ -128,6 +128,12 @@ def test_a_folded_box_map_becomes_foldover_free_and_the_identity_again():
     assert r.n_inverted == 0 and r.min_det > DET_SAFE
     assert np.allclose(r.y, y, atol=1e-5)
     assert r.fit_energy < 1e-9
+    # the untangling and shifted solves stop at the step that leaves no tet inverted; the barrier
+    # solve minimizes from there
+    phases = [(h[0][0], h[2]) for h in r.history]
+    untangling = [n for p, n in phases if p != "barrier"]
+    assert untangling and untangling[-1] == 0 and all(n > 0 for n in untangling[:-1])
+    assert any(p == "barrier" for p, _ in phases)
 
 
 def test_fixed_unknowns_stay_where_they_are():

@@ -234,11 +234,13 @@ class _Hessian:
         return 0.5 * (H + H.T)
 
 
-def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd, quad=None):
+def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd, quad=None, until=None):
     """Newton steps of ``model``'s energy on the unfixed unknowns ``free`` (bool mask) from a
     feasible ``y``: PSD-projected Hessian, one sparse solve, the step capped by ``model.cap``,
     Armijo backtracking. ``quad = (P, q)``: a quadratic ``y^T P y - 2 q^T y`` added to the energy
-    (``P (m, m)`` sparse, symmetric positive semidefinite). Returns ``(y, iterations, converged)``."""
+    (``P (m, m)`` sparse, symmetric positive semidefinite). ``until``: a test of the per-tet
+    determinants ``(T,)`` after each step that ends the steps when true (the solve's goal met:
+    not counted as converged). Returns ``(y, iterations, converged)``."""
     hess = _Hessian(jac, np.nonzero(free)[0])
     vol = jac.vol
     Etot = vol.sum()
@@ -290,7 +292,10 @@ def _newton(jac, y, model, free, *, max_iter, tol, backend, history, rnd, quad=N
         else:
             break
         y, E = y_new, E_new
-        history.append((rnd, E / Etot, int((np.linalg.det(jac(y)) <= 0).sum()), s))
+        det = np.linalg.det(jac(y))
+        history.append((rnd, E / Etot, int((det <= 0).sum()), s))
+        if until is not None and until(det):
+            break
     return y, it, converged
 
 
@@ -316,6 +321,9 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
        rounds: a tet that became positive loses its shift, the others get a new one; the rounds
        end when one leaves as many tets inverted as the round before it);
     3. with every tet positive: Newton on the barrier energy with no shift (no tet can fold).
+
+    The solves of phases 1 and 2 end at the step that leaves every tet safely positive (their
+    goal; phase 3 then minimizes from there) rather than converging first.
 
     Args:
         jac: the :class:`TetJacobians` of the seamless problem.
@@ -355,6 +363,9 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
         d[~active] = np.inf  # never inverted, never limiting
         return d
 
+    def untangled(d):  # the goal of phases 1 and 2: their solves end as soon as it is met
+        return bool((d[active] > DET_SAFE).all())
+
     det = dets(y)
     # ---- phase 1: untangling with a shrinking regularization
     if free.any() and (det <= DET_SAFE).any():
@@ -364,7 +375,7 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
             model = _Untangling(eps, w_fit, active)
             E0 = model.energy(jac(y), jac.vol)
             y, it, _ = _newton(jac, y, model, free, max_iter=10, tol=tol, backend=backend, history=history,
-                               rnd=("untangle", k))
+                               rnd=("untangle", k), until=untangled)
             iters += it
             det = dets(y)
             if (det > DET_SAFE).all():
@@ -380,7 +391,8 @@ def minimize_barrier(jac: TetJacobians, y0: np.ndarray, *, fixed: np.ndarray | N
         left = int((det <= DET_SAFE).sum())
         for rnd in range(1, rounds + 1):
             y, it, converged = _newton(jac, y, _Barrier(eps_t, w_fit, w_sd, active), free, max_iter=max_iter,
-                                       tol=tol, backend=backend, history=history, rnd=("shifted", rnd))
+                                       tol=tol, backend=backend, history=history, rnd=("shifted", rnd),
+                                       until=untangled)
             iters += it
             det = dets(y)
             now = int((det <= DET_SAFE).sum())
