@@ -13,7 +13,8 @@ import torch
 from conftest import data_path
 from torchconn import io
 from torchconn.hexmesh.distance import HAUSDORFF_ABS_ACCURACY_REL, HAUSDORFF_REL_ACCURACY, _point_triangle_distance
-from torchconn.hexmesh.quality import COINCIDENT_TOL_REL, GOOD_IRREGULAR_MAX, hex_quality, hex_volumes, scaled_jacobian
+from torchconn.hexmesh.quality import (COINCIDENT_TOL_REL, FLAT_SJ, GOOD_IRREGULAR_MAX, hex_quality, hex_volumes,
+                                       scaled_jacobian)
 from torchconn.mesh.cad import cad_tags_from_elements
 
 CUBE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
@@ -142,6 +143,31 @@ def test_scaled_jacobian_hand_computed():
     assert scaled_jacobian(P, H)[0] == 0.0
     q = hex_quality(P, H)
     assert not q.all_hex and q.n_degenerate == 1 and not q.valid
+
+
+def test_a_flat_corner_is_flat_whatever_sign_its_round_off_takes():
+    # a hex whose bottom face is a triangle with vertex 1 on the edge 0-2 (two edges of corner 1
+    # along one line, as where a hex wraps a straight feature curve): its scaled Jacobian is 0 in
+    # exact arithmetic; rotated, it computes to a few 1e-16 of either sign, and is flat either way
+    P0 = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [2, 0, 1], [1, 1, 1]], float)
+    H = np.arange(8)[None]
+    assert scaled_jacobian(P0, H)[0] == 0.0
+    rng = np.random.default_rng(0)
+    signs = set()
+    for _ in range(200):
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        R *= np.sign(np.linalg.det(R))
+        P = P0 @ R.T + rng.normal(size=3)
+        sj = scaled_jacobian(P, H)[0]
+        assert abs(sj) <= FLAT_SJ
+        if sj == 0.0:
+            continue
+        signs.add(bool(sj > 0))
+        q = hex_quality(P, H)
+        assert q.n_inverted == 1 and not q.valid and any("flat" in r for r in q.invalid_reasons)
+        if signs == {True, False}:
+            break
+    assert signs == {True, False}  # the case exercises a positive round-off, not only an exact zero
 
 
 def _scaled_jacobian_naive(P8):

@@ -15,10 +15,13 @@ What :func:`hex_quality` measures (every threshold is a module constant below):
   three edge vectors in the order of :data:`_CORNERS` (Verdict's) and, at the centre, the three
   principal axes (sums of the four parallel edges). 1 for a cube, ``<= 0`` for an inverted hex.
   Where a vector has zero length the hex scores 0 (Verdict returns its ``1e30`` sentinel there;
-  a collapsed hex is no good hex).
+  a collapsed hex is no good hex). A hex whose scaled Jacobian is at most :data:`FLAT_SJ` is
+  *flat* (a corner whose three edges are coplanar: a positive value that small is the round-off
+  of a zero, e.g. 9e-16 on a hex whose two edges run along one straight feature curve) and is
+  counted with the inverted ones.
 * **Validity**: all cells hexahedra (8 distinct vertex indices, no edge shorter than
-  :data:`COINCIDENT_TOL_REL` of the bounding-box diagonal), no inverted hex (scaled Jacobian
-  ``<= 0``), conforming (no quad face in more than two hexes; no face shared by two hexes with the
+  :data:`COINCIDENT_TOL_REL` of the bounding-box diagonal), no inverted or flat hex (scaled
+  Jacobian ``<= FLAT_SJ``), conforming (no quad face in more than two hexes; no face shared by two hexes with the
   same orientation, i.e. hexes on the same side of it; no two distinct vertices closer than
   :data:`COINCIDENT_TOL_REL` of the diagonal; no hanging vertex: a hex vertex within that
   distance of the interior of a hex edge it does not end), and a closed manifold boundary (every
@@ -61,13 +64,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..tolerances import get_eps
 from .distance import _CHUNK, _hausdorff
 from .extract import HEX_FACES  # the 6 faces, outward: one home for the local hex tables
 from .features_meshed import _feature_metrics
 
 __all__ = [
     "HexQuality", "hex_quality", "scaled_jacobian", "hex_volumes", "HEX_EDGES",
-    "COINCIDENT_TOL_REL", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "GOOD_VOLUME_RATIO_TOL",
+    "COINCIDENT_TOL_REL", "FLAT_SJ", "GOOD_IRREGULAR_MAX", "GOOD_HAUSDORFF_MAX_REL", "GOOD_VOLUME_RATIO_TOL",
 ]
 
 # ----------------------------------------------------------------------------- thresholds
@@ -76,6 +80,10 @@ __all__ = [
 #: another hex edge's interior hangs on it. Far above the round-off of an extraction (~1e-13 of
 #: the diagonal) and far below any meshed feature.
 COINCIDENT_TOL_REL = 1e-8
+#: A hex whose scaled Jacobian is at most this is flat (or inverted): the registry's relative
+#: tolerance of geometric degeneracy (``tolerances.get_eps("degenerate", float64)``); the scaled
+#: Jacobian is a determinant of unit vectors, so a flat corner computes to a few 1e-16 of either sign.
+FLAT_SJ = get_eps("degenerate", torch.float64)
 #: ``good`` allows at most this fraction of irregular interior edges (issue 22: 5%).
 GOOD_IRREGULAR_MAX = 0.05
 #: ``good`` allows a two-sided Hausdorff distance of at most this fraction of the input's
@@ -439,7 +447,7 @@ def hex_quality(points, hexes, *, tet_mesh=None) -> HexQuality:
     repeated = (hs[:, 1:] == hs[:, :-1]).any(axis=1)
     elen = np.linalg.norm(p[h[:, HEX_EDGES[:, 1]]] - p[h[:, HEX_EDGES[:, 0]]], axis=2)  # (H, 12)
     degenerate = np.nonzero(repeated | (elen <= tol).any(axis=1))[0]
-    inverted = np.nonzero(sj <= 0)[0]
+    inverted = np.nonzero(sj <= FLAT_SJ)[0]
 
     # faces: shared by at most two hexes, on opposite sides
     loops = h[:, HEX_FACES].reshape(-1, 4)  # (6H, 4) outward
@@ -487,7 +495,8 @@ def hex_quality(points, hexes, *, tet_mesh=None) -> HexQuality:
         reasons.append(f"not all hexahedra: {degenerate.size} degenerate hexes (repeated vertices or collapsed "
                        f"edges), e.g. {degenerate[:5].tolist()}")
     if inverted.size:
-        reasons.append(f"{inverted.size} inverted hexes (scaled Jacobian <= 0), e.g. {inverted[:5].tolist()}")
+        reasons.append(f"{inverted.size} inverted or flat hexes (scaled Jacobian <= {FLAT_SJ:g}), "
+                       f"e.g. {inverted[:5].tolist()}")
     conform = []
     if over_two:
         conform.append(f"{over_two} faces in more than two hexes")
