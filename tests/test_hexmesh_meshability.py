@@ -259,9 +259,11 @@ _REF_BOUNDARY = {
     ((1, 1, 3, 3, 4), ()): "node", ((1, 1, 4), ()): "node", ((3, 3, 4), ()): "node"}
 
 
-def _ref_vertex_classes(mesh, hexes):
+def _ref_vertex_classes(mesh, hexes, expected):
     """Per vertex: the sorted hex counts of its singular interior edges and the sorted fan angles of
-    its non-flat boundary edges, looked up in the tables above (written independently)."""
+    its non-flat boundary edges, looked up in the tables above (written independently); a boundary
+    vertex whose edges, with its sharp ones of flat fan, take more than the link disk's Euler count
+    (6 - k per interior edge, 3 - q per boundary edge) is invalid."""
     E = mesh.edges.numpy()
     bnd_v = set(mesh.boundary_vertices.tolist())
     bnd_e = edge_walks(mesh).boundary
@@ -270,8 +272,12 @@ def _ref_vertex_classes(mesh, hexes):
         inc = np.nonzero((E == v).any(1))[0]
         ins = tuple(sorted(int(hexes[e]) for e in inc if not bnd_e[e] and hexes[e] != 4))
         bs = tuple(sorted(int(hexes[e]) for e in inc if bnd_e[e] and hexes[e] != 2))
+        flat_sharp = sum(1 for e in inc if bnd_e[e] and hexes[e] == 2 and expected[e] != 2)
+        euler = sum(6 - k for k in ins) + sum(3 - q for q in bs) + flat_sharp
         if -1 in ins:
             out.append("complex")
+        elif v in bnd_v and euler > 6:
+            out.append("invalid")
         elif not ins and not bs:
             out.append("regular")
         elif v in bnd_v:
@@ -287,7 +293,7 @@ def _check_against_references(mesh, F, face_match=None, accumulate=False):
     np.testing.assert_allclose(m.edge_turn, _ref_turn(mesh, ch.frames, ch.face_rot), atol=1e-9)
     ref_r = _ref_fan_rotations(mesh, ch.frames, ch.face_rot, m.edge_turn)
     assert {e: int(m.edge_hexes[e]) for e in ref_r} == ref_r
-    assert [VERTEX_CLASSES[c] for c in m.vertex_class] == _ref_vertex_classes(mesh, m.edge_hexes)
+    assert [VERTEX_CLASSES[c] for c in m.vertex_class] == _ref_vertex_classes(mesh, m.edge_hexes, m.boundary_expected)
     if not accumulate:
         return m
     ref_q = _ref_fan_quarters(mesh, ch.frames, ch.face_rot)
@@ -440,11 +446,12 @@ def test_random_matchings_against_the_references():
 
 # ----------------------------------------------------------------------------- rules and errors
 def test_vertex_rules():
-    def cls(on_b, **k):
+    def cls(on_b, flat=None, **k):
         c = np.zeros(len(EDGE_CLASSES), np.int64)
         for name, n in k.items():
             c[EDGE_CLASSES.index(name)] = n
-        return VERTEX_CLASSES[int(classify_vertices(c[None], np.array([on_b]))[0])]
+        fs = None if flat is None else np.array([flat])
+        return VERTEX_CLASSES[int(classify_vertices(c[None], np.array([on_b]), fs)[0])]
 
     for n3, n5 in INTERIOR_NODES:
         assert cls(False, v3=n3, v5=n5) == "node"
@@ -456,6 +463,24 @@ def test_vertex_rules():
     assert cls(True, v3=1) == "arc" and cls(True, v2=1) == "invalid" and cls(True, v3=2) == "invalid"
     assert cls(True, q1=3) == "node" and cls(True, q1=4) == "invalid" and cls(True, q1=2, v3=1) == "invalid"
     assert cls(True, q3=2, v3=1) == "node" and cls(True, q1=1, q3=1) == "zipper"
+    # a sharp edge with a flat fan is still a hex edge: a pyramid apex's fans 1, 1, 1, 2 take 7 of
+    # the link disk's Euler count 6 (the table alone sees a cube corner); 2, 1, 2, 1 take 6
+    assert cls(True, q1=3) == "node" and cls(True, q1=3, flat=0) == "node" and cls(True, q1=3, flat=1) == "invalid"
+    assert cls(True, q1=2, flat=2) == "arc" and cls(True, q3=3, flat=1) == "node"
+    assert cls(True, flat=7) == "invalid" and cls(True, flat=6) == "regular"
+    assert cls(False, v3=2, flat=9) == "arc"  # interior vertices have no sharp edges to count
+
+
+def test_every_boundary_configuration_is_within_the_link_disks_euler_count():
+    # sum_interior (6 - k) + sum_boundary (3 - q) <= 6 for every configuration the table accepts, so
+    # counting the flat sharp edges only ever rejects a vertex for those (module docstring)
+    from torchconn.hexmesh.meshability import _LINK_EXCESS, BOUNDARY_CONFIGS
+
+    for (b, i), _ in BOUNDARY_CONFIGS.items():
+        c = np.zeros(len(EDGE_CLASSES), np.int64)
+        c[[EDGE_CLASSES.index(n) for n in ("q0", "q1", "q3", "q4")]] = b
+        c[[EDGE_CLASSES.index(n) for n in ("v3", "v5", "v2", "v6")]] = i
+        assert int(c @ _LINK_EXCESS) <= 6, (b, i)
 
 
 def test_bad_input_is_a_clear_error():

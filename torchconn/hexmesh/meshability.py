@@ -65,6 +65,12 @@ Conditions (each a list of offending elements in :class:`Meshability`)
   nothing of the edges' directions: beyond arcs (where conservation fixes them) a node of a
   valid kind may still be arranged wrongly; the conditions are necessary, not sufficient.
   Vertices at a complex edge are classed ``complex`` (the edge is reported) and not counted.
+  A sharp feature edge is a hex edge whatever its fan: one whose fan is flat (``q = 2``, where
+  its feature asks for 1 or 3) is not in the configurations' counts but takes ``3 - 2 = 1`` of
+  the disk's 6, so a boundary vertex whose edges take more than 6 is invalid -- a CAD corner of
+  four convex curves (a pyramid apex, an octahedron's vertex) with fans ``1, 1, 1, 2`` (7): the
+  table sees a cube corner, and the map lays a hex's corner across the flat curve (its hexes flat
+  there; HexMe n09c, n14c).
 * ``touching_edges``: interior singular edges with an end on the boundary whose turn axis is
   more than 45° from the boundary normal there (:func:`tangent_axes`; the search's ``w_tangent``,
   :func:`~.straighten.touching_edges`).
@@ -155,12 +161,23 @@ def _table():
 (_BKEYS, _BVALS), (_IKEYS, _IVALS) = _table()
 
 
-def classify_vertices(counts: np.ndarray, on_boundary: np.ndarray) -> np.ndarray:
+_LINK_EXCESS = np.array([3, 1, 4, 0, 0, 3, 2, 0, -1])
+"""Per :data:`EDGE_CLASSES`, what an incident edge takes of a boundary vertex's link disk:
+``6 - k`` for an interior edge of ``k`` hexes, ``3 - q`` for a boundary edge of fan ``q``
+(complex edges: 0, their vertex is ``complex`` anyway); the disk's Euler count is 6."""
+
+
+def classify_vertices(counts: np.ndarray, on_boundary: np.ndarray, flat_sharp: np.ndarray | None = None) -> np.ndarray:
     """Class (:data:`VERTEX_CLASSES`) of vertices from the counts of their incident edges.
 
     Args:
         counts: ``(..., 9)`` int, per vertex the incident edges of each of :data:`EDGE_CLASSES`.
         on_boundary: ``(...)`` bool, boundary vertices.
+        flat_sharp: ``(...)`` int, per vertex the incident sharp feature edges whose fan is flat
+            (``q = 2``, not counted in ``counts``). A sharp edge is a hex edge of the mesh,
+            flat fan or not, so each takes ``3 - 2 = 1`` of the link's Euler count: a boundary
+            vertex whose edges take more than 6 is invalid whatever :data:`BOUNDARY_CONFIGS`
+            says of its other edges (module docstring, ``invalid_nodes``). ``None``: not counted.
 
     Returns:
         ``(...)`` int8 codes (module docstring: the rules).
@@ -175,6 +192,9 @@ def classify_vertices(counts: np.ndarray, on_boundary: np.ndarray) -> np.ndarray
         pos = np.clip(np.searchsorted(keys, key), 0, keys.size - 1)
         hit = (keys[pos] == key) & sel & (rest.sum(-1) > 0)
         out[hit] = vals[pos[hit]]
+    if flat_sharp is not None:
+        excess = counts @ _LINK_EXCESS + np.asarray(flat_sharp)
+        out[on_boundary & (excess > 6)] = INVALID
     out[cx] = COMPLEX
     return out
 
@@ -558,7 +578,8 @@ def meshability_report(mesh, tet_frames, face_match: np.ndarray | None = None, *
     cls = np.where(bnd, boundary_edge_class(np.where(bnd, hexes, 2)), interior_edge_class(np.where(bnd, 4, hexes)))
     on_b = np.zeros(V, bool)
     on_b[mesh.boundary_vertices.cpu().numpy()] = True
-    vclass = classify_vertices(edge_class_counts(edges, cls, V), on_b)
+    flat_sharp = np.bincount(edges[sharp & (hexes == 2)].reshape(-1), minlength=V)
+    vclass = classify_vertices(edge_class_counts(edges, cls, V), on_b, flat_sharp)
 
     tang = tangent_axes(mesh, Fc[ch.edge_start_tet], edges, bnd)
     touching = ch.singular_edge & ch.edge_meshable & tang[np.arange(E), np.maximum(ch.edge_axis, 0)]

@@ -72,7 +72,8 @@ class SingularGraph:
         features: take sharp features from the mesh (as :func:`~torchconn.hexmesh.meshability.meshability_report`).
 
     Attributes (numpy, current): ``match (F,)``, ``prod (E,)`` walk products, ``cls (E,)`` edge
-    classes, ``vcnt (V, 9)`` incident class counts, ``vcls (V,)`` vertex classes; static:
+    classes, ``vcnt (V, 9)`` incident class counts, ``fsc (V,)`` incident sharp edges with a flat
+    fan, ``vcls (V,)`` vertex classes; static:
     ``best (F,)`` the best matchings, ``edges (E, 2)``, ``boundary (E,)`` bool, ``on_b (V,)``,
     ``expected (E,)`` fan angle asked for (``-1`` interior), ``sharp (E,)`` bool, ``walks``.
 
@@ -161,7 +162,8 @@ class SingularGraph:
         self.prod = walks.products(self.transitions())
         self.cls = self.edge_classes(np.arange(E))
         self.vcnt = edge_class_counts(self.edges, self.cls, V)
-        self.vcls = classify_vertices(self.vcnt, self.on_b)
+        self.fsc = np.bincount(self.edges[self.sharp & (self.cls < 0)].reshape(-1), minlength=V)
+        self.vcls = classify_vertices(self.vcnt, self.on_b, self.fsc)
 
     # ------------------------------------------------------------------ per-edge quantities
     def transitions(self) -> np.ndarray:
@@ -292,7 +294,7 @@ class SingularGraph:
         es = np.unique(self.face_edges[faces])
         vs = np.unique(self.edges[es])
         token = (faces, self.match[faces].copy(), es, self.prod[es].copy(), self.cls[es].copy(), vs,
-                 self.vcnt[vs].copy(), self.vcls[vs].copy())
+                 self.vcnt[vs].copy(), self.fsc[vs].copy(), self.vcls[vs].copy())
         self.match[faces] = values
         self.prod[es] = self.edge_products(es)
         new = self.edge_classes(es)
@@ -306,17 +308,22 @@ class SingularGraph:
             np.subtract.at(self.vcnt, (self.edges[es[o], end], old[o]), 1)
             n = new >= 0
             np.add.at(self.vcnt, (self.edges[es[n], end], new[n]), 1)
+        sh = self.sharp[es]
+        for end in (0, 1):
+            np.subtract.at(self.fsc, self.edges[es[sh & (old < 0)], end], 1)
+            np.add.at(self.fsc, self.edges[es[sh & (new < 0)], end], 1)
         self.cls[es] = new
         vs = np.unique(self.edges[es])
-        self.vcls[vs] = classify_vertices(self.vcnt[vs], self.on_b[vs])
+        self.vcls[vs] = classify_vertices(self.vcnt[vs], self.on_b[vs], self.fsc[vs])
 
     def undo(self, token: tuple) -> None:
         """Restore the state before the :meth:`set_matchings` call that returned ``token``."""
-        faces, match, es, prod, cls, vs, vcnt, vcls = token
+        faces, match, es, prod, cls, vs, vcnt, fsc, vcls = token
         self.match[faces] = match
         self.prod[es] = prod
         self.cls[es] = cls
         self.vcnt[vs] = vcnt
+        self.fsc[vs] = fsc
         self.vcls[vs] = vcls
 
     # ------------------------------------------------------------------ summaries
