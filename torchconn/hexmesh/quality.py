@@ -21,12 +21,12 @@ What :func:`hex_quality` measures (every threshold is a module constant below):
   counted with the inverted ones.
 * **Validity**: all cells hexahedra (8 distinct vertex indices, no edge shorter than
   :data:`COINCIDENT_TOL_REL` of the bounding-box diagonal), no inverted or flat hex (scaled
-  Jacobian ``<= FLAT_SJ``), conforming (no quad face in more than two hexes; no face shared by two hexes with the
-  same orientation, i.e. hexes on the same side of it; no two distinct vertices closer than
-  :data:`COINCIDENT_TOL_REL` of the diagonal; no hanging vertex: a hex vertex within that
-  distance of the interior of a hex edge it does not end), and a closed manifold boundary (every
-  edge of the boundary quads in exactly two of them; the boundary quads around every boundary
-  vertex form a single cycle). Faces are compared by their vertex sets. A hex mesh's boundary is
+  Jacobian ``<= FLAT_SJ``), conforming (no quad face in more than two hexes; no face shared by
+  two hexes with the same orientation, i.e. hexes on the same side of it; no two distinct
+  vertices closer than :data:`COINCIDENT_TOL_REL` of the diagonal; no hanging vertex: a hex
+  vertex within that distance of the interior of a hex edge it does not end), and a closed
+  manifold boundary (every edge of the boundary quads in exactly two of them; the boundary quads
+  around every boundary vertex form a single cycle). Faces are compared by their vertex sets. A hex mesh's boundary is
   always a mod-2 cycle, so an edge in an odd number of boundary quads (an *open* boundary) only
   arises next to a face in three or more hexes; an even number above two is a non-manifold edge
   (hexes touching along an edge only).

@@ -308,10 +308,9 @@ class SingularGraph:
             np.subtract.at(self.vcnt, (self.edges[es[o], end], old[o]), 1)
             n = new >= 0
             np.add.at(self.vcnt, (self.edges[es[n], end], new[n]), 1)
-        sh = self.sharp[es]
-        for end in (0, 1):
-            np.subtract.at(self.fsc, self.edges[es[sh & (old < 0)], end], 1)
-            np.add.at(self.fsc, self.edges[es[sh & (new < 0)], end], 1)
+            sh = self.sharp[es]  # sharp edges with a flat fan (class -1)
+            np.subtract.at(self.fsc, self.edges[es[sh & ~o], end], 1)
+            np.add.at(self.fsc, self.edges[es[sh & ~n], end], 1)
         self.cls[es] = new
         vs = np.unique(self.edges[es])
         self.vcls[vs] = classify_vertices(self.vcnt[vs], self.on_b[vs], self.fsc[vs])
