@@ -80,9 +80,9 @@ __all__ = [
 #: another hex edge's interior hangs on it. Far above the round-off of an extraction (~1e-13 of
 #: the diagonal) and far below any meshed feature.
 COINCIDENT_TOL_REL = 1e-8
-#: A hex whose scaled Jacobian is at most this is flat (or inverted): the registry's relative
-#: tolerance of geometric degeneracy (``tolerances.get_eps("degenerate", float64)``); the scaled
-#: Jacobian is a determinant of unit vectors, so a flat corner computes to a few 1e-16 of either sign.
+#: The largest scaled Jacobian of a flat hex, the registry's relative tolerance of geometric
+#: degeneracy (``tolerances.get_eps("degenerate", float64)``). The scaled Jacobian is a determinant
+#: of unit vectors, so a flat corner computes to a few 1e-16 of either sign.
 FLAT_SJ = get_eps("degenerate", torch.float64)
 #: ``good`` allows at most this fraction of irregular interior edges (issue 22: 5%).
 GOOD_IRREGULAR_MAX = 0.05
