@@ -65,12 +65,10 @@ Conditions (each a list of offending elements in :class:`Meshability`)
   nothing of the edges' directions: beyond arcs (where conservation fixes them) a node of a
   valid kind may still be arranged wrongly; the conditions are necessary, not sufficient.
   Vertices at a complex edge are classed ``complex`` (the edge is reported) and not counted.
-  A sharp feature edge is a hex edge whatever its fan: one whose fan is flat (``q = 2``, where
-  its feature asks for 1 or 3) is not in the configurations' counts but takes ``3 - 2 = 1`` of
-  the disk's 6, so a boundary vertex whose edges take more than 6 is invalid -- a CAD corner of
-  four convex curves (a pyramid apex, an octahedron's vertex) with fans ``1, 1, 1, 2`` (7): the
-  table sees a cube corner, and the map lays a hex's corner across the flat curve (its hexes flat
-  there; HexMe n09c, n14c).
+  A sharp feature edge with a flat fan (``q = 2``) is still a hex edge: not in the table's counts,
+  it takes ``3 - 2 = 1`` of the disk's 6, and a boundary vertex whose edges take more is invalid
+  (a pyramid apex's four convex curves with fans ``1, 1, 1, 2``: a cube corner to the table; its
+  hexes are flat there, HexMe n09c, n14c).
 * ``touching_edges``: interior singular edges with an end on the boundary whose turn axis is
   more than 45° from the boundary normal there (:func:`tangent_axes`; the search's ``w_tangent``,
   :func:`~.straighten.touching_edges`).
