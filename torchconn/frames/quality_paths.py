@@ -67,9 +67,9 @@ __all__ = ["PATH_KINDS", "DIRICHLET_WEIGHTS", "Checkpoint", "quality_path", "rel
 PATH_KINDS = ("soft", "tangent")
 #: Default Dirichlet weights ``lambda`` of a path, one checkpoint each (the options schema's
 #: default). The path ends at 0.5: in every run of the jobs' hex chooser over the 35 HexMe ``c``
-#: models of 2026-11-26 and 27 whose job files were kept, every good hex mesh came from an optimized field or a checkpoint
-#: at 8, 4 (a tangent path, no longer run), 2, 1 or 0.5, never from the last one, 0.25; its two
-#: rounds were a sixth of the paths' time.
+#: models of 2026-11-26 and 27 whose job files were kept, every good hex mesh came from an
+#: optimized field or a checkpoint at 8, 4 (a tangent path, no longer run), 2, 1 or 0.5, never
+#: from the last one, 0.25; its two rounds were a sixth of the paths' time.
 DIRICHLET_WEIGHTS = (8.0, 4.0, 2.0, 1.0, 0.5)
 
 

@@ -58,12 +58,9 @@ DEFAULT_EDGE_LENGTH_FACTOR = 0.5
 FEATURE_MAX_DEG = 15.0
 """Degrees: a feature edge whose parametric direction is farther than this from every parameter
 axis is left free (``feature_max_deg``; the default of every function and job option that takes it).
-15 since 2026-11-27 (30 before), with the repair's slides on (``repair_slide``): on the 35 HexMe ``c``
-models the jobs' connection method then gives valid maps on 13/17 simple and 4/15 nasty models
-(12/17 and 3/15 before: s13 and n14 gained), passes the structure gate on 15/17 and 7/15 (13/17,
-4/15), meshes 76% of the CAD corners and 59% of the CAD curves (66%, 54%), and the same good hex
-meshes (12/17, 2/15), at 1.3x the job time (docs/results/hexmesh.md). 15 alone, or the slides
-alone, gained no valid map."""
+15 since 2026-11-27 (30 before), chosen together with the repair's slides (``repair_slide``) on
+the 35 HexMe ``c`` models: more valid maps and CAD corners meshed, the same good hex meshes, 1.3x
+the job time; 15 alone, or the slides alone, gained no valid map (docs/results/hexmesh.md)."""
 
 
 def default_edge_length(mesh) -> float:

@@ -102,7 +102,8 @@ def _flat_keep_edges(mesh, charts: TetCharts, prob: SeamlessProblem) -> tuple[np
 
 def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, straighten: bool = True,
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
-                  repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True, features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
+                  repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True,
+                  features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
                   flat_rounds: int = 8, one_ring: bool = True, progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 

@@ -169,9 +169,10 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
             ``c`` models those chains took 14% of the jobs' time, 2,667 s against 2,295 s, and
             changed no verdict, docs/results/hexmesh.md). On the 17 simple HexMe models (SH
             fields) it leaves 9 touching edges instead of 19 and no zipper node instead of 1, and
-            the repair takes about twice as long (docs/results/structures.md); alone it made no map valid, with feature edges
-            constrained only within 15 degrees of an axis it does (s13c, n14c): the map stage
-            turns it on (``repair_slide``, :data:`~torchconn.hexmesh.seamless.FEATURE_MAX_DEG`).
+            the repair takes about twice as long (docs/results/structures.md). Alone it made no map
+            valid; with feature edges constrained only within 15 degrees of an axis it does (s13c):
+            the map stage turns it on (``repair_slide``,
+            :data:`~torchconn.hexmesh.seamless.FEATURE_MAX_DEG`).
         weights: overrides of :data:`.graph.REPAIR_WEIGHTS`.
         features: take sharp features from the mesh.
         progress: a tqdm bar over the rounds.
