@@ -98,6 +98,9 @@ class HexStage:
     split: bool = option(True)
     #: collapse tet edges that the constraints send to one point (hexmesh.collapse)
     collapse: bool = option(True)
+    #: move the singular arcs' vertices onto their turn axes before the map (hexmesh.relocate;
+    #: boundary, CAD tags and matchings kept)
+    relocate: bool = option(True)
     #: LMFF's numeric one-ring test at every singular vertex (hexmesh.one_ring), reported in
     #: hex_metrics.json beside LMFF's conditions (it does not decide the structure gate)
     one_ring: bool = option(True)

@@ -124,7 +124,8 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
                      straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
                      repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True,
                      features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG, flat_rounds: int = 8,
-                     one_ring: bool = True, fixed_holonomy: bool = True, injective: bool = True, fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
+                     relocate: bool = True, one_ring: bool = True, fixed_holonomy: bool = True, injective: bool = True,
+                     fit_weight: float = 1.0, sd_weight: float = 1.0, refine_limit: int = 2,
                      integrable: bool = False, batch_error: float = 0.5, stiffening_iters: int = 10,
                      stiffening_factor: float = 4.0,
                      grid_bits: int = GRID_BITS, backend: str = "auto", progress: bool = False) -> IntegerGridMap:
@@ -161,6 +162,9 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
         feature_max_deg: see :func:`~.seamless.build_problem`.
         flat_rounds: rounds of "split an edge of every tet the constraints flatten (but do not
             collapse)" (:meth:`~.seamless.SeamlessProblem.flat_tets`).
+        relocate: move the singular arcs' vertices onto their turn axes before the map
+            (:func:`~.relocate.relocate_singular_vertices`; ``stats["relocation"]``): the boundary,
+            CAD tags, tets and matchings kept (docs/results/hexmesh.md: what it changes).
         one_ring: LMFF's numeric one-ring test at the singular vertices of the structure
             (:func:`~.one_ring.one_ring_test`), reported in ``gates["structure"]`` (``counts``,
             ``info``); it does not decide the gate.
@@ -222,7 +226,7 @@ def integer_grid_map(mesh, frames, *, edge_length: float | None = None, face_mat
                        straighten_boundary=straighten_boundary, touch_rounds=touch_rounds, repair=repair,
                        repair_rounds=repair_rounds, repair_slide=repair_slide, split=split, collapse=collapse,
                        features=features, feature_max_deg=feature_max_deg, flat_rounds=flat_rounds,
-                       one_ring=one_ring, progress=progress)
+                       relocate=relocate, one_ring=one_ring, progress=progress)
     mesh, parent, charts, prob = st.mesh, st.parent_tet, st.charts, st.problem
     flat, mesh_report = st.flat, st.meshability
     timings.update(st.timings)

@@ -33,7 +33,7 @@ __all__ = ["HexMeshResult", "hex_mesh", "add_one_ring", "extraction_gate", "MAP_
 
 MAP_OPTIONS = ("edge_length", "face_match", "straighten", "straighten_boundary", "touch_rounds", "repair",
                "repair_rounds", "repair_slide", "split", "collapse", "features", "feature_max_deg", "flat_rounds",
-               "one_ring", "fixed_holonomy", "injective",
+               "relocate", "one_ring", "fixed_holonomy", "injective",
                "fit_weight", "sd_weight", "refine_limit", "integrable", "batch_error", "stiffening_iters", "stiffening_factor",
                "grid_bits", "backend")
 """The keyword options of :func:`~.igm.integer_grid_map` that :func:`hex_mesh` passes on."""

@@ -6,7 +6,9 @@
    (:func:`~.straighten.straighten_singular_edges`) followed by the repair of LMFF's conditions
    (:func:`~.repair.repair_singular_graph`, with ``repair=True``; its edge splits make the mesh
    finer, ``parent_tet`` composed);
-2. the edge splits that keep singular and boundary curves apart (:func:`~.split.split_for_map`);
+2. the edge splits that keep singular and boundary curves apart (:func:`~.split.split_for_map`),
+   then the singular arcs' vertices moved onto their turn axes (:func:`~.relocate.relocate_singular_vertices`,
+   ``relocate=True``: LMFF's relocation as a solve over the vertex positions);
 3. rounds of "build the seamless problem, find the tets its constraints flatten
    (:meth:`~.seamless.SeamlessProblem.flat_tets`), split an edge of every flat tet that is not
    collapsed" (:func:`~.split.open_flat_tets`);
@@ -104,7 +106,8 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
                   straighten_boundary: bool = True, touch_rounds: int = 0, repair: bool = True,
                   repair_rounds: int = 30, repair_slide: bool = True, split: bool = True, collapse: bool = True,
                   features: bool = True, feature_max_deg: float = FEATURE_MAX_DEG,
-                  flat_rounds: int = 8, one_ring: bool = True, progress: bool = False) -> Structure:
+                  flat_rounds: int = 8, relocate: bool = True, one_ring: bool = True,
+                  progress: bool = False) -> Structure:
     """The structure stage (module docstring).
 
     Args:
@@ -120,6 +123,9 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         collapse: in the flat-tet rounds, collapse the tet edges that the constraints send to one
             point (:func:`~.collapse.collapse_edges`; refused where it would invert a tet or move
             a pinned vertex), before splitting the other flat tets.
+        relocate: move the singular arcs' vertices onto their turn axes before the map
+            (:func:`~.relocate.relocate_singular_vertices`, after the splits for the map: the
+            charts and the constraints are those of the relocated mesh).
         one_ring: run LMFF's numeric one-ring test on the result (:func:`~.one_ring.one_ring_test`;
             reported in the gate's ``counts`` and ``info``, it does not decide the gate).
         progress: a progress bar over the repair's rounds.
@@ -177,6 +183,13 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
         mesh, Fr, splits, face_match = sr.mesh, sr.tet_frames, dict(sr.splits), sr.face_match
         parent = parent[sr.parent_tet]
     timings["split_s"] = time.perf_counter() - t0
+    reloc = None
+    if relocate:
+        from .relocate import relocate_singular_vertices
+
+        t0 = time.perf_counter()
+        mesh, reloc = relocate_singular_vertices(mesh, tet_charts(mesh, Fr, face_match))
+        timings["relocate_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     splits["flat"] = 0
     sub = {"charts": 0.0, "problem": 0.0, "flat": 0.0}
@@ -238,6 +251,8 @@ def map_structure(mesh, tet_frames, edge_length: float, *, face_match=None, stra
     stats = {"splits": splits, "straighten": sinfo}
     if rep is not None:
         stats["repair"] = rep.as_dict()
+    if reloc is not None:
+        stats["relocation"] = reloc.as_dict()
     return Structure(mesh=mesh, tet_frames=Fr, parent_tet=parent, face_match=face_match, charts=charts, problem=prob,
                      flat=flat, collapsed=collapsed, line_face=line_face, meshability=report, gate=gate, repair=rep,
                      one_ring=ring, stats=stats, timings=timings)
