@@ -14,7 +14,11 @@ that step, as one smooth solve with the matchings, the tets and their frames unc
   inverts, the line search never crosses ``det J = 0``);
 * ``e = (a, b)`` the interior singular edges of meshable turns, ``P_e = I - d d^T`` for the world
   direction ``d`` of the edge's turn axis (the axis column of its start tet's frame), ``l_e`` the
-  edge's input length: the part of the edge across its axis, squared;
+  edge's input length: the part of the edge across its axis, squared. An edge stays on its side
+  of the axis (``(x_b - x_a) . d`` keeps its sign, a constraint of the line search): the hex
+  count of a quarter turn, 3 or 5, is read from that sign (:mod:`.cut`), and an edge nearly
+  across its axis that turned over would flip it (HexMe n10c: three such edges made five zipper
+  nodes before this constraint);
 * the unknowns are the vertices within ``rings`` vertex rings of the arcs; an interior vertex moves
   freely, a boundary vertex within its face where the face is planar, a vertex of a straight
   feature curve along the curve; CAD corners, vertices of curved faces or curves, and the
@@ -184,6 +188,11 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
     def positions(z):
         return X0.index_add(0, vi, Bdir * z[:, None])
 
+    # the side of its axis each edge runs to: its hex count (3 or 5) is read from that sign
+    # (an edge exactly across its axis has no side and is not held to one)
+    side = torch.sign((X0[Ea[:, 1]] - X0[Ea[:, 0]]).mul(dax).sum(1))
+    sided = side != 0
+
     def across(Y):
         d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
         perp = d - (d * dax).sum(1, keepdim=True) * dax
@@ -191,6 +200,9 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
 
     def energy(z):
         Y = positions(z)
+        d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
+        if not bool(((d * dax).sum(1) * side > 0)[sided].all()):
+            return None  # an edge would turn to the other side of its axis: its class would flip
         sd, _ = _sd_energy(Y, T_, Dinv, vol)
         if sd is None:
             return None
@@ -198,6 +210,7 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
 
     z = torch.zeros(len(cols), dtype=torch.float64, requires_grad=True)
     f = energy(z)
+    # (finite: J = I at the start, every tet of a TetMesh positive, every sided edge on its side)
     out.energy_before = float(f.detach())
     out.misalignment_before = float(across(X0).mean())
     g, = torch.autograd.grad(f, z)
