@@ -183,7 +183,9 @@ def register() -> None:
     for name, cls in SCHEMAS.items():
         cs.store(name=name, node=defaults(cls))
     if not OmegaConf.has_resolver("torchconn_run_dir"):
-        OmegaConf.register_resolver("torchconn_run_dir", run_dir)
+        # a new-style resolver: the jobs pass it ``${output_dir}``, a nested interpolation, which a
+        # legacy one (``register_resolver``) refuses with omegaconf 2.3.1
+        OmegaConf.register_new_resolver("torchconn_run_dir", run_dir)
 
 
 register()
