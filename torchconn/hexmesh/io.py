@@ -445,8 +445,9 @@ def plot_hex_mesh(path_png, points, hexes, quality: HexQuality | None = None, *,
 def write_failure_vtu(path, mesh, igm, extraction=None) -> Path:
     """A VTU of the input tets with their :func:`tet_flags` and the map's singular graph.
 
-    Points: ``igm.mesh.vertices`` (the input's vertices first, in their order, then the
-    midpoints of the edges the map split). Cells: the input's tets (``tetra``), cell data per
+    Points: ``igm.mesh.vertices`` (the input's vertices first, in their order and at their input
+    positions — the relocation moves some of them in the map's mesh —, then the midpoints of the
+    edges the map split, where the map's mesh has them). Cells: the input's tets (``tetra``), cell data per
     flag of :data:`FLAGS` (how many of the tet's sub-tets carry it) and ``flags`` (the bits);
     then the singular edges of the map's mesh (``line``) with ``edge_type`` (1 quarter turn,
     2 half turn, 3 complex), ``valence`` (3, 5; 0 for a half turn, -1 complex) and ``meshable``;
@@ -455,7 +456,8 @@ def write_failure_vtu(path, mesh, igm, extraction=None) -> Path:
     import meshio
 
     fl = tet_flags(igm, extraction, mesh.n_tets)
-    X = igm.mesh.vertices.detach().cpu().double().numpy()
+    X = igm.mesh.vertices.detach().cpu().double().numpy().copy()
+    X[: mesh.n_vertices] = mesh.vertices.detach().cpu().double().numpy()
     tets = mesh.tets.cpu().numpy().astype(np.int64)
     lines, ldata = singular_lines(igm)
     T, S = tets.shape[0], lines.shape[0]
