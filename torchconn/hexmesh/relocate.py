@@ -38,14 +38,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .distance import _FLAT_NORMAL_TOL as _FLAT  # unit normals (curve edges) this close: one plane (line)
+
 __all__ = ["relocate_singular_vertices", "Relocation", "RELOCATE_WEIGHT"]
 
 RELOCATE_WEIGHT = 10.0
 """Weight ``w`` of the arcs' alignment against the tets' distortion (module docstring): of 3, 10,
 30 and 100 on the SH fields of ten good HexMe models, the one that kept every hex mesh good with
 the highest minimum scaled Jacobians (docs/results/hexmesh.md)."""
-
-_FLAT = 1e-9  # |sin| between normals (or curve edges) below which a face is planar (a curve straight)
 
 
 @dataclass
