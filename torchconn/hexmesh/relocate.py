@@ -50,8 +50,8 @@ the highest minimum scaled Jacobians (docs/results/hexmesh.md)."""
 
 @dataclass
 class Relocation:
-    """What :func:`relocate_singular_vertices` did: ``moved`` vertices (count), ``free_dofs``,
-    the across part of the arcs before and after (``misalignment_before`` / ``_after``: the mean
+    """What :func:`relocate_singular_vertices` did: ``arcs`` (the singular edges aligned),
+    ``moved`` vertices (count), ``free_dofs``, the across part of the arcs before and after (``misalignment_before`` / ``_after``: the mean
     of ``|P_e (x_b - x_a)| / l_e``, the sine of the edge's angle to its axis), the energy
     ``before``/``after``, ``iterations``, ``max_move_rel`` (largest displacement over the mean
     edge length), ``seconds``."""
@@ -119,16 +119,15 @@ def _vertex_bases(mesh, X: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np
 
 
 def _sd_energy(Y, tets, Dinv, vol):
-    """``sum_t vol_t (SD(J_t) - 6) / sum vol`` and the smallest ``det J`` (torch)."""
+    """``sum_t vol_t (SD(J_t) - 6) / sum vol`` (torch), or ``None`` where a tet is flat or inverted."""
     P = Y[tets]
     D = torch.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], -1)
     J = D @ Dinv
-    det = torch.linalg.det(J)
-    if not bool((det > 0).all()):
-        return None, det.min()
+    if not bool((torch.linalg.det(J) > 0).all()):
+        return None
     inv = torch.linalg.inv(J)
     sd = J.square().sum((-1, -2)) + inv.square().sum((-1, -2)) - 6.0
-    return (vol * sd).sum() / vol.sum(), det.min()
+    return (vol * sd).sum() / vol.sum()
 
 
 def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = RELOCATE_WEIGHT,
@@ -154,7 +153,6 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
     X = mesh.vertices.detach().cpu().double().numpy()
     tets = mesh.tets.cpu().numpy()
     edges = mesh.edges.cpu().numpy()
-    E = edges.shape[0]
     arc = np.asarray(charts.singular_edge & charts.edge_meshable & (charts.edge_axis >= 0))
     out = Relocation()
     if not arc.any():
@@ -196,26 +194,26 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
     side = torch.sign((X0[Ea[:, 1]] - X0[Ea[:, 0]]).mul(dax).sum(1))
     sided = side != 0
 
-    def across(Y):
+    def across_sq(Y):  # |P_e d_e|^2 / l_e^2 (squared: a smooth term, finite gradient on the axis)
         d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
         perp = d - (d * dax).sum(1, keepdim=True) * dax
-        return perp.norm(dim=1) / l0
+        return perp.square().sum(1) / l0.square()
 
     def energy(z):
         Y = positions(z)
         d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
         if not bool(((d * dax).sum(1) * side > 0)[sided].all()):
             return None  # an edge would turn to the other side of its axis: its class would flip
-        sd, _ = _sd_energy(Y, T_, Dinv, vol)
+        sd = _sd_energy(Y, T_, Dinv, vol)
         if sd is None:
             return None
-        return sd + w * across(Y).square().sum()
+        return sd + w * across_sq(Y).sum()
 
     z = torch.zeros(len(cols), dtype=torch.float64, requires_grad=True)
     f = energy(z)
     # (finite: J = I at the start, every tet of a TetMesh positive, every sided edge on its side)
     out.energy_before = float(f.detach())
-    out.misalignment_before = float(across(X0).mean())
+    out.misalignment_before = float(across_sq(X0).sqrt().mean())
     g, = torch.autograd.grad(f, z)
     S, Yh = [], []
     it = 0
@@ -262,7 +260,7 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
         Y = positions(z.detach())
     out.iterations = it
     out.energy_after = float(f.detach())
-    out.misalignment_after = float(across(Y).mean())
+    out.misalignment_after = float(across_sq(Y).sqrt().mean())
     disp = (Y - X0).norm(dim=1)
     out.moved = int((disp > 0).sum())
     out.free_dofs = len(cols)
