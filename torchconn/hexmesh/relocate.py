@@ -6,7 +6,7 @@ lay the edge on its integer line along that axis anyway, and the tets and the he
 pay with distortion. Locally Meshable Frame Fields (Liu & Bommes 2023) relocates the singular
 vertices before the map; this is that step, as one smooth solve with the matchings, the tets and
 their frames unchanged (on the 35 HexMe ``c`` models: the same verdicts, the good hex meshes'
-smallest scaled Jacobian up on 9 of 13; docs/results/hexmesh.md)::
+smallest scaled Jacobian up on 10 of 13; docs/results/hexmesh.md)::
 
     min over x   sum_t vol_t (SD(J_t) - 6) / sum_t vol_t  +  w / n_arc * sum_e |P_e (x_b - x_a)|^2 / l_e^2
 
