@@ -231,19 +231,18 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
             q += (a - b) * s
         if (q @ g) >= 0:  # not a descent direction: restart from the gradient
             q, S, Yh = -g, [], []
-        step, fz = 1.0, None
-        with torch.no_grad():
-            for _ in range(40):  # backtracking: finite (no tet at or past det 0) and Armijo
-                fz = energy(z + step * q)
-                if fz is not None and fz <= f + 1e-4 * step * (q @ g):
-                    break
-                step *= 0.5
-            else:
-                fz = None
-        if fz is None:
+        step, fn = 1.0, None
+        for _ in range(40):  # backtracking: finite (no tet at or past det 0) and Armijo
+            # each trial keeps its graph: the accepted one's gives the gradient (no second evaluation)
+            zn = (z + step * q).detach().requires_grad_(True)
+            fn = energy(zn)
+            if fn is not None and fn <= f + 1e-4 * step * (q @ g):
+                break
+            step *= 0.5
+        else:
+            fn = None
+        if fn is None:
             break
-        zn = (z + step * q).detach().requires_grad_(True)
-        fn = energy(zn)
         gn, = torch.autograd.grad(fn, zn)
         s_, y_ = (zn - z).detach(), (gn - g).detach()
         if (s_ @ y_) > 1e-300:
