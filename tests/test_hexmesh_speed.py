@@ -297,3 +297,64 @@ def test_closed_form_derivatives_equal_autograd(energy):
         scale = a.abs().reshape(T, -1).amax(1).clamp_min(1.0)
         err = (a - b).abs().reshape(T, -1).amax(1) / scale
         assert err.max() < 1e-10
+
+
+def _jacobians_with_hard_cases(T: int, seed: int) -> torch.Tensor:
+    """Random Jacobians around ``I``, inverted ones among them, and the cases where the analytic
+    eigensystem has repeated singular values: rotations, ``diag(2, 2, 1)``, a reflection, and a
+    nearly flat tet."""
+    g = torch.Generator().manual_seed(seed)
+    J = torch.eye(3, dtype=torch.float64) + 0.7 * torch.randn(T, 3, 3, generator=g, dtype=torch.float64)
+    J[0] = torch.eye(3, dtype=torch.float64)
+    J[1] = so3.exp(torch.tensor([0.3, -1.2, 0.5], dtype=torch.float64))
+    J[2] = torch.diag(torch.tensor([2.0, 2.0, 1.0], dtype=torch.float64))
+    J[3] = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    J[4] = torch.diag(torch.tensor([1.0, 1.0, 1e-6], dtype=torch.float64))
+    J[5] = 3.0 * J[1]
+    return J
+
+
+@pytest.mark.parametrize("energy", ["sd", "untangling"])
+@pytest.mark.parametrize("eps_small", [False, True])
+def test_analytic_psd_hessian_equals_projected_eigendecomposition(energy, eps_small):
+    """The projected Hessian from the isotropic energies' analytic eigensystem equals the closed-form
+    Hessian projected by a 9 x 9 eigen-decomposition, block by block; it is PSD and equals the
+    Hessian itself where that is already PSD."""
+    from torchconn.hexmesh import tet_energies as te
+
+    J = _jacobians_with_hard_cases(400, 11)
+    j = J.reshape(-1, 9)
+    det = torch.linalg.det(J)
+    assert (det < 0).any() and (det > 0).any()
+    if energy == "sd":
+        floor = 1e-4 if eps_small else 1e-1
+        eps = torch.where(det > 0, torch.zeros_like(det), floor - det)
+        H = te._sd_derivatives(j, eps, True)[2]
+        got = te._sd_hessian_psd(J, eps)
+    else:
+        eps = torch.tensor(1e-3 if eps_small else 0.3, dtype=torch.float64)
+        H = te._untangling_derivatives(j, eps, True)[2]
+        got = te._untangling_hessian_psd(J, eps)
+    ref = te._project_psd(H.clone())
+    scale = ref.abs().amax((1, 2))
+    assert ((got - ref).abs().amax((1, 2)) / scale).max() < 1e-6
+    assert (got - got.transpose(1, 2)).abs().max() <= 1e-12 * scale.max()
+    assert (torch.linalg.eigvalsh(got) >= -1e-10 * scale[:, None]).all()
+    pd = torch.linalg.cholesky_ex(0.5 * (H + H.transpose(1, 2)))[1] == 0
+    assert pd.any() and (~pd).any()  # both kinds of block are exercised
+    assert ((got[pd] - H[pd]).abs().amax((1, 2)) / scale[pd]).max() < 1e-10
+
+
+def test_public_terms_use_the_projected_hessian_and_raise_on_overflow():
+    from torchconn.hexmesh import tet_energies as te
+
+    J = _jacobians_with_hard_cases(50, 12)
+    det = torch.linalg.det(J)
+    eps = torch.where(det > 0, torch.zeros_like(det), 1e-2 - det)
+    f, g, H = te.barrier_terms(J, eps, 0.5, 2.0)
+    ref = 2.0 * te._project_psd(te._sd_derivatives(J.reshape(-1, 9), eps, True)[2]) + torch.eye(9, dtype=J.dtype)
+    assert torch.allclose(H, ref, rtol=1e-8, atol=1e-8 * float(ref.abs().max()))
+    assert te.barrier_terms(J, eps, 0.5, 2.0, hessian=False)[2] is None
+    flat = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))[None]
+    with pytest.raises(FloatingPointError, match="nearly flat"):
+        te.barrier_terms(flat, torch.zeros(1, dtype=torch.float64), 1.0, 1.0)

@@ -8,11 +8,16 @@ target frames, module docstring there):
 * :func:`untangling_terms` — frame fitting plus Garanzha et al.'s (2021) untangling energy
   ``|J|^2 / (3 chi^(2/3)) + (det J^2 + 1) / (2 chi)``, ``chi = (det J + sqrt(eps^2 + det J^2)) / 2``;
 
-each with its per-tet gradient ``(T, 9)`` and Hessian ``(T, 9, 9)`` in closed form (``det``'s
-Hessian and ``J J^T J``'s derivative are constant linear maps), tested equal to batched autograd
-(:func:`_rowwise_derivatives`, kept as the reference), the Hessians projected onto the positive
-semidefinite cone (:func:`_project_psd`). :func:`first_root` is the first root of the cubic
-``det(J + s dJ) + eps`` along a step: the line search's cap.
+each with its per-tet gradient ``(T, 9)`` in closed form and its Hessian ``(T, 9, 9)`` projected
+onto the positive semidefinite cone. Both energies are isotropic (functions of ``|J|^2``,
+``|adj J|^2`` and ``det J``), so the projected Hessian comes from the Hessian's analytic
+eigensystem (:func:`_isotropic_psd`: a signed ``3 x 3`` SVD and a ``3 x 3`` eigenproblem per tet,
+Smith et al. 2019) instead of a ``9 x 9`` eigen-decomposition. The references, kept for the
+tests: the full Hessians in closed form (:func:`_sd_derivatives`, :func:`_untangling_derivatives`;
+``det``'s Hessian and ``J J^T J``'s derivative are constant linear maps), equal to batched autograd
+(:func:`_rowwise_derivatives`), and their projection by eigen-decomposition
+(:func:`_project_psd`). :func:`first_root` is the first root of the cubic ``det(J + s dJ) + eps``
+along a step: the line search's cap.
 """
 from __future__ import annotations
 
@@ -79,13 +84,13 @@ def _linear_tables(dtype, device):
     return K, A, B
 
 
-def _det_parts(J: torch.Tensor):
+def _det_parts(J: torch.Tensor, hessian: bool = True):
     """``det J (T,)``, the cofactor matrix ``C (T, 3, 3)`` (its gradient), and its Hessian
-    ``d2 det / dJ_ij dJ_kl = sum_mn e_ikm e_jln J_mn`` as ``(T, 9, 9)``."""
+    ``d2 det / dJ_ij dJ_kl = sum_mn e_ikm e_jln J_mn`` as ``(T, 9, 9)`` (``None`` without ``hessian``)."""
     K, _, _ = _linear_tables(J.dtype, J.device)
     C = _adj(J).transpose(-1, -2)
     det = (J * C).sum((-2, -1)) / 3.0  # Euler: det is cubic, J : C = 3 det
-    Hd = (J.reshape(-1, 9) @ K.T).reshape(-1, 9, 9)
+    Hd = (J.reshape(-1, 9) @ K.T).reshape(-1, 9, 9) if hessian else None
     return det, C, Hd
 
 
@@ -96,7 +101,7 @@ def _sd_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
     ``dq/dJ = 2 (|J|^2 J - J J^T J)``."""
     T = j.shape[0]
     J = j.reshape(T, 3, 3)
-    det, C, Hd = _det_parts(J)
+    det, C, Hd = _det_parts(J, hessian)
     n2 = j.square().sum(-1)
     JtJ = J.transpose(1, 2) @ J
     JJt = J @ J.transpose(1, 2)
@@ -124,15 +129,9 @@ def _sd_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
     return f, g, H
 
 
-def _untangling_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
-    """``(f, g, H)`` of :func:`_untangling` in closed form: ``f = |J|^2 phi(d) + psi(d)`` with
-    ``phi = chi^(-2/3) / 3`` and ``psi = (d^2 + 1) / (2 chi)`` of ``d = det J``, so
-    ``g = 2 phi J + (|J|^2 phi' + psi') C`` and
-    ``H = 2 phi I + 2 phi' (J (x) C + C (x) J) + (|J|^2 phi'' + psi'') C (x) C + (|J|^2 phi' + psi') d2det``."""
-    T = j.shape[0]
-    J = j.reshape(T, 3, 3)
-    det, C, Hd = _det_parts(J)
-    n2 = j.square().sum(-1)
+def _untangling_scalars(det: torch.Tensor, eps: torch.Tensor):
+    """``(phi, phi', phi'', psi, psi', psi'')`` of ``d = det J`` for :func:`_untangling` (``phi =
+    chi^(-2/3) / 3``, ``psi = (d^2 + 1) / (2 chi)``; primes are derivatives in ``d``)."""
     r = torch.sqrt(eps * eps + det * det)
     chi = 0.5 * (det + r)
     c1 = 0.5 * (1.0 + det / r)  # chi'
@@ -144,6 +143,19 @@ def _untangling_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
     psi = dd1 / (2.0 * chi)
     psi1 = det / chi - dd1 * c1 / (2.0 * chi * chi)
     psi2 = 1.0 / chi - 2.0 * det * c1 / (chi * chi) - dd1 * c2 / (2.0 * chi * chi) + dd1 * c1 * c1 / chi.pow(3)
+    return phi, phi1, phi2, psi, psi1, psi2
+
+
+def _untangling_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
+    """``(f, g, H)`` of :func:`_untangling` in closed form: ``f = |J|^2 phi(d) + psi(d)`` with
+    ``phi = chi^(-2/3) / 3`` and ``psi = (d^2 + 1) / (2 chi)`` of ``d = det J``, so
+    ``g = 2 phi J + (|J|^2 phi' + psi') C`` and
+    ``H = 2 phi I + 2 phi' (J (x) C + C (x) J) + (|J|^2 phi'' + psi'') C (x) C + (|J|^2 phi' + psi') d2det``."""
+    T = j.shape[0]
+    J = j.reshape(T, 3, 3)
+    det, C, Hd = _det_parts(J, hessian)
+    n2 = j.square().sum(-1)
+    phi, phi1, phi2, psi, psi1, psi2 = _untangling_scalars(det, eps)
     c9 = C.reshape(T, 9)
     a1 = n2 * phi1 + psi1
     f = n2 * phi + psi
@@ -159,7 +171,7 @@ def _untangling_derivatives(j: torch.Tensor, eps: torch.Tensor, hessian: bool):
 def _project_psd(H: torch.Tensor) -> torch.Tensor:
     """Symmetrize ``(T, 9, 9)`` blocks and clamp the negative eigenvalues of those a Cholesky
     attempt rejects (each block eigen-decomposed at O(1) scale: its own round-off, not the
-    largest block's)."""
+    largest block's). The reference of :func:`_isotropic_psd` (tests)."""
     if not bool(torch.isfinite(H).all()):
         raise FloatingPointError("the barrier's Hessian overflowed (a tet is nearly flat)")
     H = 0.5 * (H + H.transpose(1, 2))
@@ -173,6 +185,111 @@ def _project_psd(H: torch.Tensor) -> torch.Tensor:
     return H
 
 
+# pairs (i, j) with the third index k: the twist and flip modes of an isotropic energy's Hessian
+_PAIRS = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
+
+
+def _signed_svd(J: torch.Tensor):
+    """``J = U diag(s) V^T`` with ``U, V`` rotations and ``s (T, 3)`` the signed singular values
+    (``s_1 >= s_2 >= |s_3|``, ``s_1 s_2 s_3 = det J``)."""
+    U, s, Vh = torch.linalg.svd(J)
+    du, dv = torch.linalg.det(U), torch.linalg.det(Vh)
+    U = torch.cat([U[..., :2], U[..., 2:] * du[:, None, None]], -1)
+    Vh = torch.cat([Vh[:, :2], Vh[:, 2:] * dv[:, None, None]], 1)
+    s = torch.cat([s[:, :2], s[:, 2:] * (du * dv)[:, None]], 1)
+    return U, s, Vh
+
+
+def _isotropic_psd(J: torch.Tensor, d1: torch.Tensor, d2: torch.Tensor) -> torch.Tensor:
+    """The Hessian ``(T, 9, 9)`` (row-major entries of ``J``) of an isotropic energy
+    ``Psi(I2, IA, I3)`` of ``J (T, 3, 3)`` — ``I2 = |J|^2``, ``IA = |adj J|^2``, ``I3 = det J`` — projected
+    onto the positive semidefinite cone in closed form, from its analytic eigensystem (Smith, De
+    Goes & Kim 2019, "Analytic eigensystems for isotropic distortion energies"; the projection is the
+    Hessian with its negative eigenvalues set to 0).
+
+    With ``J = U diag(s) V^T`` (:func:`_signed_svd`) the nine eigenvectors are ``U M V^T`` for
+    ``M = diag(w)``, ``w`` an eigenvector of the ``3 x 3`` Hessian of ``Psi`` in ``s`` (three
+    *scaling* modes), and ``M = (E_ij -+ E_ji) / sqrt(2)`` for each pair ``i < j`` with the third index
+    ``k`` (six *twist* / *flip* modes), of eigenvalues (written without a division, so equal singular
+    values need no limit)::
+
+        symmetric  M: (dPsi/ds_i - dPsi/ds_j) / (s_i - s_j) = 2 Psi_2 + 2 (s_k^2 - s_i s_j) Psi_A - s_k Psi_3
+        antisym.   M: (dPsi/ds_i + dPsi/ds_j) / (s_i + s_j) = 2 Psi_2 + 2 (s_k^2 + s_i s_j) Psi_A + s_k Psi_3
+
+    Args:
+        J: ``(T, 3, 3)``.
+        d1: ``(T, 3)`` the first derivatives ``(Psi_2, Psi_A, Psi_3)`` in ``(I2, IA, I3)``.
+        d2: ``(T, 3, 3)`` the second derivatives in the same order.
+
+    Returns:
+        ``(T, 9, 9)`` symmetric positive semidefinite; equal to the Hessian where it is already PSD
+        (tested against :func:`_project_psd` of the closed-form Hessians).
+
+    Raises:
+        FloatingPointError: a derivative overflowed (``det J + eps`` at 0: a tet nearly flat).
+    """
+    if not (bool(torch.isfinite(d1).all()) and bool(torch.isfinite(d2).all())):
+        raise FloatingPointError("the barrier's Hessian overflowed (a tet is nearly flat)")
+    T = J.shape[0]
+    U, s, Vh = _signed_svd(J)
+    s2 = s * s
+    S2 = s2.sum(1, keepdim=True)
+    p = torch.stack([s[:, 1] * s[:, 2], s[:, 0] * s[:, 2], s[:, 0] * s[:, 1]], 1)  # d I3 / d s
+    g = torch.stack([2.0 * s, 2.0 * s * (S2 - s2), p], 1)  # (T, 3 invariants, 3 s): d I / d s
+    eye = torch.eye(3, dtype=J.dtype, device=J.device)
+    # second derivatives of the invariants in s
+    hA = 4.0 * s[:, :, None] * s[:, None, :]
+    hA = hA + torch.diag_embed(2.0 * (S2 - s2) - 4.0 * s2)
+    h3 = torch.zeros(T, 3, 3, dtype=J.dtype, device=J.device)
+    h3[:, 0, 1] = h3[:, 1, 0] = s[:, 2]
+    h3[:, 0, 2] = h3[:, 2, 0] = s[:, 1]
+    h3[:, 1, 2] = h3[:, 2, 1] = s[:, 0]
+    Hs = (g.transpose(1, 2) @ d2 @ g + 2.0 * d1[:, 0, None, None] * eye + d1[:, 1, None, None] * hA
+          + d1[:, 2, None, None] * h3)
+    lam_s, W = torch.linalg.eigh(Hs)
+    # O[t, a, b] = vec(u_a v_b^T): the rank-one basis of the modes
+    O = (U.transpose(1, 2)[:, :, None, :, None] * Vh[:, None, :, None, :]).reshape(T, 3, 3, 9)
+    diag = torch.stack([O[:, 0, 0], O[:, 1, 1], O[:, 2, 2]], 1)  # (T, 3, 9)
+    modes = [W.transpose(1, 2) @ diag]  # (T, 3, 9) scaling modes
+    lams = [lam_s]
+    r = 0.5 ** 0.5
+    for i, j, k in _PAIRS:
+        sk, sij = s[:, k], s[:, i] * s[:, j]
+        base = 2.0 * d1[:, 0] + 2.0 * sk * sk * d1[:, 1]
+        lams.append(torch.stack([base - 2.0 * sij * d1[:, 1] - sk * d1[:, 2],
+                                 base + 2.0 * sij * d1[:, 1] + sk * d1[:, 2]], 1))
+        modes.append(torch.stack([r * (O[:, i, j] + O[:, j, i]), r * (O[:, i, j] - O[:, j, i])], 1))
+    Q = torch.cat(modes, 1)  # (T, 9 modes, 9 entries)
+    lam = torch.cat(lams, 1).clamp_min(0.0)
+    return Q.transpose(1, 2) @ (lam[:, :, None] * Q)
+
+
+def _sd_hessian_psd(J: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """The PSD-projected Hessian ``(T, 9, 9)`` of :func:`_sd` (``Psi = I2 + IA (I3 + eps)^-2 - 6``)
+    by :func:`_isotropic_psd`."""
+    det = torch.linalg.det(J)
+    IA = _adj(J).square().sum((-2, -1))
+    u = det + eps
+    d1 = torch.stack([torch.ones_like(u), u.pow(-2), -2.0 * IA * u.pow(-3)], 1)
+    d2 = torch.zeros(J.shape[0], 3, 3, dtype=J.dtype, device=J.device)
+    d2[:, 1, 2] = d2[:, 2, 1] = -2.0 * u.pow(-3)
+    d2[:, 2, 2] = 6.0 * IA * u.pow(-4)
+    return _isotropic_psd(J, d1, d2)
+
+
+def _untangling_hessian_psd(J: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """The PSD-projected Hessian ``(T, 9, 9)`` of :func:`_untangling` (``Psi = I2 phi(I3) + psi(I3)``)
+    by :func:`_isotropic_psd`."""
+    det = torch.linalg.det(J)
+    I2 = J.square().sum((-2, -1))
+    phi, phi1, phi2, _, psi1, psi2 = _untangling_scalars(det, eps)
+    d1 = torch.stack([phi, torch.zeros_like(phi), I2 * phi1 + psi1], 1)
+    d2 = torch.zeros(J.shape[0], 3, 3, dtype=J.dtype, device=J.device)
+    d2[:, 0, 2] = d2[:, 2, 0] = phi1
+    d2[:, 2, 2] = I2 * phi2 + psi2
+    return _isotropic_psd(J, d1, d2)
+
+
 def untangling_terms(J: torch.Tensor, eps: float, w_fit: float, *, hessian: bool = True):
     """Per-tet energy, gradient and PSD-projected Hessian of the untangling energy
     ``w_fit |J - I|^2 + |J|^2 / (3 chi^(2/3)) + (det^2 + 1) / (2 chi)`` (``chi`` of ``det J`` and the
@@ -180,11 +297,14 @@ def untangling_terms(J: torch.Tensor, eps: float, w_fit: float, *, hessian: bool
     :func:`barrier_terms`."""
     j = J.reshape(-1, 9)
     eye = torch.eye(3, dtype=J.dtype, device=J.device).reshape(9)
-    f, g, H = _untangling_derivatives(j, torch.tensor(float(eps), dtype=J.dtype), hessian)
+    e = torch.tensor(float(eps), dtype=J.dtype)
+    f, g, _ = _untangling_derivatives(j, e, False)
     f = f + w_fit * (j - eye).square().sum(1)
     g = g + 2.0 * w_fit * (j - eye)
+    H = None
     if hessian:
-        H = _project_psd(H) + 2.0 * w_fit * torch.eye(9, dtype=J.dtype, device=J.device)
+        H = _untangling_hessian_psd(J.reshape(-1, 3, 3), e) + 2.0 * w_fit * torch.eye(
+            9, dtype=J.dtype, device=J.device)
     return f, g, H
 
 
@@ -209,14 +329,14 @@ def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float,
     g = 2.0 * w_fit * r
     Hs = None
     if w_sd:
-        fs, gs, Hs = _sd_derivatives(j, eps, hessian)
+        fs, gs, _ = _sd_derivatives(j, eps, False)
         f = f + w_sd * fs
         g = g + w_sd * gs
     if not hessian:
         return f, g, None
     H = 2.0 * w_fit * torch.eye(9, dtype=J.dtype, device=J.device).expand(j.shape[0], 9, 9)
     if w_sd:
-        H = H + w_sd * _project_psd(Hs)
+        H = H + w_sd * _sd_hessian_psd(J.reshape(-1, 3, 3), eps)
     return f, g, H
 
 
