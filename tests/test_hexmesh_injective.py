@@ -12,6 +12,8 @@ quantize.round_injective, SeamlessProblem.flat_tets, validity.check_seamless).
 * rounding a valid non-integral map keeps every tet positive and makes every integer exact;
 * the flat tets of a hand-built constraint system: coplanar and collapsed ones told apart;
 * the seamless check passes the identity map and catches a broken one.
+* (slow, HexMe data) n10c's seamless map: foldover-free with the untangling phases' relieved fit,
+  inverted tets left with the full fit.
 """
 from __future__ import annotations
 
@@ -352,3 +354,31 @@ def test_centroid_and_edge_splits_keep_the_vertices_the_orientation_and_the_sing
     line_face = -np.ones(tets.size, np.int64)
     new, F2, parent, fm2, n = open_flat_tets(mesh, frames, tets, line_face, fm, keep, ch.singular_edge)
     assert n["edge"] + n["centroid"] > 0 and tet_charts(new, F2, fm2).counts()["singular_edges"] == ch.counts()["singular_edges"]
+
+
+@pytest.mark.slow
+def test_the_relieved_fit_untangles_n10c_where_the_full_fit_stalls(monkeypatch):
+    """HexMe n10c (a quarter torus on a cylinder), the jobs' first connection field: its structure
+    passes every gate and the one-ring test, but with the fitting term at full weight in the
+    untangling phases the seamless map keeps inverted tets (8 after 179 Newton steps,
+    2026-11-27); with :data:`FIT_RELIEF` the map is foldover-free and the hex mesh good."""
+    from conftest import DATA_DIR
+
+    from torchconn.hexmesh import hex_mesh, injective
+    from torchconn.hexmesh.choose import design_for_hex
+
+    if not (DATA_DIR / "hexme" / "meta" / "n10c_qtorus_cyl.yaml").is_file():
+        pytest.skip(f"HexMe parameter files not found in {DATA_DIR / 'hexme'} (the shared data is missing)")
+    from benchmarks.frames_hexme import load_case
+
+    mesh = load_case("hexme", "n10c_qtorus_cyl")
+    field = design_for_hex(mesh, "connection", select="proxies", weights={"map": 1.0}, starts=["sh"],
+                           quality={"enabled": False}).vertex_frames
+    r = hex_mesh(mesh, field)
+    assert r.gates["structure"].passed and r.gates["seamless"].passed
+    assert r.map.stats["seamless"]["injective"]["inverted_after"] == 0
+    assert r.verdict()["good"], r.verdict()["text"]
+    monkeypatch.setattr(injective, "FIT_RELIEF", 1.0)
+    full = hex_mesh(mesh, field, extract=False)
+    assert full.gates["structure"].passed and not full.gates["seamless"].passed
+    assert full.map.stats["seamless"]["injective"]["inverted_after"] > 0
