@@ -458,16 +458,23 @@ def test_untangle_moves_only_interior_vertices_and_raises_the_worst_jacobian():
     assert not info2["accepted"] and np.array_equal(R, g)
 
 
-def test_untangle_slides_boundary_vertices_on_the_surface_and_keeps_sharp_ones():
-    from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
-    from torchconn.hexmesh.hex_untangle import untangle
-
-    n = 3
+def _hex_grid(n: int):
+    """The unit-spaced ``n^3`` hex grid: points ``(N, 3)``, the point index ``idx[i, j, k]`` and
+    the hexes ``(n^3, 8)`` in VTK order."""
     g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
     idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
     hexes = np.array([[idx[a] for a in [(i, j, k), (i + 1, j, k), (i + 1, j + 1, k), (i, j + 1, k), (i, j, k + 1),
                                          (i + 1, j, k + 1), (i + 1, j + 1, k + 1), (i, j + 1, k + 1)]]
                       for i in range(n) for j in range(n) for k in range(n)])
+    return g, idx, hexes
+
+
+def test_untangle_slides_boundary_vertices_on_the_surface_and_keeps_sharp_ones():
+    from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
+    from torchconn.hexmesh.hex_untangle import untangle
+
+    n = 3
+    g, idx, hexes = _hex_grid(n)
     quads = boundary_quads_of(hexes)
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     P = g.copy()
@@ -491,12 +498,7 @@ def test_untangle_runs_further_solves_while_the_minimum_rises():
     from torchconn.hexmesh.quality import boundary_quads_of, scaled_jacobian
     from torchconn.hexmesh.hex_untangle import UNTANGLE_PASSES, untangle
 
-    n = 6
-    g = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    hexes = np.array([[idx[a] for a in [(i, j, k), (i + 1, j, k), (i + 1, j + 1, k), (i, j + 1, k), (i, j, k + 1),
-                                         (i + 1, j, k + 1), (i + 1, j + 1, k + 1), (i, j + 1, k + 1)]]
-                      for i in range(n) for j in range(n) for k in range(n)])
+    g, _, hexes = _hex_grid(6)
     bv = np.unique(boundary_quads_of(hexes).reshape(-1))
     inner = np.setdiff1d(np.arange(len(g)), bv)
     rng = np.random.default_rng(0)
