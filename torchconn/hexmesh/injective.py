@@ -24,8 +24,8 @@ rounds where tets stay inverted — both with the fitting term relieved (:data:`
 the barrier energy at the full fitting weight with every tet held positive.
 
 Each Newton step: the per-tet gradients and ``9 x 9`` Hessians in ``J`` (batched closed forms in
-torch, :mod:`.tet_energies`), each Hessian projected onto the positive
-semidefinite cone (eigenvalues clamped at 0, only where a Cholesky attempt fails), assembled in
+torch, :mod:`.tet_energies`), each Hessian projected onto the positive semidefinite cone
+(its negative eigenvalues set to 0, from the isotropic energies' analytic eigensystem), assembled in
 the eliminated space, ``H = (G Z)^T blockdiag(H_t) (G Z)``, and one sparse Cholesky solve
 (:mod:`.solver`). With the barrier energy the line search never crosses ``det J_t + eps_t = 0``: the step is capped at
 0.9 times the first positive root of the cubic ``det(J_t + s dJ_t) + eps_t`` over all tets

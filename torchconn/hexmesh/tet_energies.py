@@ -319,8 +319,8 @@ def barrier_terms(J: torch.Tensor, eps: torch.Tensor, w_fit: float, w_sd: float,
     Returns:
         ``(f (T,), g (T, 9), H (T, 9, 9) or None)``: the energy per unit volume, its gradient and
         its Hessian (row-major entry order ``3 i + k``): the fitting term's ``2 w_fit I`` plus the
-        symmetric Dirichlet term's Hessian projected onto the PSD cone (eigenvalues clamped at 0
-        where a Cholesky attempt fails), so ``H >= 2 w_fit I``.
+        symmetric Dirichlet term's Hessian projected onto the PSD cone (its negative eigenvalues
+        set to 0, :func:`_isotropic_psd`), so ``H >= 2 w_fit I``.
     """
     j = J.reshape(-1, 9)
     eye = torch.eye(3, dtype=J.dtype, device=J.device).reshape(9)
