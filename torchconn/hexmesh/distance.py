@@ -33,7 +33,7 @@ HAUSDORFF_ABS_ACCURACY_REL = 1e-4
 HAUSDORFF_MAX_EVALUATIONS = 4_000_000
 #: Unit normals closer than this count as parallel when the Hausdorff bounds treat adjacent
 #: target triangles as one plane (the residual tilt is added to the bound as slack).
-_FLAT_NORMAL_TOL = 1e-9
+FLAT_NORMAL_TOL = 1e-9
 #: Rows per block in the vectorized per-hex and per-triangle computations (bounds the memory:
 #: about 0.3 GB per block for the Hausdorff bounds).
 _CHUNK = 100_000
@@ -101,7 +101,7 @@ def _point_triangle_distance(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
 class _Target:
     """A target surface ``(vertices, triangles)`` for distance queries, with what the certified
     bounds of :func:`_one_sided_hausdorff` need: unit normals, and per vertex whether its fan is
-    flat (every incident normal within :data:`_FLAT_NORMAL_TOL` of the mean, angles summing to
+    flat (every incident normal within :data:`FLAT_NORMAL_TOL` of the mean, angles summing to
     ``2 pi``) with the radius ``rho`` of the disk around it that the fan covers."""
 
     def __init__(self, v: np.ndarray, f: np.ndarray):
@@ -132,7 +132,7 @@ class _Target:
         angle_sum = np.bincount(corner_v, weights=ang, minlength=V)
         rho = np.full(V, np.inf)
         np.minimum.at(rho, corner_v, _point_segment_distance(w, a, b))  # distance to the opposite side
-        flat = (nlen > 0) & (dev <= _FLAT_NORMAL_TOL) & (np.abs(angle_sum - 2 * np.pi) <= 1e-9) & np.isfinite(rho)
+        flat = (nlen > 0) & (dev <= FLAT_NORMAL_TOL) & (np.abs(angle_sum - 2 * np.pi) <= 1e-9) & np.isfinite(rho)
         self.flat_vertex = np.nonzero(flat)[0]
         self.flat_normal, self.flat_rho = nw[self.flat_vertex], rho[self.flat_vertex]
         self.flat_slack = 2.0 * dev[self.flat_vertex] * rho[self.flat_vertex]
@@ -187,7 +187,7 @@ class _Target:
                 eq = fv[:, j, :, None] == fv[:, k, None, :]  # (M, 3, 3): vertex of t_j == vertex of t_k
                 in_k, in_j = eq.any(axis=2), eq.any(axis=1)  # vertices of t_j in t_k, of t_k in t_j
                 nj = self.normal[cand[:, j]]
-                parallel = np.linalg.norm(nj - self.normal[cand[:, k]], axis=1) <= _FLAT_NORMAL_TOL
+                parallel = np.linalg.norm(nj - self.normal[cand[:, k]], axis=1) <= FLAT_NORMAL_TOL
                 ok = (in_k.sum(axis=1) == 2) & parallel
                 if not ok.any():
                     continue

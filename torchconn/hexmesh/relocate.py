@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .distance import _FLAT_NORMAL_TOL as _FLAT  # unit normals (curve edges) this close: one plane (line)
+from .distance import FLAT_NORMAL_TOL as _FLAT  # unit normals (curve edges) this close: one plane (line)
 
 __all__ = ["relocate_singular_vertices", "Relocation", "RELOCATE_WEIGHT"]
 
@@ -183,37 +183,40 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
     vol = torch.linalg.det(D0).abs() / 6.0
     Ea = torch.as_tensor(edges[ea])
     dax = torch.as_tensor(axis / np.linalg.norm(axis, axis=1, keepdims=True))
-    l0 = (X0[Ea[:, 1]] - X0[Ea[:, 0]]).norm(dim=1)
     w = float(weight) / ea.size
 
     def positions(z):
         return X0.index_add(0, vi, Bdir * z[:, None])
 
+    def arcs(Y):  # the arc edges' vectors and their parts along their axes
+        d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
+        return d, (d * dax).sum(1, keepdim=True)
+
+    def across_sq(d, along):  # |P_e d_e|^2 / l_e^2 (squared: a smooth term, finite gradient on the axis)
+        return (d - along * dax).square().sum(1) / l0.square()
+
+    d0, along0 = arcs(X0)
+    l0 = d0.norm(dim=1)
     # the side of its axis each edge runs to: its hex count (3 or 5) is read from that sign
     # (an edge exactly across its axis has no side and is not held to one)
-    side = torch.sign((X0[Ea[:, 1]] - X0[Ea[:, 0]]).mul(dax).sum(1))
+    side = torch.sign(along0[:, 0])
     sided = side != 0
-
-    def across_sq(Y):  # |P_e d_e|^2 / l_e^2 (squared: a smooth term, finite gradient on the axis)
-        d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
-        perp = d - (d * dax).sum(1, keepdim=True) * dax
-        return perp.square().sum(1) / l0.square()
 
     def energy(z):
         Y = positions(z)
-        d = Y[Ea[:, 1]] - Y[Ea[:, 0]]
-        if not bool(((d * dax).sum(1) * side > 0)[sided].all()):
+        d, along = arcs(Y)
+        if not bool((along[:, 0] * side > 0)[sided].all()):
             return None  # an edge would turn to the other side of its axis: its class would flip
         sd = _sd_energy(Y, T_, Dinv, vol)
         if sd is None:
             return None
-        return sd + w * across_sq(Y).sum()
+        return sd + w * across_sq(d, along).sum()
 
     z = torch.zeros(len(cols), dtype=torch.float64, requires_grad=True)
     f = energy(z)
     # (finite: J = I at the start, every tet of a TetMesh positive, every sided edge on its side)
     out.energy_before = float(f.detach())
-    out.misalignment_before = float(across_sq(X0).sqrt().mean())
+    out.misalignment_before = float(across_sq(d0, along0).sqrt().mean())
     g, = torch.autograd.grad(f, z)
     S, Yh = [], []
     it = 0
@@ -259,7 +262,7 @@ def relocate_singular_vertices(mesh, charts, *, rings: int = 2, weight: float = 
         Y = positions(z.detach())
     out.iterations = it
     out.energy_after = float(f.detach())
-    out.misalignment_after = float(across_sq(Y).sqrt().mean())
+    out.misalignment_after = float(across_sq(*arcs(Y)).sqrt().mean())
     disp = (Y - X0).norm(dim=1)
     out.moved = int((disp > 0).sum())
     out.free_dofs = len(cols)
