@@ -23,6 +23,7 @@ from torchconn.lie import so3
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"sh": {"n_smooth_iters": 5}}
 ONE = {**FAST, "starts": ["sh"]}  # one start: the tests of the optimization loop itself
+TWO = {**FAST, "starts": ["sh", "mbo"]}  # both starts (the default is the SH start alone)
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +83,8 @@ def test_in_memory_mesh_writes_no_files(tmp_path, monkeypatch, mesh):
     monkeypatch.chdir(tmp_path)
     r = design(mesh, steps=3, **FAST)
     assert list(tmp_path.iterdir()) == []
+    assert list(r.histories) == ["sh"] and r.history is r.histories["sh"]  # the default: the SH start alone
+    r = design(mesh, steps=3, **TWO)
     assert list(r.histories) == ["sh", "mbo"] and r.history is r.histories[r.metrics["chosen"]["start"]]
     assert isinstance(r, FrameFieldResult)
     V, E, T = mesh.n_vertices, mesh.n_edges, mesh.n_tets
@@ -115,7 +118,7 @@ def test_callback_sees_every_step_and_stops_early(mesh):
     def cb(step, record):
         seen.append((step, record["total"]))
 
-    r = design(mesh, steps=4, callback=cb, **FAST)
+    r = design(mesh, steps=4, callback=cb, **TWO)
     assert [s for s, _ in seen] == [1, 2, 3, 4, 5, 6, 7, 8]  # counted across the two starts
     assert [t for _, t in seen] == r.histories["sh"]["total"] + r.histories["mbo"]["total"]
 
@@ -180,11 +183,11 @@ def test_resume_from_state_equals_uninterrupted(mesh):
         torch.save(state, buf)
         states[(state["start"], state["step"])] = buf.getvalue()
 
-    full = design(mesh, steps=6, checkpoint_every=2, on_checkpoint=keep, **FAST)
+    full = design(mesh, steps=6, checkpoint_every=2, on_checkpoint=keep, **TWO)
     assert sorted(states) == sorted((s, k) for s in ("sh", "mbo") for k in (0, 2, 4, 6))
     for key, iters in ((("sh", 2), 4 + 6), (("mbo", 4), 2)):  # inside the first start, inside the second
         state = torch.load(_io.BytesIO(states[key]), weights_only=False)
-        resumed = design(mesh, steps=6, state=state, **FAST)
+        resumed = design(mesh, steps=6, state=state, **TWO)
         assert torch.equal(full.vertex_frames, resumed.vertex_frames)
         assert full.histories == resumed.histories and resumed.timings["iterations"] == iters
 

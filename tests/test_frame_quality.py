@@ -209,7 +209,8 @@ def test_the_returned_field_is_the_connection_methods(cyl):
     """Every candidate descends from a connection optimization (its start: the SH or the MBO field);
     the SH field is the yardstick of the proxies, never a candidate (issue 23)."""
     m, _ = cyl
-    kw = {"sh": {"n_smooth_iters": 5}, "steps": 10, "quality": {"dirichlet_weights": [2.0], "iters": 10}}
+    kw = {"sh": {"n_smooth_iters": 5}, "steps": 10, "quality": {"dirichlet_weights": [2.0], "iters": 10},
+          "starts": ["sh", "mbo"]}
     r = design(m, **kw)
     c = r.metrics["chosen"]
     assert c["by"] == "proxies" and c["start"] in ("sh", "mbo") and r.timings["quality_s"] > 0

@@ -44,7 +44,8 @@ def _run_cli(args, cwd=ROOT, timeout=300):
 
 def test_cli_end_to_end(tmp_path):
     out = tmp_path / "cli"
-    r = _run_cli(["mesh=cylinder", "edge_length=0.6", "steps=3", "sh.n_smooth_iters=5", f"output_dir={out}", "num_threads=1",
+    r = _run_cli(["mesh=cylinder", "edge_length=0.6", "steps=3", "sh.n_smooth_iters=5", "starts=[sh,mbo]",
+                  f"output_dir={out}", "num_threads=1",
                   f"hydra.run.dir={tmp_path / 'hydra'}",
                   "checkpoint_every=2"])
     assert r.returncode == 0, r.stderr[-3000:]

@@ -151,8 +151,10 @@ class FrameOptions:
     #: and every candidate the method may return descends from one of these optimizations (no
     #: fallback to a start field): sh (the SH field of Ray et al. 2016, also the reference whose
     #: metrics are reported beside the result) and mbo (the MBO field of torchconn.frames.mbo,
-    #: Palmer, Bommes & Solomon 2020; the two reach different singular structures).
-    starts: list[str] = option(list(STARTS), choices=STARTS)
+    #: Palmer, Bommes & Solomon 2020; the two reach different singular structures). Default sh
+    #: alone: on the 35 HexMe c models no candidate of the MBO start gave a good hex mesh that the
+    #: SH start's candidates did not (docs/results/hexmesh.md, 2026-11-28).
+    starts: list[str] = option(["sh"], choices=STARTS)
     #: sharp-edge threshold of the boundary constraint (torchconn.frames.constraints)
     feature_angle_deg: float = option(30.0, lo=0, hi=180)
     #: rho of the smooth and tie terms: 2 = squared (Dirichlet), 1 = total variation (smoothed by
