@@ -373,6 +373,37 @@ def test_driver_on_the_hairpin_and_on_a_clean_field():
         repair_singular_graph(box, _identity(box), max_rounds=-1)
 
 
+def test_driver_splits_again_only_after_a_split_led_to_a_move(monkeypatch):
+    """A split pass makes room around the stuck vertices; another pass follows only when the rounds
+    after the last one made a move, and a vertex that found no move is tried again after a split
+    only when a split edge is within two rings of it (moves stubbed: none is ever found)."""
+    import torchconn.hexmesh.repair.driver as drv
+
+    mesh, F, (p, q, v) = hairpin()
+    tried, splits = [], []
+    monkeypatch.setattr(drv, "best_move", lambda g, lookup, x, kinds=None: tried.append(x))
+    monkeypatch.setattr(drv, "chain_move", lambda g, lookup, x, *a, **k: [])
+
+    def room(g, lookup, stuck):
+        out = drv_room(g, lookup, stuck)
+        splits.append((len(out), list(stuck)))
+        return out
+
+    drv_room = drv.room_edges
+    monkeypatch.setattr(drv, "room_edges", room)
+    fm, rep = repair_singular_graph(mesh, F, split_passes=3)
+    assert len(splits) == 1 and splits[0][0] > 0  # one pass: it led to no move, so no second one
+    assert rep.stopped == "no_move" and rep.splits == splits[0][0] and rep.after["zipper_nodes"] == 1
+    first, again = tried[:len(splits[0][1])], tried[len(splits[0][1]):]
+    assert sorted(first) == sorted(splits[0][1]) and again
+    # every vertex tried again is within two rings of a split edge (its ends or its midpoint)
+    E = rep.mesh.edges.numpy()
+    near = np.arange(mesh.n_vertices, rep.mesh.n_vertices)  # the midpoints
+    for _ in range(2):
+        near = np.unique(E[np.isin(E, near).any(1)])
+    assert set(again) <= set(near.tolist())
+
+
 def test_group_helpers_are_consistent():
     G = group_matrices()
     assert _TYP[0] == 0 and (_TYP[1:] > 0).all() and G.shape == (24, 3, 3)

@@ -7,8 +7,10 @@ on (:meth:`.graph.SingularGraph.bad_vertices`, worst first), makes at each the c
 lowers the cost most (:func:`.ops.best_move`) or, at a vertex with a condition where no single
 move does, a chain of moves (:func:`chain_move`); a vertex that found no move is not tried again
 until a move changes its neighbourhood. When a round makes no move, the constrained edges
-around the stuck vertices are split (:func:`room_edges`, at most ``split_passes`` times) and the
-rounds go on. It stops when no vertex is left, when a round makes no move and no split helps,
+around the stuck vertices are split (:func:`room_edges`, at most ``split_passes`` times, and again
+only when the rounds after the last split made a move) and the rounds go on; after a split a
+vertex that had found no move is tried again only when a split edge is within two rings of it.
+It stops when no vertex is left, when a round makes no move and no split helps,
 or after ``max_rounds`` rounds (the budget: LMFF runs about a hundred rounds of
 repair and relocation; a round here costs about one candidate evaluation per pair of special
 edges, product and path at every bad vertex). The cost falls at every move, so the rounds
@@ -161,8 +163,9 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         chain_depth: where no single move lowers the cost, a chain of up to this many moves
             (:func:`chain_move`; 0: single moves only).
         split_passes: when a round makes no move, split the constrained edges around the stuck
-            vertices (:func:`room_edges`) and go on, at most this many times (0: never split;
-            then the returned matchings are on the input mesh).
+            vertices (:func:`room_edges`) and go on, at most this many times and only while the
+            last split led to a move (0: never split; then the returned matchings are on the
+            input mesh).
         slide: also slide the ends of arcs that touch the boundary about a tangent axis along
             the surface (:func:`.ops.slide_moves`: single moves at touching ends, and within the
             chains that start at a condition; no chain starts at a touching end — on the 35 HexMe
@@ -199,7 +202,7 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
         from tqdm.auto import tqdm
 
         bar = tqdm(total=max_rounds, desc="repair", unit="round", leave=False)
-    stopped, r, n_split, passes = "budget", 0, 0, 0
+    stopped, r, n_split, passes, since_split = "budget", 0, 0, 0, 0
     clock, stamp, failed = 1, np.ones(g.V, np.int64), np.zeros(g.V, np.int64)
     kinds = None if slide else tuple(k for k in MOVE_KINDS if k != "slide_end")
     try:
@@ -232,6 +235,7 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                     near = np.unique(np.concatenate([g.edges[lookup.vertex_edges(int(x))].reshape(-1) for x in near]))
                     stamp[near] = clock
                 made += len(kept)
+                since_split += len(kept)
                 if not kept:
                     failed[v] = clock
                     stuck.append(v)
@@ -240,7 +244,10 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                 bar.update(1)
                 bar.set_postfix(zipper=c["zipper_nodes"], invalid=c["invalid_nodes"], moves=made)
             if not made:
-                pairs = room_edges(g, lookup, np.asarray(stuck, np.int64)) if passes < split_passes else np.zeros((0, 2))
+                # another split pass only when the last one led to a move (a pass that made room
+                # for none is not repeated around the same stuck vertices)
+                more = passes < split_passes and (passes == 0 or since_split > 0)
+                pairs = room_edges(g, lookup, np.asarray(stuck, np.int64)) if more else np.zeros((0, 2))
                 if not len(pairs):
                     stopped = "no_move"
                     break
@@ -250,11 +257,20 @@ def repair_singular_graph(mesh, tet_frames, face_match: np.ndarray | None = None
                 mesh, Fr, par, fm = split_pairs(mesh, Fr, pairs, g.match)
                 parent = parent[par]
                 n_split += int(len(pairs))
-                passes += 1
+                passes, since_split = passes + 1, 0
                 g = SingularGraph(mesh, Fr, fm, weights=weights, features=features)
                 lookup = MeshLookup(mesh)
+                # the split keeps the old vertices' indices and appends the midpoints: a vertex
+                # that found no move keeps that verdict unless a split edge is in its two rings
+                # (the rule by which a move re-opens its neighbours, above)
                 clock += 1
-                stamp, failed = np.full(g.V, clock, np.int64), np.zeros(g.V, np.int64)
+                V_old = stamp.size
+                near = np.unique(np.concatenate([np.asarray(pairs, np.int64).reshape(-1), np.arange(V_old, g.V)]))
+                for _ in range(2):  # loop over the two rings
+                    near = np.unique(g.edges[np.isin(g.edges, near).any(1)].reshape(-1))
+                stamp = np.concatenate([stamp, np.zeros(g.V - V_old, np.int64)])
+                failed = np.concatenate([failed, np.zeros(g.V - V_old, np.int64)])
+                stamp[near] = clock
     finally:
         if bar is not None:
             bar.close()
