@@ -142,10 +142,11 @@ def collapse_edge(mesh, tet_frames, a: int, b: int, face_match: np.ndarray):
     old_ft = mesh.face_tets.cpu().numpy()
     old_tf = mesh.tet_faces.cpu().numpy()
     fm = np.asarray(face_match)
-    pair_face = {}
-    for f in np.nonzero((old_ft >= 0).all(1))[0]:
-        pair_face[(int(old_ft[f, 0]), int(old_ft[f, 1]))] = f
-        pair_face[(int(old_ft[f, 1]), int(old_ft[f, 0]))] = f
+    # the old interior faces by their (unordered) pair of tets, as sorted keys
+    inner = np.nonzero((old_ft >= 0).all(1))[0]
+    lo, hi = old_ft[inner].min(1), old_ft[inner].max(1)
+    order = np.argsort(lo * T + hi)
+    old_keys, old_faces = (lo * T + hi)[order], inner[order]
     # through a vanished tet: its two faces without the edge's other end glue its neighbours
     glue = {}
     faces_old = mesh.faces.cpu().numpy()
@@ -163,18 +164,26 @@ def collapse_edge(mesh, tet_frames, a: int, b: int, face_match: np.ndarray):
         P, Q = nb(fa), nb(fb)
         g = int(GROUP_MUL[_oriented(fm, old_ft, fa, P), _oriented(fm, old_ft, fb, t)])
         glue[(P, Q)] = g
+    from .cut import GROUP_INV
+
     nft = new.face_tets.cpu().numpy()
     new_fm = np.zeros(nft.shape[0], np.int64)
-    for f in np.nonzero((nft >= 0).all(1))[0]:
-        P, Q = int(parent[nft[f, 0]]), int(parent[nft[f, 1]])
-        if (P, Q) in pair_face:
-            new_fm[f] = _oriented(fm, old_ft, pair_face[(P, Q)], P)
-        elif (P, Q) in glue:
-            new_fm[f] = glue[(P, Q)]
-        elif (Q, P) in glue:
-            from .cut import GROUP_INV
-
-            new_fm[f] = GROUP_INV[glue[(Q, P)]]
+    nf = np.nonzero((nft >= 0).all(1))[0]
+    P, Q = parent[nft[nf, 0]], parent[nft[nf, 1]]
+    k = np.minimum(P, Q) * T + np.maximum(P, Q)
+    if old_keys.size:
+        pos = np.minimum(np.searchsorted(old_keys, k), old_keys.size - 1)
+        hit = old_keys[pos] == k
+    else:
+        pos, hit = np.zeros(k.size, np.int64), np.zeros(k.size, bool)
+    fo = old_faces[pos[hit]]
+    g = fm[fo]
+    new_fm[nf[hit]] = np.where(old_ft[fo, 0] == P[hit], g, GROUP_INV[g])  # oriented from P
+    for f, p, q in zip(nf[~hit].tolist(), P[~hit].tolist(), Q[~hit].tolist()):  # loop over the glued faces (a few)
+        if (p, q) in glue:
+            new_fm[f] = glue[(p, q)]
+        elif (q, p) in glue:
+            new_fm[f] = GROUP_INV[glue[(q, p)]]
         else:  # two tets that met only through several vanished tets: not handled
             return None
     # ---- CAD tags
