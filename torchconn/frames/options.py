@@ -153,7 +153,8 @@ class FrameOptions:
     #: metrics are reported beside the result) and mbo (the MBO field of torchconn.frames.mbo,
     #: Palmer, Bommes & Solomon 2020; the two reach different singular structures). Default sh
     #: alone: on the 35 HexMe c models no candidate of the MBO start gave a good hex mesh that the
-    #: SH start's candidates did not (docs/results/hexmesh.md, 2026-11-28).
+    #: SH start's candidates did not; on the simple u meshes it gives s06's (docs/results/hexmesh.md,
+    #: 2026-11-28: the time targets of the c models against one more good u mesh).
     starts: list[str] = option(["sh"], choices=STARTS)
     #: sharp-edge threshold of the boundary constraint (torchconn.frames.constraints)
     feature_angle_deg: float = option(30.0, lo=0, hi=180)
