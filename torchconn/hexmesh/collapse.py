@@ -30,11 +30,12 @@ __all__ = ["collapse_edge", "collapse_edges"]
 
 
 def _oriented(face_match, face_tets, fidx, a):
-    """The matching of face ``fidx`` oriented from tet ``a`` to the other one."""
+    """The matching of face ``fidx`` oriented from tet ``a`` to the other one (``fidx`` and ``a``
+    scalars or arrays of one shape)."""
     from .cut import GROUP_INV
 
-    g = int(face_match[fidx])
-    return g if face_tets[fidx, 0] == a else int(GROUP_INV[g])
+    g = np.asarray(face_match)[fidx]
+    return np.where(face_tets[fidx, 0] == a, g, GROUP_INV[g])
 
 
 def _signed_volumes(X: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -83,7 +84,7 @@ def collapse_edge(mesh, tet_frames, a: int, b: int, face_match: np.ndarray):
     """
     from ..mesh.cad import cad_tags_from_elements
     from ..mesh.tet import MeshError, TetMesh
-    from .cut import GROUP_MUL
+    from .cut import GROUP_INV, GROUP_MUL
 
     tets = mesh.tets.cpu().numpy()
     X = mesh.vertices.detach().cpu().double().numpy()
@@ -164,8 +165,6 @@ def collapse_edge(mesh, tet_frames, a: int, b: int, face_match: np.ndarray):
         P, Q = nb(fa), nb(fb)
         g = int(GROUP_MUL[_oriented(fm, old_ft, fa, P), _oriented(fm, old_ft, fb, t)])
         glue[(P, Q)] = g
-    from .cut import GROUP_INV
-
     nft = new.face_tets.cpu().numpy()
     new_fm = np.zeros(nft.shape[0], np.int64)
     nf = np.nonzero((nft >= 0).all(1))[0]
@@ -176,9 +175,7 @@ def collapse_edge(mesh, tet_frames, a: int, b: int, face_match: np.ndarray):
         hit = old_keys[pos] == k
     else:
         pos, hit = np.zeros(k.size, np.int64), np.zeros(k.size, bool)
-    fo = old_faces[pos[hit]]
-    g = fm[fo]
-    new_fm[nf[hit]] = np.where(old_ft[fo, 0] == P[hit], g, GROUP_INV[g])  # oriented from P
+    new_fm[nf[hit]] = _oriented(fm, old_ft, old_faces[pos[hit]], P[hit])
     for f, p, q in zip(nf[~hit].tolist(), P[~hit].tolist(), Q[~hit].tolist()):  # loop over the glued faces (a few)
         if (p, q) in glue:
             new_fm[f] = glue[(p, q)]
